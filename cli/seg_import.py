@@ -1,0 +1,36 @@
+"""``seggaussian import SCENE.ply --out DIR``: validated standard 3DGS PLY plus a JSON report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cli._output import finish, json_option
+
+
+@click.command("import")
+@click.argument("scene", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder: <stem>.ply (binary little endian, Inria layout) and <stem>.import.json.")
+@click.option("--on-invalid", type=click.Choice(["error", "drop", "repair"]), default="error", show_default=True,
+              help="Non-finite values, zero quaternions, overflowing log-scales, saturated opacity logits: "
+                   "refuse, drop those rows, or repair them (see seggaussian/io/validate.py).")
+@json_option
+def command(scene: Path, out_dir: Path, on_invalid: str, as_json: bool) -> None:
+    """Read a 3DGS PLY, validate it, write a standard PLY and a JSON report into OUT."""
+    from seggaussian.io.ply import PlyFormatError
+    from seggaussian.io.ply_import import ImportConfig, import_ply
+
+    try:
+        result = import_ply(scene, out_dir, ImportConfig(on_invalid=on_invalid))
+    except (PlyFormatError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    report = result.report
+    summary = (f"imported {result.num_gaussians} Gaussians (SH degree {result.sh_degree}) from {scene} "
+               f"-> {result.ply_path}; {report.describe_actions()}")
+    payload = {"source": result.source, "ply": result.ply_path, "report": result.report_path,
+               "num_gaussians": result.num_gaussians, "sh_degree": result.sh_degree,
+               "validation": report.to_dict()}
+    details = None if report.ok else f"found: {report.describe_issues()}"
+    finish(summary, payload, as_json, details)
