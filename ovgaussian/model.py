@@ -1,0 +1,275 @@
+"""The OVGaussian network: voxelized Gaussians -> sparse U-Net -> voxel-to-point adapter -> s [N, 16].
+
+Data flow of :meth:`OVGaussianNet.forward` (paper section 3, supplementary B):
+
+1. ``attributes [N, 11]`` (see :func:`gaussian_attributes`; ``[N, 14]`` with normalized coordinates)
+   are mean-pooled into voxels of ``config.voxel_size`` per scene (``ovgaussian.sparse.voxelize``).
+2. A sparse U-Net in the MinkUNet34C layout maps them to voxel features ``[M, 16]``.
+3. The voxel-to-point adapter fuses each Gaussian's voxel feature with its own attributes:
+
+       m_i = MHA(Q(f_i), K(t_i), V(t_i))            f_i = voxel feature of g_i's voxel [16]
+       s_i = MLP(concat(m_i, f_i)) + f_i            MLP 27 -> 96 -> 96 -> 16 (ReLU between)
+
+   Interpretation (the paper gives the equations and widths, not every detail): the keys and values
+   are tokens made from the Gaussian's own attributes, one token per attribute group (colour,
+   opacity, scales, rotation, and coordinates when enabled), each embedded by its own linear layer
+   so that attention has something to choose between; the attention output is projected back to
+   the attribute width (11), so that ``concat(m_i, f_i)`` has 11 + 16 = 27 channels, matching the
+   first MLP width of supplementary B (16-d semantic vector + 4 + 3 + 3 + 1 attributes). The key
+   projection has no bias (a bias shared by all keys cancels in the softmax and would get no
+   gradient). The last MLP layer has no ReLU (its output is a residual that must be signed).
+4. Decoders ``phi`` and ``psi``: MLP 16 -> 128 -> D with a ReLU after the hidden layer only (a ReLU
+   on the output would confine the embeddings to the positive orthant, away from text embeddings).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+import torch
+from torch import Tensor, nn
+
+from ovgaussian.model_config import NUM_GAUSSIAN_ATTRIBUTES, OVGaussianNetConfig
+from ovgaussian.sparse import (
+    DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxelize_points,
+)
+from seggaussian.constants import LOG_SCALE_FLOAT32_MAX, QUAT_NORM_EPS, SH_C0
+
+#: Attribute groups of :func:`gaussian_attributes`, in column order (name, width).
+ATTRIBUTE_GROUPS = (("colour", 3), ("opacity", 1), ("scales", 3), ("quats", 4))
+#: A scene whose half-extent is below this (metres; e.g. one Gaussian) is not rescaled when its
+#: coordinates are normalized (avoids dividing by zero).
+COORD_NORMALIZATION_MIN_EXTENT = 1e-6
+
+
+def gaussian_attributes(gaussians: "Mapping[str, Tensor] | object") -> Tensor:
+    """``[N, 11]`` float32 network inputs, columns in this order:
+
+    0-2 ``colour``: DC colour ``0.5 + SH_C0 * f_dc`` (not clamped);
+    3 ``opacity``: ``sigmoid(opacity_logits)``;
+    4-6 ``scales``: ``exp(log_scales)`` in metres (log-scales clamped at ``LOG_SCALE_FLOAT32_MAX``);
+    7-10 ``quats``: unit quaternions ``w, x, y, z`` (zero-norm rows become the identity).
+
+    Args:
+        gaussians: a ``seggaussian.gaussians.Gaussians`` or the mapping of its ``to_torch()``
+            (``quats [N, 4]``, ``log_scales [N, 3]``, ``opacity_logits [N]``, ``sh [N, K, 3]``).
+    """
+    if hasattr(gaussians, "to_torch"):
+        gaussians = gaussians.to_torch()
+    tensors = {}
+    for name in ("quats", "log_scales", "opacity_logits", "sh"):
+        if name not in gaussians:
+            raise ValueError(f"gaussian_attributes: missing field {name!r}")
+        t = torch.as_tensor(gaussians[name]).float()
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"gaussian_attributes: field {name!r} contains NaN or Inf")
+        tensors[name] = t
+    quats = tensors["quats"]
+    norms = quats.norm(dim=1, keepdim=True)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=quats.device).expand_as(quats)
+    unit = torch.where(norms > QUAT_NORM_EPS, quats / norms.clamp_min(QUAT_NORM_EPS), identity)
+    colour = 0.5 + SH_C0 * tensors["sh"][:, 0, :]
+    opacity = torch.sigmoid(tensors["opacity_logits"].reshape(-1, 1))
+    scales = torch.exp(tensors["log_scales"].clamp(max=LOG_SCALE_FLOAT32_MAX))
+    return torch.cat([colour, opacity, scales, unit], dim=1)
+
+
+def normalized_coordinates(means: Tensor, batch_index: Tensor) -> Tensor:
+    """``[N, 3]`` positions minus their scene's bounding-box centre, over its largest half-extent."""
+    num_scenes = int(batch_index.max()) + 1 if means.shape[0] else 0
+    idx = batch_index.long()[:, None].expand(-1, 3)
+    big = torch.finfo(means.dtype).max
+    lo = means.new_full((num_scenes, 3), big).scatter_reduce(0, idx, means, reduce="amin")
+    hi = means.new_full((num_scenes, 3), -big).scatter_reduce(0, idx, means, reduce="amax")
+    centre = 0.5 * (lo + hi)
+    half = (0.5 * (hi - lo)).amax(dim=1).clamp_min(COORD_NORMALIZATION_MIN_EXTENT)
+    return (means - centre[batch_index]) / half[batch_index, None]
+
+
+def _relu(x: SparseVoxels) -> SparseVoxels:
+    return SparseVoxels(torch.relu(x.features), x.sites)
+
+
+class ConvBnRelu(nn.Module):
+    """Submanifold conv (or down conv), batch norm, ReLU."""
+
+    def __init__(self, conv: nn.Module, out_channels: int) -> None:
+        super().__init__()
+        self.conv, self.norm = conv, SparseBatchNorm(out_channels)
+
+    def forward(self, x: SparseVoxels, *args) -> SparseVoxels:
+        return _relu(self.norm(self.conv(x, *args)))
+
+
+class BasicBlock(nn.Module):
+    """Residual block: conv3-BN-ReLU-conv3-BN (+ 1x1 conv-BN shortcut when widths differ), ReLU."""
+
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__()
+        self.conv1, self.norm1 = SubmanifoldConv3d(in_channels, out_channels, 3), SparseBatchNorm(out_channels)
+        self.conv2, self.norm2 = SubmanifoldConv3d(out_channels, out_channels, 3), SparseBatchNorm(out_channels)
+        self.shortcut = (
+            nn.Sequential(SubmanifoldConv3d(in_channels, out_channels, 1), SparseBatchNorm(out_channels))
+            if in_channels != out_channels else None
+        )
+
+    def forward(self, x: SparseVoxels) -> SparseVoxels:
+        y = self.norm2(self.conv2(_relu(self.norm1(self.conv1(x)))))
+        residual = self.shortcut(x) if self.shortcut is not None else x
+        return SparseVoxels(torch.relu(y.features + residual.features), x.sites)
+
+
+def _blocks(in_channels: int, out_channels: int, count: int) -> nn.Sequential:
+    layers = []
+    for _ in range(count):
+        layers.append(BasicBlock(in_channels, out_channels))
+        in_channels = out_channels
+    return nn.Sequential(*layers)
+
+
+class SparseUNet(nn.Module):
+    """MinkUNet34C layout: stem, 4 x (down conv + blocks), 4 x (up conv + skip concat + blocks), linear.
+
+    Encoder stage i: ``DownConv(prev -> prev)``-BN-ReLU, then ``blocks[i]`` BasicBlocks to ``widths[i]``.
+    Decoder stage j: ``UpConv(prev -> widths[4+j])``-BN-ReLU, concat with the encoder output of the same
+    level (stem output for the last), ``blocks[4+j]`` BasicBlocks to ``widths[4+j]``.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, config: OVGaussianNetConfig) -> None:
+        super().__init__()
+        w, b = config.widths, config.blocks
+        self.stem = ConvBnRelu(SubmanifoldConv3d(in_channels, config.stem_width, config.stem_kernel_size), config.stem_width)
+        skip_widths = [config.stem_width]
+        self.down, self.encoder = nn.ModuleList(), nn.ModuleList()
+        prev = config.stem_width
+        for i in range(4):
+            self.down.append(ConvBnRelu(DownConv3d(prev, prev), prev))
+            self.encoder.append(_blocks(prev, w[i], b[i]) if b[i] else nn.Sequential())
+            prev = w[i] if b[i] else prev
+            skip_widths.append(prev)
+        self.up, self.decoder = nn.ModuleList(), nn.ModuleList()
+        for j in range(4):
+            self.up.append(ConvBnRelu(UpConv3d(prev, w[4 + j]), w[4 + j]))
+            cat = w[4 + j] + skip_widths[3 - j]
+            self.decoder.append(_blocks(cat, w[4 + j], b[4 + j]) if b[4 + j] else nn.Sequential())
+            prev = w[4 + j] if b[4 + j] else cat
+        self.head = nn.Linear(prev, out_channels)
+
+    def forward(self, x: SparseVoxels) -> Tensor:
+        """``[M, out_channels]`` features on the input sites."""
+        x = self.stem(x)
+        skips = [x]
+        for down, blocks in zip(self.down, self.encoder):
+            x = blocks(down(x))
+            skips.append(x)
+        for j, (up, blocks) in enumerate(zip(self.up, self.decoder)):
+            skip = skips[3 - j]
+            x = up(x, skip.sites)
+            x = blocks(SparseVoxels(torch.cat([x.features, skip.features], dim=1), skip.sites))
+        return self.head(x.features)
+
+
+class VoxelToPointAdapter(nn.Module):
+    """Attention from a Gaussian's voxel feature (query) to its attribute tokens (keys, values), then
+    ``s = MLP(concat(m, f)) + f`` (module docstring: interpretation of the paper)."""
+
+    def __init__(self, config: OVGaussianNetConfig) -> None:
+        super().__init__()
+        groups = [w for _, w in ATTRIBUTE_GROUPS] + ([3] if config.use_coordinates else [])
+        self.group_widths = tuple(groups)
+        a, s = config.adapter_attention_width, config.semantic_width
+        self.heads = config.adapter_heads
+        self.token_embed = nn.ModuleList(nn.Linear(g, a) for g in groups)
+        self.query = nn.Linear(s, a)
+        self.key = nn.Linear(a, a, bias=False)
+        self.value = nn.Linear(a, a)
+        self.out = nn.Linear(a, config.num_attributes)
+        widths = [config.num_attributes + s, *config.adapter_hidden, s]
+        layers: list[nn.Module] = []
+        for i in range(len(widths) - 1):
+            layers.append(nn.Linear(widths[i], widths[i + 1]))
+            if i < len(widths) - 2:
+                layers.append(nn.ReLU())
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, voxel_features: Tensor, attributes: Tensor) -> Tensor:
+        """``voxel_features [N, S]`` (per Gaussian), ``attributes [N, A]`` -> semantic ``[N, S]``."""
+        n = attributes.shape[0]
+        chunks = torch.split(attributes, self.group_widths, dim=1)
+        tokens = torch.stack([embed(c) for embed, c in zip(self.token_embed, chunks)], dim=1)  # [N, T, A]
+        h, t = self.heads, tokens.shape[1]
+        d = tokens.shape[2] // h
+        q = self.query(voxel_features).reshape(n, h, d)  # [N, H, d]
+        k = self.key(tokens).reshape(n, t, h, d)  # [N, T, H, d]
+        v = self.value(tokens).reshape(n, t, h, d)
+        logits = torch.einsum("nhd,nthd->nht", q, k) / math.sqrt(d)
+        attended = torch.einsum("nht,nthd->nhd", torch.softmax(logits, dim=-1), v).reshape(n, h * d)
+        m = self.out(attended)
+        return self.mlp(torch.cat([m, voxel_features], dim=1)) + voxel_features
+
+
+def _decoder(config: OVGaussianNetConfig) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Linear(config.semantic_width, config.decoder_hidden), nn.ReLU(),
+        nn.Linear(config.decoder_hidden, config.embedding_width),
+    )
+
+
+class OVGaussianNet(nn.Module):
+    """Per-Gaussian semantic vectors from Gaussian positions and attributes, plus decoders phi, psi."""
+
+    def __init__(self, config: OVGaussianNetConfig | None = None) -> None:
+        super().__init__()
+        config = config or OVGaussianNetConfig()
+        self.config = config
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed)
+            self.backbone = SparseUNet(config.num_attributes, config.semantic_width, config)
+            if config.use_adapter:
+                self.adapter = VoxelToPointAdapter(config)
+            else:
+                self.point_head = nn.Linear(config.semantic_width, config.semantic_width)
+            self.phi = _decoder(config)
+            self.psi = _decoder(config)
+
+    def prepare_inputs(self, means: Tensor, attributes: Tensor, batch_index: Tensor) -> Tensor:
+        """Validate and return the ``[N, num_attributes]`` network inputs (coordinates appended if enabled)."""
+        n = means.shape[0]
+        if means.ndim != 2 or means.shape[1] != 3:
+            raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}")
+        if batch_index.shape != (n,):
+            raise ValueError(f"batch_index must be [{n}], got {tuple(batch_index.shape)}")
+        if attributes.ndim != 2 or attributes.shape[0] != n:
+            raise ValueError(f"attributes must be [{n}, {self.config.num_attributes}], got {tuple(attributes.shape)}")
+        if not bool(torch.isfinite(means).all()):
+            raise ValueError("means contain NaN or Inf")
+        if not bool(torch.isfinite(attributes).all()):
+            raise ValueError("attributes contain NaN or Inf")
+        width = attributes.shape[1]
+        if self.config.use_coordinates and width == NUM_GAUSSIAN_ATTRIBUTES:
+            attributes = torch.cat([attributes, normalized_coordinates(means.detach(), batch_index)], dim=1)
+        elif width != self.config.num_attributes:
+            raise ValueError(f"attributes have {width} columns, the config expects {self.config.num_attributes}")
+        return attributes
+
+    def forward(
+        self,
+        means: Tensor,  # [N, 3] world positions, metres
+        attributes: Tensor,  # [N, 11] from gaussian_attributes (or [N, 14] with coordinates appended)
+        batch_index: Tensor,  # [N] scene of each Gaussian, 0..B-1
+    ) -> Tensor:
+        """Semantic vectors ``[N, semantic_width]``."""
+        attributes = self.prepare_inputs(means, attributes, batch_index)
+        vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent)
+        voxel_features = self.backbone(vox.voxels)  # [M, S]
+        per_gaussian = voxel_features[vox.point_to_voxel]  # [N, S]
+        if self.config.use_adapter:
+            return self.adapter(per_gaussian, attributes)
+        return self.point_head(per_gaussian)
+
+
+__all__ = [
+    "ATTRIBUTE_GROUPS", "OVGaussianNet", "OVGaussianNetConfig", "SparseUNet", "VoxelToPointAdapter",
+    "VoxelSites", "gaussian_attributes", "normalized_coordinates",
+]

@@ -1,0 +1,215 @@
+"""Integer voxel keys, active-site sets and voxelization of points (one concept: which sites exist).
+
+A sparse grid level is a set of active sites ``(batch, x, y, z)``. Each site is packed into one int64
+key whose order is lexicographic in ``(batch, x, y, z)``, so a sorted key array doubles as a lookup
+table (``torch.searchsorted``) and as a canonical site order. Kernel maps are built from these keys
+in ``kernel_map.py`` and cached on the :class:`VoxelSites` object they belong to, so one batch of
+scenes builds each map (per stride and kernel size) once per forward pass, and a caller that keeps
+the ``VoxelSites`` alive reuses them across passes.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+from torch import Tensor
+
+if TYPE_CHECKING:
+    from ovgaussian.sparse.kernel_map import KernelMap
+
+#: Bits per coordinate in a packed key. Coordinates live in [-2^15, 2^15).
+COORD_BITS = 16
+#: Added to every coordinate so that the packed field is non-negative.
+COORD_OFFSET = 1 << (COORD_BITS - 1)
+#: Coordinates must stay this far inside the packed range so that neighbour keys computed as
+#: ``key + delta`` (kernel offsets up to +-KEY_MARGIN, i.e. kernels up to 17^3) never carry into
+#: the next field and alias another site.
+KEY_MARGIN = 8
+#: Smallest and largest coordinate accepted at any level.
+COORD_MIN = -COORD_OFFSET + KEY_MARGIN
+COORD_MAX = COORD_OFFSET - 1 - KEY_MARGIN
+#: Largest batch index: the batch lives in the top bits above the three coordinate fields
+#: (63 - 48 = 15 bits, keys stay positive).
+BATCH_MAX = (1 << (63 - 3 * COORD_BITS)) - 1
+
+
+def pack_keys(batch_index: Tensor, coords: Tensor) -> Tensor:
+    """``[M]`` int64 keys, increasing in lexicographic ``(batch, x, y, z)`` order.
+
+    Args:
+        batch_index: ``[M]`` integer scene index in ``[0, BATCH_MAX]``.
+        coords: ``[M, 3]`` integer voxel coordinates in ``[COORD_MIN, COORD_MAX]``.
+    """
+    coords = coords.long()
+    batch_index = batch_index.long()
+    if coords.numel():
+        lo, hi = int(coords.min()), int(coords.max())
+        if lo < COORD_MIN or hi > COORD_MAX:
+            raise ValueError(
+                f"voxel coordinates span [{lo}, {hi}], outside the supported [{COORD_MIN}, {COORD_MAX}]; "
+                "use a larger voxel size"
+            )
+        blo, bhi = int(batch_index.min()), int(batch_index.max())
+        if blo < 0 or bhi > BATCH_MAX:
+            raise ValueError(f"batch_index spans [{blo}, {bhi}], outside [0, {BATCH_MAX}]")
+    c = coords + COORD_OFFSET
+    return (
+        (batch_index << (3 * COORD_BITS))
+        | (c[:, 0] << (2 * COORD_BITS))
+        | (c[:, 1] << COORD_BITS)
+        | c[:, 2]
+    )
+
+
+def unpack_keys(keys: Tensor) -> tuple[Tensor, Tensor]:
+    """Inverse of :func:`pack_keys`: ``(batch_index [M], coords [M, 3])``."""
+    mask = (1 << COORD_BITS) - 1
+    x = ((keys >> (2 * COORD_BITS)) & mask) - COORD_OFFSET
+    y = ((keys >> COORD_BITS) & mask) - COORD_OFFSET
+    z = (keys & mask) - COORD_OFFSET
+    return keys >> (3 * COORD_BITS), torch.stack([x, y, z], dim=1)
+
+
+def offset_key_delta(offset: tuple[int, int, int]) -> int:
+    """Key difference between a site and its neighbour at ``offset`` (valid inside the margin)."""
+    dx, dy, dz = offset
+    return (dx << (2 * COORD_BITS)) + (dy << COORD_BITS) + dz
+
+
+class VoxelSites:
+    """The active sites of one grid level for a batch of scenes, with its kernel-map cache.
+
+    Attributes:
+        keys: ``[M]`` int64 packed keys, strictly increasing (this is the site order).
+        batch_index: ``[M]`` int64 scene index of each site.
+        coords: ``[M, 3]`` int64 coordinates in units of this level's voxel.
+        stride: voxel edge of this level in units of the finest level's voxel (1, 2, 4, ...).
+    """
+
+    def __init__(self, keys: Tensor, stride: int = 1) -> None:
+        if keys.ndim != 1 or keys.dtype != torch.int64:
+            raise ValueError(f"keys must be a 1D int64 tensor, got {tuple(keys.shape)} {keys.dtype}")
+        if keys.numel() > 1 and not bool((keys[1:] > keys[:-1]).all()):
+            raise ValueError("keys must be strictly increasing (unique and sorted)")
+        self.keys = keys
+        self.batch_index, self.coords = unpack_keys(keys)
+        self.stride = int(stride)
+        # Kernel-map cache: ("sub", kernel_size) -> KernelMap; "down" -> (coarser sites, KernelMap).
+        self._cache: dict = {}
+
+    @classmethod
+    def from_coords(cls, batch_index: Tensor, coords: Tensor, stride: int = 1) -> tuple["VoxelSites", Tensor]:
+        """Unique sites of possibly repeated ``(batch, coords)`` rows, and the ``[M_rows]`` inverse map."""
+        keys = pack_keys(batch_index, coords)
+        unique_keys, inverse = torch.unique(keys, sorted=True, return_inverse=True)
+        return cls(unique_keys, stride), inverse
+
+    def __len__(self) -> int:
+        return int(self.keys.numel())
+
+    @property
+    def num_scenes(self) -> int:
+        return int(self.batch_index.max()) + 1 if len(self) else 0
+
+    def submanifold_map(self, kernel_size: int) -> "KernelMap":
+        """Cached kernel map of a submanifold conv (outputs = these sites)."""
+        from ovgaussian.sparse.kernel_map import build_submanifold_map
+
+        key = ("sub", int(kernel_size))
+        if key not in self._cache:
+            self._cache[key] = build_submanifold_map(self.keys, int(kernel_size))
+        return self._cache[key]
+
+    def downsample(self) -> tuple["VoxelSites", "KernelMap"]:
+        """Cached coarser level (``floor(coords / 2)``) and the stride-2, kernel-2 map into it."""
+        from ovgaussian.sparse.kernel_map import build_downsample_map
+
+        if "down" not in self._cache:
+            coarse_keys, kmap = build_downsample_map(self.batch_index, self.coords)
+            self._cache["down"] = (VoxelSites(coarse_keys, self.stride * 2), kmap)
+        return self._cache["down"]
+
+
+class SparseVoxels(NamedTuple):
+    """Features on the active sites of one level.
+
+    Attributes:
+        features: ``[M, C]`` one row per site, in ``sites`` order.
+        sites: the :class:`VoxelSites` the rows belong to.
+    """
+
+    features: Tensor
+    sites: VoxelSites
+
+    def replace(self, features: Tensor) -> "SparseVoxels":
+        """Same sites, new ``[M, C']`` features."""
+        if features.shape[0] != len(self.sites):
+            raise ValueError(f"{features.shape[0]} feature rows for {len(self.sites)} sites")
+        return SparseVoxels(features, self.sites)
+
+
+class Voxelization(NamedTuple):
+    """Points grouped into voxels.
+
+    Attributes:
+        voxels: mean-pooled point features on the occupied voxels.
+        point_to_voxel: ``[N]`` int64 row of each point's voxel in ``voxels.features``.
+        voxel_size: ``[B]`` voxel edge (metres) used for each scene.
+        origin: ``[B, 3]`` world position of voxel ``(0, 0, 0)``'s corner for each scene.
+    """
+
+    voxels: SparseVoxels
+    point_to_voxel: Tensor
+    voxel_size: Tensor
+    origin: Tensor
+
+
+def voxelize_points(
+    points: Tensor,  # [N, 3] world positions
+    features: Tensor,  # [N, C] per-point features (mean-pooled per voxel)
+    batch_index: Tensor,  # [N] int scene index, 0..B-1
+    voxel_size: float,
+    max_grid_extent: int,
+) -> Voxelization:
+    """Voxelize points per scene: ``coords = floor((p - scene_min) / voxel_size)``.
+
+    The voxel size of a scene grows beyond ``voxel_size`` only when the scene would span more than
+    ``max_grid_extent`` voxels along some axis; it is then ``extent / (max_grid_extent - 1)`` so that
+    the grid fits (the adaptive cap, reported in ``Voxelization.voxel_size``).
+    Features are mean-pooled per voxel (differentiable in ``features``).
+    """
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be [N, 3], got {tuple(points.shape)}")
+    n = points.shape[0]
+    if features.shape[0] != n or batch_index.shape != (n,):
+        raise ValueError(
+            f"features {tuple(features.shape)} and batch_index {tuple(batch_index.shape)} must have {n} rows"
+        )
+    if not (voxel_size > 0):
+        raise ValueError(f"voxel_size must be positive, got {voxel_size}")
+    if not 1 <= max_grid_extent <= COORD_MAX:
+        raise ValueError(f"max_grid_extent must be in [1, {COORD_MAX}], got {max_grid_extent}")
+    if n and not bool(torch.isfinite(points).all()):
+        raise ValueError("points contain NaN or Inf; drop or repair those Gaussians before voxelizing")
+    batch_index = batch_index.long()
+    num_scenes = int(batch_index.max()) + 1 if n else 0
+    if n and int(batch_index.min()) < 0:
+        raise ValueError("batch_index must be non-negative")
+    pts = points.detach().double()  # float64: voxel assignment must not depend on rounding
+    big = torch.finfo(torch.float64).max
+    lo = torch.full((num_scenes, 3), big, dtype=torch.float64, device=points.device)
+    hi = torch.full((num_scenes, 3), -big, dtype=torch.float64, device=points.device)
+    idx3 = batch_index[:, None].expand(-1, 3)
+    lo = lo.scatter_reduce(0, idx3, pts, reduce="amin")
+    hi = hi.scatter_reduce(0, idx3, pts, reduce="amax")
+    extent = (hi - lo).clamp_min(0).amax(dim=1)  # [B]
+    sizes = torch.maximum(torch.full_like(extent, voxel_size), extent / max(max_grid_extent - 1, 1))
+    coords = torch.floor((pts - lo[batch_index]) / sizes[batch_index, None]).long()
+    coords = coords.clamp_(0, max_grid_extent - 1)  # the scene maximum lands exactly on the cap
+    sites, inverse = VoxelSites.from_coords(batch_index, coords)
+    m = len(sites)
+    pooled = features.new_zeros(m, features.shape[1]).index_add_(0, inverse, features)
+    counts = torch.bincount(inverse, minlength=m).clamp_min(1).to(features.dtype)
+    pooled = pooled / counts[:, None]
+    return Voxelization(SparseVoxels(pooled, sites), inverse, sizes.float(), lo.float())

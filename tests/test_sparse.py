@@ -1,0 +1,268 @@
+"""Sparse voxel convolution against dense conv3d / conv_transpose3d and naive references."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from ovgaussian.sparse import (
+    DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, pack_keys, sparse_conv,
+    voxelize_points,
+)
+from ovgaussian.sparse.conv import numba_row_ops, sparse_conv_autograd, torch_row_ops
+from ovgaussian.sparse.kernel_map import build_submanifold_map
+from ovgaussian.sparse.reference import (
+    down_conv_dense, naive_submanifold_pairs, submanifold_conv_dense, up_conv_dense,
+)
+from ovgaussian.sparse.voxelize import COORD_MAX, unpack_keys
+
+
+def random_sites(seed: int, num_scenes: int, shape: int, density: float) -> VoxelSites:
+    g = torch.Generator().manual_seed(seed)
+    occupied = torch.rand(num_scenes, shape, shape, shape, generator=g) < density
+    b, x, y, z = occupied.nonzero().unbind(1)
+    sites, _ = VoxelSites.from_coords(b, torch.stack([x, y, z], 1))
+    return sites
+
+
+def rand(seed: int, *shape: int, dtype=torch.float64) -> torch.Tensor:
+    return torch.randn(*shape, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+
+
+def forward_backward(fn, features, weight, grad_seed=99):
+    features = features.detach().clone().requires_grad_(True)
+    weight = weight.detach().clone().requires_grad_(True)
+    out = fn(features, weight)
+    upstream = rand(grad_seed, *out.shape, dtype=out.dtype)
+    (out * upstream).sum().backward()
+    return out.detach(), features.grad, weight.grad
+
+
+# --- keys and kernel maps ----------------------------------------------------------------------
+
+def test_pack_unpack_roundtrip_and_order():
+    coords = torch.tensor([[-5, 0, 3], [0, 0, 0], [COORD_MAX, -7, 2], [1, 2, 3]])
+    batch = torch.tensor([0, 1, 2, 1])
+    keys = pack_keys(batch, coords)
+    b2, c2 = unpack_keys(keys)
+    assert torch.equal(b2, batch) and torch.equal(c2, coords)
+    lexi = sorted(range(4), key=lambda i: (int(batch[i]), *coords[i].tolist()))
+    assert torch.argsort(keys).tolist() == lexi
+    with pytest.raises(ValueError, match="voxel coordinates span"):
+        pack_keys(torch.tensor([0]), torch.tensor([[COORD_MAX + 1, 0, 0]]))
+    with pytest.raises(ValueError, match="batch_index"):
+        pack_keys(torch.tensor([-1]), torch.tensor([[0, 0, 0]]))
+
+
+@pytest.mark.parametrize("kernel_size", [3, 5])
+@pytest.mark.parametrize("method", ["merge", "search"])
+def test_submanifold_map_matches_naive_dict(kernel_size, method):
+    sites = random_sites(0, 2, 6, 0.3)
+    shifted, _ = VoxelSites.from_coords(sites.batch_index, sites.coords - 3)  # negative coordinates too
+    for s in (sites, shifted):
+        kmap = build_submanifold_map(s.keys, kernel_size, method)
+        got = {(k, int(i), int(o)) for k in range(kmap.kernel_volume)
+               for i, o in zip(kmap.in_indices[k], kmap.out_indices[k])}
+        assert got == naive_submanifold_pairs(s, kernel_size)
+
+
+def test_merge_and_search_maps_are_identical():
+    for sites in (random_sites(30, 3, 12, 0.05), random_sites(31, 1, 5, 0.9), VoxelSites(torch.zeros(0, dtype=torch.int64))):
+        a, b = build_submanifold_map(sites.keys, 3, "merge"), build_submanifold_map(sites.keys, 3, "search")
+        for x, y in zip(a.in_indices + a.out_indices, b.in_indices + b.out_indices):
+            assert torch.equal(x, y)
+
+
+def test_kernel_maps_are_cached_per_sites():
+    sites = random_sites(1, 1, 6, 0.3)
+    assert sites.submanifold_map(3) is sites.submanifold_map(3)
+    assert sites.downsample()[0] is sites.downsample()[0]
+    assert sites.downsample()[0].stride == 2
+
+
+# --- convolutions against dense -------------------------------------------------------------------
+
+@pytest.mark.parametrize("kernel_size", [1, 3, 5])
+def test_submanifold_conv_matches_dense_conv3d(kernel_size):
+    sites = random_sites(2, 2, 8, 0.25)
+    features, weight = rand(3, len(sites), 4), rand(4, kernel_size**3, 4, 5)
+    conv = SubmanifoldConv3d(4, 5, kernel_size).double()
+
+    def sparse(f, w):
+        if kernel_size == 1:
+            return f @ w[0]
+        return sparse_conv(f, w, sites.submanifold_map(kernel_size))
+
+    got = forward_backward(sparse, features, weight)
+    want = forward_backward(lambda f, w: submanifold_conv_dense(f, sites, w, kernel_size, (8, 8, 8), 2), features, weight)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+    # the module path gives the same forward
+    with torch.no_grad():
+        conv.weight.copy_(weight)
+    torch.testing.assert_close(conv(SparseVoxels(features, sites)).features, want[0], atol=1e-10, rtol=1e-10)
+
+
+def test_submanifold_conv_float32_matches_dense_and_plain_autograd():
+    sites = random_sites(5, 2, 10, 0.2)
+    features, weight = rand(6, len(sites), 8, dtype=torch.float32), rand(7, 27, 8, 8, dtype=torch.float32)
+    kmap = sites.submanifold_map(3)
+    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap, numba_row_ops()), features, weight)
+    with_torch_ops = forward_backward(lambda f, w: sparse_conv(f, w, kmap, torch_row_ops()), features, weight)
+    plain = forward_backward(lambda f, w: sparse_conv_autograd(f, w, kmap), features, weight)
+    want = forward_backward(lambda f, w: submanifold_conv_dense(f, sites, w, 3, (10, 10, 10), 2), features, weight)
+    for a, b, c, d in zip(got, want, plain, with_torch_ops):
+        torch.testing.assert_close(a, b, atol=5e-5, rtol=1e-5)
+        torch.testing.assert_close(a, c, atol=5e-5, rtol=1e-5)
+        torch.testing.assert_close(a, d, atol=1e-6, rtol=1e-6)
+
+
+def test_down_and_up_conv_match_dense():
+    sites = random_sites(8, 2, 8, 0.3)
+    coarse, kmap = sites.downsample()
+    features, w_down = rand(9, len(sites), 3), rand(10, 8, 3, 6)
+    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap), features, w_down)
+    want = forward_backward(lambda f, w: down_conv_dense(f, sites, coarse, w, (8, 8, 8), 2), features, w_down)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+    # coarse sites are exactly the occupied 2x2x2 cells
+    expected = torch.unique(pack_keys(sites.batch_index, sites.coords // 2))
+    assert torch.equal(coarse.keys, expected)
+
+    coarse_features, w_up = rand(11, len(coarse), 6), rand(12, 8, 6, 3)
+    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap.transposed()), coarse_features, w_up)
+    want = forward_backward(lambda f, w: up_conv_dense(f, coarse, sites, w, (4, 4, 4), 2), coarse_features, w_up)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+
+
+def test_down_conv_with_negative_coordinates_uses_floor():
+    coords = torch.tensor([[-1, -1, -1], [-2, 0, 1], [1, 1, 1]])
+    sites, _ = VoxelSites.from_coords(torch.zeros(3, dtype=torch.long), coords)
+    coarse, kmap = sites.downsample()
+    assert sorted(map(tuple, coarse.coords.tolist())) == [(-1, -1, -1), (-1, 0, 0), (0, 0, 0)]
+    # shifting by a whole coarse voxel (+2) keeps the row order and must not change the result
+    shifted, _ = VoxelSites.from_coords(sites.batch_index, sites.coords + 2)
+    assert torch.equal(shifted.coords, sites.coords + 2)
+    f, w = rand(13, 3, 2), rand(14, 8, 2, 2)
+    torch.testing.assert_close(sparse_conv(f, w, shifted.downsample()[1]), sparse_conv(f, w, kmap))
+    torch.testing.assert_close(shifted.downsample()[0].coords, coarse.coords + 1)
+
+
+def test_modules_chain_down_up_restores_fine_sites():
+    sites = random_sites(15, 1, 8, 0.3)
+    x = SparseVoxels(rand(16, len(sites), 4, dtype=torch.float32), sites)
+    down, up = DownConv3d(4, 8), UpConv3d(8, 4)
+    y = up(down(x), sites)
+    assert y.sites is sites and y.features.shape == (len(sites), 4)
+    with pytest.raises(ValueError, match="not the downsampling"):
+        up(down(x), random_sites(17, 1, 8, 0.3))
+
+
+def test_empty_input_gives_empty_output_and_zero_weight_gradient():
+    sites = VoxelSites(torch.zeros(0, dtype=torch.int64))
+    for module, fine in ((SubmanifoldConv3d(3, 4), None), (DownConv3d(3, 4), None), (UpConv3d(3, 4), sites)):
+        x = SparseVoxels(torch.zeros(0, 3, requires_grad=True), sites)
+        y = module(x) if fine is None else module(x, fine)
+        assert y.features.shape == (0, 4)
+        y.features.sum().backward()
+        assert torch.equal(module.weight.grad, torch.zeros_like(module.weight))
+    assert len(sites.downsample()[0]) == 0
+
+
+def test_single_voxel():
+    sites, _ = VoxelSites.from_coords(torch.tensor([0]), torch.tensor([[3, 4, 5]]))
+    f, w = rand(18, 1, 3), rand(19, 27, 3, 2)
+    got = forward_backward(lambda a, b: sparse_conv(a, b, sites.submanifold_map(3)), f, w)
+    want = forward_backward(lambda a, b: submanifold_conv_dense(a, sites, b, 3, (8, 8, 8), 1), f, w)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b)
+    torch.testing.assert_close(got[0], f @ w[13])
+    coarse, kmap = sites.downsample()
+    assert coarse.coords.tolist() == [[1, 2, 2]]
+    torch.testing.assert_close(sparse_conv(f, rand(20, 8, 3, 2), kmap), f @ rand(20, 8, 3, 2)[(1 * 2 + 0) * 2 + 1])
+
+
+# --- batch norm -----------------------------------------------------------------------------------
+
+def test_sparse_batch_norm_matches_batchnorm1d():
+    bn, ref = SparseBatchNorm(5), nn.BatchNorm1d(5)
+    with torch.no_grad():
+        for m in (bn, ref):
+            m.weight.copy_(rand(21, 5, dtype=torch.float32))
+            m.bias.copy_(rand(22, 5, dtype=torch.float32))
+    sites = random_sites(23, 1, 6, 0.3)
+    f = rand(24, len(sites), 5, dtype=torch.float32) * 3 + 1
+    for training in (True, False):
+        bn.train(training), ref.train(training)
+        a = f.clone().requires_grad_(True)
+        b = f.clone().requires_grad_(True)
+        out_a, out_b = bn(SparseVoxels(a, sites)).features, ref(b)
+        torch.testing.assert_close(out_a, out_b)
+        up = rand(25, *out_a.shape, dtype=torch.float32)
+        (out_a * up).sum().backward(), (out_b * up).sum().backward()
+        torch.testing.assert_close(a.grad, b.grad)
+        torch.testing.assert_close(bn.running_mean, ref.running_mean)
+        torch.testing.assert_close(bn.running_var, ref.running_var)
+
+
+def test_sparse_batch_norm_one_and_zero_rows():
+    bn = SparseBatchNorm(3)
+    with torch.no_grad():
+        bn.bias.copy_(torch.tensor([1.0, 2.0, 3.0]))
+    one, _ = VoxelSites.from_coords(torch.tensor([0]), torch.tensor([[0, 0, 0]]))
+    out = bn(SparseVoxels(torch.tensor([[5.0, -1.0, 2.0]]), one)).features
+    torch.testing.assert_close(out, torch.tensor([[1.0, 2.0, 3.0]]))
+    torch.testing.assert_close(bn.running_mean, torch.tensor([0.5, -0.1, 0.2]))
+    torch.testing.assert_close(bn.running_var, torch.ones(3))
+    empty = VoxelSites(torch.zeros(0, dtype=torch.int64))
+    assert bn(SparseVoxels(torch.zeros(0, 3), empty)).features.shape == (0, 3)
+
+
+# --- voxelization ---------------------------------------------------------------------------------
+
+def test_voxelize_points_mean_pools_per_scene_and_voxel():
+    g = torch.Generator().manual_seed(26)
+    points = torch.rand(200, 3, generator=g) * 0.5
+    points[:10] = points[10]  # collisions: exact duplicates
+    features = torch.randn(200, 4, generator=g, requires_grad=True)
+    batch = (torch.arange(200) % 3)
+    vox = voxelize_points(points, features, batch, voxel_size=0.1, max_grid_extent=1000)
+    pooled, inverse = vox.voxels.features, vox.point_to_voxel
+    # naive: group by (batch, floor((p - scene min) / size))
+    groups: dict = {}
+    for i in range(200):
+        b = int(batch[i])
+        lo = points[batch == b].double().min(0).values
+        key = (b, *torch.floor((points[i].double() - lo) / 0.1).long().tolist())
+        groups.setdefault(key, []).append(i)
+    assert len(groups) == len(vox.voxels.sites)
+    for key, members in groups.items():
+        row = int(inverse[members[0]])
+        assert all(int(inverse[m]) == row for m in members)
+        assert (int(vox.voxels.sites.batch_index[row]), *vox.voxels.sites.coords[row].tolist()) == key
+        torch.testing.assert_close(pooled[row], features[members].mean(0))
+    pooled.sum().backward()
+    assert torch.isfinite(features.grad).all() and (features.grad > 0).all()
+
+
+def test_voxelize_adaptive_cap_and_bad_input():
+    points = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [5.0, 1.0, 0.0]])
+    vox = voxelize_points(points, torch.ones(3, 1), torch.zeros(3, dtype=torch.long), 0.05, max_grid_extent=101)
+    assert vox.voxel_size.tolist() == pytest.approx([0.1])
+    assert int(vox.voxels.sites.coords.max()) == 100
+    bad = points.clone()
+    bad[1, 2] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        voxelize_points(bad, torch.ones(3, 1), torch.zeros(3, dtype=torch.long), 0.05, 101)
+    empty = voxelize_points(torch.zeros(0, 3), torch.zeros(0, 2), torch.zeros(0, dtype=torch.long), 0.05, 101)
+    assert empty.voxels.features.shape == (0, 2) and len(empty.voxels.sites) == 0
+
+
+def test_kernel_size_outside_the_key_margin_is_rejected():
+    sites = random_sites(32, 1, 4, 0.5)
+    with pytest.raises(ValueError, match="odd, positive"):
+        build_submanifold_map(sites.keys, 19)
+    with pytest.raises(ValueError, match="odd, positive"):
+        build_submanifold_map(sites.keys, 4)
