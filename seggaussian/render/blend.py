@@ -1,0 +1,145 @@
+"""Per-pixel blend weights W (front-most contributors) and renders that reuse them: M = W S.
+
+For fixed geometry the rendered feature of a pixel is linear in the per-Gaussian features,
+``M[p] = sum_k weights[p, k] * features[ids[p, k]]``, so a view's weights are computed once and reused
+for any feature (semantic vectors, labels) without re-rasterizing.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TRANSMITTANCE_MIN
+
+#: Default number of contributors kept per pixel. Past ~16 front-most Gaussians the remaining
+#: transmittance of a converged 3DGS scene is small; ``residual_alpha`` reports what was left out.
+DEFAULT_TOP_K = 16
+
+
+class BlendWeights(NamedTuple):
+    """The K front-most contributors of every pixel of one view (no gradient).
+
+    Fields:
+        ids: ``[H, W, K]`` int64 Gaussian indices in blending order, -1 for unused slots.
+        weights: ``[H, W, K]`` float32 blend weights ``alpha_i T_i`` (0 for unused slots).
+        residual_alpha: ``[H, W]`` float32 accumulated alpha of contributors beyond the first K
+            (total accumulated alpha = weights.sum(-1) + residual_alpha).
+    """
+
+    ids: Tensor
+    weights: Tensor
+    residual_alpha: Tensor
+
+
+def blend_weights_reference(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, valid: Tensor,
+    width: int, height: int, top_k: int,
+) -> BlendWeights:
+    """Same walk as ``reference.blend_reference`` (float32), recording the first ``top_k`` weights."""
+    from seggaussian.render.reference import depth_order
+
+    dtype = torch.float32
+    v, u = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
+    px, py = u.reshape(-1) + 0.5, v.reshape(-1) + 0.5
+    num_pixels = px.shape[0]
+    transmittance = torch.ones(num_pixels, dtype=dtype)
+    done = torch.zeros(num_pixels, dtype=torch.bool)
+    count = torch.zeros(num_pixels, dtype=torch.int64)
+    ids = torch.full((num_pixels, top_k), -1, dtype=torch.int64)
+    weights = torch.zeros(num_pixels, top_k, dtype=dtype)
+    residual = torch.zeros(num_pixels, dtype=dtype)
+    means2d, conics, opacities = means2d.to(dtype), conics.to(dtype), opacities.to(dtype)
+    for g in depth_order(depths, valid).tolist():
+        dx, dy = px - means2d[g, 0], py - means2d[g, 1]
+        s = conics[g, 0] * dx * dx + 2.0 * conics[g, 1] * dx * dy + conics[g, 2] * dy * dy
+        alpha = torch.clamp(opacities[g] * torch.exp(-0.5 * s.clamp_min(0.0)), max=ALPHA_MAX)
+        use = (s <= RADIUS_SIGMAS**2) & (alpha >= ALPHA_MIN) & ~done
+        test_t = transmittance * (1.0 - alpha)
+        stop = use & (test_t < TRANSMITTANCE_MIN)
+        use = use & ~stop
+        done = done | stop
+        weight = alpha * transmittance
+        keep = use & (count < top_k)
+        rows = torch.nonzero(keep).reshape(-1)
+        ids[rows, count[rows]] = g
+        weights[rows, count[rows]] = weight[rows]
+        residual = residual + torch.where(use & ~keep, weight, torch.zeros_like(weight))
+        count = count + keep.long()
+        transmittance = torch.where(use, test_t, transmittance)
+    return BlendWeights(ids.reshape(height, width, top_k), weights.reshape(height, width, top_k),
+                        residual.reshape(height, width))
+
+
+def compute_blend_weights(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4]
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N]
+    viewmat: Tensor,  # [4, 4]
+    K: Tensor,  # [3, 3]
+    width: int,
+    height: int,
+    top_k: int = DEFAULT_TOP_K,
+    *,
+    backend: str = "auto",
+) -> BlendWeights:
+    """The ``top_k`` front-most contributors per pixel and their weights (no gradient).
+
+    ``render_features(blend, f)`` equals ``rasterize(..., features=f).image`` exactly when ``top_k`` covers
+    every contributor (``residual_alpha == 0``); otherwise it misses ``residual_alpha`` worth of weight.
+    """
+    from seggaussian.render.projection import project_gaussians
+    from seggaussian.render.rasterize import check_inputs
+
+    if int(top_k) < 1:
+        raise ValueError(f"compute_blend_weights: top_k must be >= 1, got {top_k}")
+    width, height, top_k = int(width), int(height), int(top_k)
+    with torch.no_grad():
+        check_inputs(means, quats, log_scales, opacity_logits, viewmat, K, width, height)
+        if backend == "auto":
+            from seggaussian.render.rasterize import default_backend
+
+            backend = default_backend()
+        if backend not in ("fast", "reference"):
+            raise ValueError(f"compute_blend_weights: backend must be auto, fast or reference, got {backend!r}")
+        opacities = torch.sigmoid(opacity_logits.to(torch.float32))
+        if backend == "reference":
+            projection = project_gaussians(means, quats, log_scales, viewmat, K, width, height)
+            return blend_weights_reference(
+                projection.means2d.float(), projection.conics.float(), opacities, projection.depths, projection.valid,
+                width, height, top_k,
+            )
+        from seggaussian.render.fast import blend_weights_fast
+        from seggaussian.render.fast_projection import project_gaussians_fast
+        from seggaussian.render.tiles import bin_gaussians
+
+        projection = project_gaussians_fast(means, quats, log_scales, viewmat, K, width, height)
+        means2d, conics = projection.means2d.float(), projection.conics.float()
+
+        bins = bin_gaussians(projection, width, height, opacities)
+        return blend_weights_fast(means2d, conics, opacities, bins, top_k)
+
+
+def render_features(
+    blend: BlendWeights,
+    features: Tensor,  # [N, D]
+) -> Tensor:  # [H, W, D]
+    """``M = W S``: blend per-Gaussian features with fixed weights; exact, differentiable in ``features``."""
+    if features.ndim != 2:
+        raise ValueError(f"render_features: features has shape {tuple(features.shape)}, expected (N, D)")
+    ids = blend.ids
+    used = ids >= 0
+    if used.any() and int(ids.max()) >= features.shape[0]:
+        raise ValueError(
+            f"render_features: blend weights refer to Gaussian {int(ids.max())} "
+            f"but features has {features.shape[0]} rows"
+        )
+    safe_ids = ids.clamp_min(0)
+    w = (blend.weights * used).to(features.dtype)
+    out = torch.zeros(*ids.shape[:2], features.shape[1], dtype=features.dtype, device=features.device)
+    for k in range(ids.shape[2]):  # one [H, W, D] gather per slot keeps memory at O(H W D)
+        out = out + w[..., k, None] * features[safe_ids[..., k]]
+    return out

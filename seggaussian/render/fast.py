@@ -1,0 +1,427 @@
+"""Compiled CPU blending kernels (numba), parallel over 16x16 tiles, float32.
+
+Layout (see /work/shared/notes/cpu-kernels.md): a tile's Gaussians are the outer loop, its 256 pixels
+the branch-free inner loop (arithmetic 0/1 masks instead of selects, a polynomial exp), so LLVM
+vectorizes the pixel loop. A tile stops as soon as every pixel has stopped.
+
+The blending rule and the gradient convention at the ALPHA_MAX clamp are those of ``reference.py``
+(gsplat's: no gradient to opacity / 2D Gaussian where alpha is clamped). The backward pass replays the
+forward walk front to back; the colour sum behind a Gaussian is ``C_final - C_up_to_it``, so no division
+by ``1 - alpha`` is needed except for the accumulated-alpha term (``1 - alpha >= 1 - ALPHA_MAX``).
+Gradients are written to one slot per (tile, Gaussian) intersection by the thread owning the tile and
+summed serially afterwards: deterministic for any thread count.
+
+Kernels run with ``fastmath``: inputs must be finite, which the projection guarantees for the Gaussians
+it marks valid (only those are binned).
+
+The kernels use numba's parallel threading layer: calling them in a forked child of a process that
+already ran one (e.g. a DataLoader worker) can kill the child; use the ``spawn`` start method or no
+worker processes. ``run_parallel`` restores torch's thread count, which numba's first parallel call
+may reset.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from numba import prange
+from torch import Tensor
+
+from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
+from seggaussian.render.blend import BlendWeights
+from seggaussian.render.tiles import TileBins
+
+_f32 = np.float32
+# float32 constants: a bare Python float literal would promote the kernels' arithmetic to float64.
+_ZERO, _ONE, _HALF, _TWO = _f32(0.0), _f32(1.0), _f32(0.5), _f32(2.0)
+_ALPHA_MAX, _ALPHA_MIN, _T_MIN = _f32(ALPHA_MAX), _f32(ALPHA_MIN), _f32(TRANSMITTANCE_MIN)
+_CUTOFF = _f32(RADIUS_SIGMAS**2)
+_INV16 = _f32(1.0 / 16.0)
+_C2, _C3, _C4, _C5, _C6 = _f32(1 / 2), _f32(1 / 3), _f32(1 / 4), _f32(1 / 5), _f32(1 / 6)
+_TILE = TILE_SIZE
+_TILE_PIXELS = TILE_SIZE * TILE_SIZE
+#: Tiles check "every pixel stopped" once per this many Gaussians (a reduction over 256 pixels).
+_DONE_CHECK_EVERY = 32
+#: Tiles handed to a thread at a time (tiles differ widely in work; small chunks balance the load).
+_PARALLEL_CHUNK = 2
+#: Gaussians handed to a thread at a time in per-Gaussian loops (uniform work: large chunks).
+GAUSSIANS_PER_CHUNK = 4096
+#: Bands of tile rows per thread when filling the tile lists (a few, for load balance).
+_BANDS_PER_THREAD = 2
+
+_JIT = dict(cache=True, fastmath=True, nogil=True, error_model="numpy")
+
+
+@numba.njit(inline="always", **_JIT)
+def _exp_neg(x):
+    """exp(x) for x in [-RADIUS_SIGMAS^2 / 2, 0]: (degree-6 Taylor of exp(x/16))^16, rel. error < 2e-6 (float32)."""
+    y = x * _INV16
+    p = _ONE + y * (_ONE + y * _C2 * (_ONE + y * _C3 * (_ONE + y * _C4 * (_ONE + y * _C5 * (_ONE + y * _C6)))))
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
+@numba.njit(parallel=True, **_JIT)
+def _gather_tile_boxes(order, pixel_box, tile_size):
+    """Tile boxes of the Gaussians in ``order`` (one random read per Gaussian, in parallel)."""
+    boxes = np.empty((order.shape[0], 4), np.int32)
+    for j in prange(order.shape[0]):
+        g = order[j]
+        for k in range(4):
+            boxes[j, k] = pixel_box[g, k] // tile_size
+    return boxes
+
+
+@numba.njit(parallel=True, **_JIT)
+def _fill_sorted(order, boxes, tiles_x, tiles_y, num_bands):
+    """Counting sort into tiles, parallel over bands of tile rows (each band owns its tiles: no races,
+    and every tile receives its Gaussians in ``order``, as a serial fill would)."""
+    num_tiles = tiles_x * tiles_y
+    band_rows = (tiles_y + num_bands - 1) // num_bands
+    counts = np.zeros(num_tiles + 1, np.int64)
+    for band in prange(num_bands):
+        r0 = band * band_rows
+        r1 = min(tiles_y, r0 + band_rows) - 1
+        for j in range(order.shape[0]):
+            for ty in range(max(boxes[j, 1], r0), min(boxes[j, 3], r1) + 1):
+                for tx in range(boxes[j, 0], boxes[j, 2] + 1):
+                    counts[ty * tiles_x + tx + 1] += 1
+    for t in range(num_tiles):
+        counts[t + 1] += counts[t]
+    cursor = counts[:-1].copy()
+    ids = np.empty(counts[num_tiles], np.int32)
+    for band in prange(num_bands):
+        r0 = band * band_rows
+        r1 = min(tiles_y, r0 + band_rows) - 1
+        for j in range(order.shape[0]):
+            g = order[j]
+            for ty in range(max(boxes[j, 1], r0), min(boxes[j, 3], r1) + 1):
+                for tx in range(boxes[j, 0], boxes[j, 2] + 1):
+                    t = ty * tiles_x + tx
+                    ids[cursor[t]] = g
+                    cursor[t] += 1
+    return counts, ids
+
+
+def fill_tile_lists(order: np.ndarray, pixel_box: np.ndarray, tiles_x: int, tiles_y: int):
+    """CSR tile lists: Gaussians visited in ``order`` (front to back) appended to every tile their
+    inclusive pixel box ``(u0, v0, u1, v1)`` touches. Returns (offsets [T + 1] int64, ids [I] int32)."""
+    boxes = run_parallel(_gather_tile_boxes, order, pixel_box, TILE_SIZE, chunk=GAUSSIANS_PER_CHUNK)
+    num_bands = min(tiles_y, _BANDS_PER_THREAD * numba.get_num_threads())
+    return run_parallel(_fill_sorted, order, boxes, tiles_x, tiles_y, num_bands, chunk=1)
+
+
+@numba.njit(inline="always", **_JIT)
+def _tile_pixels(t, tiles_x, px, py):
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    for i in range(_TILE_PIXELS):
+        px[i] = _f32(tx * _TILE + (i % _TILE)) + _HALF
+        py[i] = _f32(ty * _TILE + (i // _TILE)) + _HALF
+    return tx * _TILE, ty * _TILE
+
+
+@numba.njit(parallel=True, **_JIT)
+def _forward_kernel(means2d, conics, opacities, colors, offsets, gids, tiles_x, width, height, accum, trans, stop_pos):
+    num_tiles = offsets.shape[0] - 1
+    dim = colors.shape[1]
+    for t in prange(num_tiles):
+        px = np.empty(_TILE_PIXELS, np.float32)
+        py = np.empty(_TILE_PIXELS, np.float32)
+        x0, y0 = _tile_pixels(t, tiles_x, px, py)
+        start, end = offsets[t], offsets[t + 1]
+        tr = np.ones(_TILE_PIXELS, np.float32)
+        active = np.ones(_TILE_PIXELS, np.float32)
+        stop_k = np.full(_TILE_PIXELS, _f32(end - start), np.float32)
+        weight = np.empty(_TILE_PIXELS, np.float32)
+        acc = np.zeros((dim, _TILE_PIXELS), np.float32)
+        for i in range(_TILE_PIXELS):  # pixels outside the image do not keep the tile running
+            if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
+                active[i] = _ZERO
+        for k in range(start, end):
+            if (k - start) % _DONE_CHECK_EVERY == 0 and k > start:
+                if active.sum() == _ZERO:
+                    break
+            g = gids[k]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
+            op = opacities[g]
+            kl = _f32(k - start)
+            for i in range(_TILE_PIXELS):
+                dx = px[i] - mx
+                dy = py[i] - my
+                s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+                inside = _f32(s <= _CUTOFF)
+                s_pos = s * _f32(s > _ZERO) * inside  # in [0, cutoff] wherever it matters
+                alpha = op * _exp_neg(-_HALF * s_pos)
+                over = _f32(alpha > _ALPHA_MAX)
+                alpha = alpha + over * (_ALPHA_MAX - alpha)
+                m = inside * _f32(alpha >= _ALPHA_MIN) * active[i]
+                stop = m * _f32(tr[i] * (_ONE - alpha) < _T_MIN)
+                m = m - stop
+                weight[i] = m * alpha * tr[i]
+                tr[i] = tr[i] * (_ONE - m * alpha)
+                active[i] = active[i] - stop
+                stop_k[i] = stop_k[i] + stop * (kl - stop_k[i])
+            for ch in range(dim):
+                col = colors[g, ch]
+                for i in range(_TILE_PIXELS):
+                    acc[ch, i] += weight[i] * col
+        for i in range(_TILE_PIXELS):
+            x = x0 + i % _TILE
+            y = y0 + i // _TILE
+            if x < width and y < height:
+                trans[y, x] = tr[i]
+                stop_pos[y, x] = np.int32(stop_k[i])
+                for ch in range(dim):
+                    accum[y, x, ch] = acc[ch, i]
+
+
+@numba.njit(parallel=True, **_JIT)
+def _backward_kernel(
+    means2d, conics, opacities, colors, offsets, gids, tiles_x, width, height,
+    accum, trans, stop_pos, grad_accum, grad_alpha, slot_geo, slot_col,
+):
+    """slot_geo[k] = d(mean x, mean y, conic a, b, c, opacity); slot_col[k] = d(colour) per intersection k."""
+    num_tiles = offsets.shape[0] - 1
+    dim = colors.shape[1]
+    for t in prange(num_tiles):
+        start, end = offsets[t], offsets[t + 1]
+        if end == start:
+            continue
+        px = np.empty(_TILE_PIXELS, np.float32)
+        py = np.empty(_TILE_PIXELS, np.float32)
+        x0, y0 = _tile_pixels(t, tiles_x, px, py)
+        g_acc = np.zeros((dim, _TILE_PIXELS), np.float32)
+        g_alpha = np.zeros(_TILE_PIXELS, np.float32)
+        t_final = np.ones(_TILE_PIXELS, np.float32)
+        stop_k = np.zeros(_TILE_PIXELS, np.float32)  # pixels outside the image never blend
+        g_final = np.zeros(_TILE_PIXELS, np.float32)  # C_final . dL/dC
+        max_stop = 0
+        for i in range(_TILE_PIXELS):
+            x = x0 + i % _TILE
+            y = y0 + i // _TILE
+            if x < width and y < height:
+                g_alpha[i] = grad_alpha[y, x]
+                t_final[i] = trans[y, x]
+                stop_k[i] = _f32(stop_pos[y, x])
+                max_stop = max(max_stop, stop_pos[y, x])
+                for ch in range(dim):
+                    g_acc[ch, i] = grad_accum[y, x, ch]
+                    g_final[i] += accum[y, x, ch] * grad_accum[y, x, ch]
+        tr = np.ones(_TILE_PIXELS, np.float32)
+        c_dot = np.zeros(_TILE_PIXELS, np.float32)  # C_up_to_here . dL/dC
+        col_dot = np.empty(_TILE_PIXELS, np.float32)
+        weight = np.empty(_TILE_PIXELS, np.float32)
+        for k in range(start, min(end, start + max_stop)):
+            g = gids[k]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+            cb2 = _TWO * cb
+            op = opacities[g]
+            kl = _f32(k - start)
+            for i in range(_TILE_PIXELS):
+                col_dot[i] = _ZERO
+            for ch in range(dim):
+                col = colors[g, ch]
+                for i in range(_TILE_PIXELS):
+                    col_dot[i] += col * g_acc[ch, i]
+            d_mx = _ZERO
+            d_my = _ZERO
+            d_a = _ZERO
+            d_b = _ZERO
+            d_c = _ZERO
+            d_op = _ZERO
+            for i in range(_TILE_PIXELS):
+                dx = px[i] - mx
+                dy = py[i] - my
+                s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+                inside = _f32(s <= _CUTOFF)
+                positive = _f32(s > _ZERO)
+                s_pos = s * positive * inside
+                e = _exp_neg(-_HALF * s_pos)
+                alpha = op * e
+                over = _f32(alpha > _ALPHA_MAX)
+                alpha = alpha + over * (_ALPHA_MAX - alpha)
+                m = inside * _f32(alpha >= _ALPHA_MIN) * _f32(kl < stop_k[i])
+                w = m * alpha * tr[i]
+                weight[i] = w
+                c_after = c_dot[i] + w * col_dot[i]
+                inv_one_minus = _ONE / (_ONE - alpha)
+                d_alpha = tr[i] * col_dot[i] - (g_final[i] - c_after) * inv_one_minus
+                d_alpha = d_alpha + g_alpha[i] * t_final[i] * inv_one_minus
+                d_alpha = d_alpha * m * (_ONE - over)
+                d_op += d_alpha * e
+                d_s = -_HALF * d_alpha * op * e * positive
+                d_a += d_s * dx * dx
+                d_b += d_s * _TWO * dx * dy
+                d_c += d_s * dy * dy
+                d_mx -= d_s * (_TWO * ca * dx + cb2 * dy)
+                d_my -= d_s * (cb2 * dx + _TWO * cc * dy)
+                c_dot[i] = c_after
+                tr[i] = tr[i] * (_ONE - m * alpha)
+            slot_geo[k, 0] = d_mx
+            slot_geo[k, 1] = d_my
+            slot_geo[k, 2] = d_a
+            slot_geo[k, 3] = d_b
+            slot_geo[k, 4] = d_c
+            slot_geo[k, 5] = d_op
+            for ch in range(dim):
+                d_col = _ZERO
+                for i in range(_TILE_PIXELS):
+                    d_col += weight[i] * g_acc[ch, i]
+                slot_col[k, ch] = d_col
+
+
+@numba.njit(**_JIT)
+def _sum_slots(gids, slot_geo, slot_col, num_gaussians):
+    """Serial, fixed-order sum of the per-intersection gradient slots into per-Gaussian gradients."""
+    geo = np.zeros((num_gaussians, 6), np.float64)
+    col = np.zeros((num_gaussians, slot_col.shape[1]), np.float64)
+    for k in range(gids.shape[0]):
+        g = gids[k]
+        for j in range(6):
+            geo[g, j] += slot_geo[k, j]
+        for j in range(slot_col.shape[1]):
+            col[g, j] += slot_col[k, j]
+    return geo, col
+
+
+@numba.njit(parallel=True, **_JIT)
+def _weights_kernel(means2d, conics, opacities, offsets, gids, tiles_x, width, height, ids, weights, residual):
+    num_tiles = offsets.shape[0] - 1
+    top_k = ids.shape[2]
+    for t in prange(num_tiles):
+        px = np.empty(_TILE_PIXELS, np.float32)
+        py = np.empty(_TILE_PIXELS, np.float32)
+        x0, y0 = _tile_pixels(t, tiles_x, px, py)
+        start, end = offsets[t], offsets[t + 1]
+        tr = np.ones(_TILE_PIXELS, np.float32)
+        active = np.ones(_TILE_PIXELS, np.float32)
+        weight = np.empty(_TILE_PIXELS, np.float32)
+        count = np.zeros(_TILE_PIXELS, np.int64)
+        for i in range(_TILE_PIXELS):  # pixels outside the image record nothing
+            if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
+                active[i] = _ZERO
+        for k in range(start, end):
+            if (k - start) % _DONE_CHECK_EVERY == 0 and k > start:
+                if active.sum() == _ZERO:
+                    break
+            g = gids[k]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
+            op = opacities[g]
+            for i in range(_TILE_PIXELS):
+                dx = px[i] - mx
+                dy = py[i] - my
+                s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+                inside = _f32(s <= _CUTOFF)
+                s_pos = s * _f32(s > _ZERO) * inside
+                alpha = op * _exp_neg(-_HALF * s_pos)
+                over = _f32(alpha > _ALPHA_MAX)
+                alpha = alpha + over * (_ALPHA_MAX - alpha)
+                m = inside * _f32(alpha >= _ALPHA_MIN) * active[i]
+                stop = m * _f32(tr[i] * (_ONE - alpha) < _T_MIN)
+                m = m - stop
+                weight[i] = m * alpha * tr[i]
+                tr[i] = tr[i] * (_ONE - m * alpha)
+                active[i] = active[i] - stop
+            for i in range(_TILE_PIXELS):
+                if weight[i] > _ZERO:
+                    x = x0 + i % _TILE
+                    y = y0 + i // _TILE
+                    if count[i] < top_k:
+                        ids[y, x, count[i]] = g
+                        weights[y, x, count[i]] = weight[i]
+                        count[i] += 1
+                    else:
+                        residual[y, x] += weight[i]
+
+
+def _as_np(x: Tensor) -> np.ndarray:
+    """float32 contiguous numpy copy/view (converted by numpy: no torch thread synchronization)."""
+    return np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float32)
+
+
+def run_parallel(kernel, *args, chunk: int = _PARALLEL_CHUNK):
+    """Call a parallel numba kernel with a small work chunk, keeping torch's thread count unchanged."""
+    threads = torch.get_num_threads()
+    with numba.parallel_chunksize(chunk):
+        result = kernel(*args)
+    if torch.get_num_threads() != threads:  # numba's OpenMP layer may reset torch's thread count
+        torch.set_num_threads(threads)
+    return result
+
+
+class _BlendFunction(torch.autograd.Function):
+    """(means2d, conics, opacities, colors) -> (accumulated colours [H, W, D], accumulated alpha [H, W])."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, bins: TileBins):
+        m2, cn, op, col = (_as_np(x) for x in (means2d, conics, opacities, colors))
+        h, w, dim = bins.height, bins.width, col.shape[1]
+        accum = np.zeros((h, w, dim), np.float32)
+        trans = np.ones((h, w), np.float32)
+        stop_pos = np.zeros((h, w), np.int32)
+        if bins.num_intersections:
+            run_parallel(
+                _forward_kernel, m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x, w, h,
+                accum, trans, stop_pos,
+            )
+        ctx.bins = bins
+        ctx.arrays = (m2, cn, op, col, accum, trans, stop_pos)
+        ctx.dtypes = (means2d.dtype, conics.dtype, opacities.dtype, colors.dtype)
+        return torch.from_numpy(accum), torch.from_numpy(1.0 - trans)
+
+    @staticmethod
+    def backward(ctx, grad_accum, grad_alpha):
+        bins: TileBins = ctx.bins
+        m2, cn, op, col, accum, trans, stop_pos = ctx.arrays
+        n, dim = m2.shape[0], col.shape[1]
+        num = bins.num_intersections
+        slot_geo = np.zeros((num, 6), np.float32)
+        slot_col = np.zeros((num, dim), np.float32)
+        g_acc = np.zeros_like(accum) if grad_accum is None else _as_np(grad_accum)
+        g_alpha = np.zeros_like(trans) if grad_alpha is None else _as_np(grad_alpha)
+        if num:
+            run_parallel(
+                _backward_kernel, m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x,
+                bins.width, bins.height, accum, trans, stop_pos, g_acc, g_alpha, slot_geo, slot_col,
+            )
+        geo, dcol = _sum_slots(bins.gaussian_ids, slot_geo, slot_col, n)
+        geo = torch.from_numpy(geo)
+        d_means2d = geo[:, 0:2].to(ctx.dtypes[0])
+        d_conics = geo[:, 2:5].to(ctx.dtypes[1])
+        d_opacities = geo[:, 5].to(ctx.dtypes[2])
+        d_colors = torch.from_numpy(dcol).to(ctx.dtypes[3])
+        return d_means2d, d_conics, d_opacities, d_colors, None
+
+
+def blend_fast(
+    means2d: Tensor,  # [N, 2]
+    conics: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    colors: Tensor,  # [N, D]
+    bins: TileBins,
+) -> tuple[Tensor, Tensor]:  # accumulated colours [H, W, D] float32, accumulated alpha [H, W] float32
+    """Front-to-back blending with the numba kernels; differentiable (custom autograd Function)."""
+    return _BlendFunction.apply(means2d, conics, opacities, colors, bins)
+
+
+def blend_weights_fast(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, bins: TileBins, top_k: int
+) -> BlendWeights:
+    """The first ``top_k`` blend weights per pixel (same walk as the forward kernel)."""
+    h, w = bins.height, bins.width
+    ids = np.full((h, w, top_k), -1, np.int64)
+    weights = np.zeros((h, w, top_k), np.float32)
+    residual = np.zeros((h, w), np.float32)
+    if bins.num_intersections:
+        run_parallel(
+            _weights_kernel, _as_np(means2d), _as_np(conics), _as_np(opacities), bins.offsets, bins.gaussian_ids,
+            bins.tiles_x, w, h, ids, weights, residual,
+        )
+    return BlendWeights(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(residual))

@@ -1,0 +1,112 @@
+"""Projection: numba kernels against the torch version (values, culling, gradients), SH evaluation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from seggaussian.constants import SH_C0
+from seggaussian.render.fast_projection import project_gaussians_fast
+from seggaussian.render.projection import project_gaussians
+from seggaussian.render.sh import sh_to_colors
+from test_render_common import HEIGHT, WIDTH, camera, random_scene
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def degenerate_scene():
+    scene = random_scene(300, 3, dtype=torch.float64, spread=1.5)
+    scene["log_scales"][:5] = -math.inf
+    scene["log_scales"][5:10] = 88.0
+    scene["log_scales"][10:12] = 200.0
+    scene["quats"][12:15] = 0.0
+    scene["log_scales"][16:19, 1] = math.inf  # needles: a*c - b^2 would cancel catastrophically
+    scene["means"][15] = torch.tensor([0.3, -3.0, 0.6], dtype=torch.float64)  # the camera centre
+    return scene
+
+
+def project_with_grads(fn, scene):
+    viewmat, K = camera()
+    leaves = [scene[k].clone().requires_grad_(True) for k in ("means", "quats", "log_scales")]
+    proj = fn(*leaves, viewmat, K, WIDTH, HEIGHT)
+    g = torch.Generator().manual_seed(0)
+    loss = sum((x * torch.randn(x.shape, generator=g, dtype=x.dtype)).sum()
+               for x in (proj.means2d, proj.conics, proj.depths, proj.view_dirs))
+    loss.backward()
+    return proj, [x.grad for x in leaves]
+
+
+def test_fast_projection_matches_torch():
+    scene = degenerate_scene()
+    ref, ref_grads = project_with_grads(project_gaussians, scene)
+    fast, fast_grads = project_with_grads(project_gaussians_fast, scene)
+    assert 50 < int(ref.valid.sum()) < 300, "both culled and kept Gaussians"
+    assert torch.equal(ref.valid, fast.valid)
+    assert torch.equal(ref.pixel_box[ref.valid], fast.pixel_box[fast.valid])  # meaningless where culled
+    for name in ("means2d", "conics", "depths", "view_dirs"):
+        a, b = getattr(ref, name).detach(), getattr(fast, name).detach()
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12), name
+    for a, b in zip(ref_grads, fast_grads):
+        assert torch.isfinite(b).all()
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10 * float(a.abs().max()))
+
+
+def test_fast_projection_gradcheck():
+    scene = random_scene(6, 5, dtype=torch.float64, spread=0.4)
+    scene["means"][0] = torch.tensor([2.4, 0.0, 0.0], dtype=torch.float64)  # beyond the Jacobian clamp
+    scene["log_scales"][0] = math.log(0.6)  # ... but wide enough to reach the image
+    viewmat, K = camera()
+
+    def fn(means, quats, log_scales):
+        p = project_gaussians_fast(means, quats, log_scales, viewmat, K, WIDTH, HEIGHT)
+        return p.means2d, p.conics, p.depths, p.view_dirs
+
+    inputs = tuple(scene[k].clone().requires_grad_(True) for k in ("means", "quats", "log_scales"))
+    assert bool(project_gaussians_fast(*(x.detach() for x in inputs), viewmat, K, WIDTH, HEIGHT).valid.all())
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_sh_degree_zero_is_the_dc_colour_and_clamped():
+    sh = torch.tensor([[[1.0, -3.0, 0.0]]])
+    colors = sh_to_colors(sh, torch.tensor([[0.0, 0.0, 1.0]]))
+    assert torch.allclose(colors, torch.tensor([[0.5 + SH_C0, 0.0, 0.5]]))
+
+
+def test_sh_matches_direct_basis_formula():
+    """Degree-1 band: -C1 y, C1 z, -C1 x (3DGS sign convention), evaluated on unit directions."""
+    dirs = torch.nn.functional.normalize(torch.randn(5, 3, generator=torch.Generator().manual_seed(1)), dim=1)
+    sh = torch.zeros(5, 4, 3)
+    sh[:, 1, 0], sh[:, 2, 1], sh[:, 3, 2] = 1.0, 1.0, 1.0
+    c1 = 0.4886025119029199
+    expected = torch.stack([-c1 * dirs[:, 1], c1 * dirs[:, 2], -c1 * dirs[:, 0]], 1) + 0.5
+    assert torch.allclose(sh_to_colors(sh, dirs), expected.clamp_min(0), atol=1e-6)
+
+
+def test_tile_lists_match_a_naive_binning():
+    import numpy as np
+
+    from seggaussian.constants import TILE_SIZE
+    from seggaussian.render.tiles import bin_gaussians
+
+    scene = random_scene(400, 13, dtype=torch.float64, spread=1.0)
+    viewmat, K = camera(100, 70)
+    proj = project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K, 100, 70)
+    bins = bin_gaussians(proj, 100, 70)
+    assert (bins.tiles_x, bins.tiles_y) == (7, 5)
+    valid = proj.valid.numpy()
+    order = [g for g in np.argsort(proj.depths.numpy(), kind="stable") if valid[g]]
+    box = proj.pixel_box.numpy() // TILE_SIZE
+    for ty in range(bins.tiles_y):
+        for tx in range(bins.tiles_x):
+            t = ty * bins.tiles_x + tx
+            expected = [g for g in order if box[g, 0] <= tx <= box[g, 2] and box[g, 1] <= ty <= box[g, 3]]
+            assert bins.gaussian_ids[bins.offsets[t]:bins.offsets[t + 1]].tolist() == expected, (tx, ty)
+    assert bins.num_intersections > 400
