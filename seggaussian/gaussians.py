@@ -167,13 +167,17 @@ class Gaussians:
         return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, self.sh, extras)
 
     def to_torch(self, device: "str | torch.device" = "cpu") -> dict[str, "torch.Tensor"]:
-        """Tensors named as the fields (zero-copy on CPU): means, quats, log_scales, opacity_logits, sh."""
+        """Tensors named as the fields: means, quats, log_scales, opacity_logits, sh.
+
+        Zero-copy on the CPU for writeable arrays; read-only arrays (e.g. memory-mapped or Arrow-backed
+        shards) are copied, since torch tensors must be writeable.
+        """
         import torch
 
-        return {
-            name: torch.from_numpy(getattr(self, name)).to(device)
-            for name in ("means", "quats", "log_scales", "opacity_logits", "sh")
-        }
+        def tensor(array: np.ndarray) -> "torch.Tensor":
+            return torch.from_numpy(array if array.flags.writeable else array.copy()).to(device)
+
+        return {name: tensor(getattr(self, name)) for name in ("means", "quats", "log_scales", "opacity_logits", "sh")}
 
 
 def quats_to_rotmats(quats: np.ndarray) -> np.ndarray:

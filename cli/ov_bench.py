@@ -1,0 +1,65 @@
+"""``ovgaussian bench``: Table-1 mIoU (3D CSA, OVA, CDA | 2D CSA, OVA, NVA, CDA) of a run or a baseline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cli._output import finish, json_option
+from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
+
+
+@click.command("bench")
+@click.option("--data", "dataset", type=click.Path(path_type=Path, file_okay=False), required=True,
+              help="Dataset folder (seggaussian build + split).")
+@click.option("--run", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Run folder of ovgaussian train (needed for --predictor model).")
+@click.option("--checkpoint", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="A checkpoint folder RUN/checkpoints/epoch-XXXX (default: the latest).")
+@click.option("--predictor", type=click.Choice(["model", "majority", "nearest-colour"]), default="model",
+              show_default=True, help="Score the model or a non-learned baseline fitted on the train split.")
+@click.option("--metric", "metric", type=click.Choice([*METRICS, "all"], case_sensitive=False), default="all",
+              show_default=True, help="Metric to compute.")
+@click.option("--classes", "num_classes", type=click.Choice(["20", "50", "100"]), default="20", show_default=True,
+              help="Vocabulary size K.")
+@click.option("--dim", type=click.Choice(["3d", "2d", "both"]), default="both", show_default=True,
+              help="Score on the Gaussians (3d), on rendered label maps (2d), or both.")
+@click.option("--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True,
+              help="Rendered pixels with less accumulated alpha get no prediction.")
+@click.option("--max-views", type=int, default=None, help="Score at most this many views per scene (first by name).")
+@click.option("--max-scenes", type=int, default=None, help="Score at most this many scenes per split (first by id).")
+@click.option("--out", "out", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="JSON report path (default: RUN/bench-K<classes>.json, or DATA/bench-<predictor>-K<classes>.json).")
+@click.option("--cache-dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Cache the blend weights of the scored views here (reused by later runs on the same dataset).")
+@click.option("--label", default=None, help="Row label of the printed table (default: the run folder or predictor).")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Progress bar over scenes.")
+@json_option
+def command(dataset, run, checkpoint, predictor, metric, num_classes, dim, min_alpha, max_views, max_scenes,
+            out, cache_dir, label, progress, as_json):
+    """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
+    from ovgaussian.bench import run_bench, table1_header, table1_row, write_json_atomic
+    from ovgaussian.text import TextEncoderError
+
+    metrics = METRICS if metric.lower() == "all" else (metric.upper(),)
+    dims = ("3d", "2d") if dim == "both" else (dim,)
+    if predictor == "model" and run is None:
+        raise click.UsageError("--run is required with --predictor model")
+    config = BenchConfig(dataset=dataset, run=run, checkpoint=checkpoint, predictor=predictor, metrics=metrics,
+                         dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,
+                         max_scenes=max_scenes, cache_dir=cache_dir, progress=progress and not as_json)
+    try:
+        report = run_bench(config)
+    except (ValueError, FileNotFoundError, TextEncoderError) as error:
+        raise click.ClickException(str(error)) from None
+    if out is None:
+        out = (run / f"bench-K{num_classes}.json") if predictor == "model" else \
+            (dataset / f"bench-{predictor}-K{num_classes}.json")
+    write_json_atomic(out, report.payload)
+    row_label = label or (run.name if predictor == "model" else predictor)
+    table = table1_header() + "\n" + table1_row(row_label, report.result)
+    cells = ", ".join(f"{k}={'-' if v is None else f'{100 * v:.2f}'}" for k, v in report.payload["row"].items()
+                      if (k.split("_")[0] in dims and k.split("_")[1] in metrics))
+    finish(f"bench K={num_classes} {row_label}: {cells} (mIoU %) -> {out}", dict(report.payload, report=str(out)),
+           as_json, details=table)

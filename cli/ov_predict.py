@@ -1,0 +1,51 @@
+"""``ovgaussian predict``: label every Gaussian of a scene against a free-text vocabulary."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cli._output import finish, json_option
+from ovgaussian.bench_config import DEFAULT_MIN_ALPHA
+
+
+@click.command("predict")
+@click.argument("scene", type=click.Path(path_type=Path, dir_okay=False, exists=True))
+@click.option("--run", type=click.Path(path_type=Path, file_okay=False, exists=True), required=True,
+              help="Run folder of ovgaussian train.")
+@click.option("--checkpoint", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="A checkpoint folder RUN/checkpoints/epoch-XXXX (default: the latest).")
+@click.option("--vocab", required=True, help='Comma-separated class names, e.g. "chair, table, sofa".')
+@click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
+              help="Labelled PLY to write (int property 'semantic' = index into --vocab, class colours).")
+@click.option("--cameras", type=click.Path(path_type=Path, dir_okay=False, exists=True), default=None,
+              help='JSON {"cameras": [{"name", "width", "height", "K", "viewmat" | "c2w"}]}: also write label-map PNGs.')
+@click.option("--views-dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder of the label-map PNGs (default: OUT's name + '_views').")
+@click.option("--colours", "colour_mode", type=click.Choice(["both", "f_dc", "rgb"]), default="both", show_default=True,
+              help="Class colours in f_dc (SH colour, f_rest dropped), uchar red/green/blue properties, or both.")
+@click.option("--on-invalid", type=click.Choice(["error", "drop", "repair"]), default="error", show_default=True,
+              help="Invalid Gaussians in SCENE: fail, drop them (counted) or repair them (counted).")
+@click.option("--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True,
+              help="Label-map pixels with less accumulated alpha are left unlabelled.")
+@json_option
+def command(scene, run, checkpoint, vocab, out, cameras, views_dir, colour_mode, on_invalid, min_alpha, as_json):
+    """Open-vocabulary segmentation of SCENE (a 3DGS PLY) with a trained run."""
+    from ovgaussian.bench_config import PredictConfig
+    from ovgaussian.predict import parse_vocabulary, run_predict
+    from ovgaussian.text import TextEncoderError
+
+    try:
+        names = parse_vocabulary(vocab)
+        config = PredictConfig(run=run, checkpoint=checkpoint, vocabulary=names, colour_mode=colour_mode,
+                               min_alpha=min_alpha, on_invalid=on_invalid)
+        report = run_predict(scene, out, config, cameras_path=cameras, views_dir=views_dir)
+    except (ValueError, FileNotFoundError, TextEncoderError) as error:
+        raise click.ClickException(str(error)) from None
+    shares = sorted(report.summary["shares"].items(), key=lambda kv: -kv[1])
+    details = "\n".join(f"{name:>24s}  {100 * share:6.2f}%  ({report.summary['counts'][name]})" for name, share in shares)
+    top = ", ".join(f"{n} {100 * s:.1f}%" for n, s in shares[:3])
+    extra = f", {len(report.pngs)} PNGs" if report.pngs else ""
+    finish(f"predict: {report.summary['num_gaussians']} Gaussians labelled with {len(names)} classes "
+           f"({top}) -> {out}{extra}", report.summary, as_json, details=details)

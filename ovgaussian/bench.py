@@ -1,0 +1,574 @@
+"""The OVGaussian benchmark (paper Table 1): CSA, OVA, NVA, CDA in 3D and 2D from confusion matrices.
+
+Protocol (``data_specs/BENCHMARK.md`` is the prose version):
+
+- Vocabulary: K class ids (top-100 indices) from ``seggaussian.classes.benchmark_vocabulary(K)``.
+  Every prediction is an index into this vocabulary (argmax of the predictor's K class scores).
+- Ground truth: a top-100 id that is not in the vocabulary, and IGNORE_LABEL, become IGNORE (not scored).
+- 3D: one label per Gaussian from its per-Gaussian vector; scored against ``extras['semantic']``.
+- 2D: per view, the per-Gaussian vectors are blended with the view's blend weights (M = W S), then
+  classified per pixel; pixels with accumulated alpha < ``min_alpha`` have no prediction (a miss where
+  the ground truth has a label). Scored against the stored label map of the view.
+- One confusion matrix per (split, dim) accumulated over all scenes/views of the set:
+  CSA = mIoU over the K classes, OVA = mIoU over the unseen classes (same matrix as CSA: val scenes,
+  all views), NVA = mIoU over the K classes on the novel-role views of the train scenes (2D only),
+  CDA = mIoU over the common classes (vocabulary classes present in the labels of the xval scenes),
+  scored on the xval (Replica) scenes.
+
+A predictor is anything with ``encode(scene) -> [N, F]`` per-Gaussian vectors (linear in 2D: they
+are blended) and ``classify(vectors [M, F], class_ids [K]) -> [M, K]`` scores. The trained model, the
+baselines of ``baseline.py`` and test stand-ins all fit it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, Iterable, NamedTuple, Protocol, Sequence
+
+import numpy as np
+
+from ovgaussian.bench_config import (
+    DEFAULT_MIN_ALPHA,
+    METRIC_DIMS,
+    METRIC_SPLITS,
+    METRICS,
+    TABLE1_COLUMNS,
+    BenchConfig,
+)
+from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
+from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+
+
+class Predictor(Protocol):
+    """What the benchmark scores."""
+
+    name: str
+
+    def encode(self, scene) -> np.ndarray:
+        """``[N, F]`` float per-Gaussian vectors of a SceneRecord (blended linearly for 2D)."""
+
+    def classify(self, vectors: np.ndarray, class_ids: np.ndarray) -> np.ndarray:
+        """``[M, F]`` vectors -> ``[M, K]`` scores of the K classes ``class_ids`` (top-100 ids)."""
+
+
+class Vocabulary(NamedTuple):
+    """The K benchmark classes.
+
+    Fields:
+        class_ids: ``[K]`` top-100 ids; vocabulary index i <-> class_ids[i].
+        names: the K class names.
+        unseen: ``[U]`` vocabulary indices of the unseen classes (never supervised).
+        lut: ``[L]`` int64 lookup top-100 id -> vocabulary index or IGNORE_LABEL (L = number of top-100 classes).
+    """
+
+    class_ids: np.ndarray
+    names: tuple[str, ...]
+    unseen: np.ndarray
+    lut: np.ndarray
+
+
+class MetricResult(NamedTuple):
+    """One metric in one dimension.
+
+    Fields:
+        metric, dim: e.g. ``CSA``, ``3d``.
+        split: split it was scored on.
+        classes: ``[S]`` vocabulary indices averaged over (before dropping NaN classes).
+        scores: per-class IoU/accuracy of the set's confusion matrix and the means over ``classes``.
+        num_scenes: scenes that contributed; num_views: views (2D) that contributed.
+    """
+
+    metric: str
+    dim: str
+    split: str
+    classes: np.ndarray
+    scores: SegmentationScores
+    num_scenes: int
+    num_views: int
+
+
+class BenchResult(NamedTuple):
+    """All metrics of one evaluation plus what identifies it (for the JSON report)."""
+
+    vocabulary: Vocabulary
+    results: dict  # {(dim, metric): MetricResult}
+    common_classes: np.ndarray | None
+    confusion: dict  # {(split, dim): [K, K+1] counts}
+
+
+# ---------------------------------------------------------------------------------------------
+# vocabulary and labels
+# ---------------------------------------------------------------------------------------------
+def make_vocabulary(class_ids: Sequence[int], class_names: Sequence[str] | None = None) -> Vocabulary:
+    """Vocabulary of the given top-100 ids (order kept); unseen = the UNSEEN_CLASSES among them."""
+    names_all = tuple(class_names) if class_names is not None else read_class_names()
+    ids = np.asarray(list(class_ids), dtype=np.int64)
+    if ids.ndim != 1 or ids.size == 0:
+        raise ValueError("vocabulary: need at least one class id")
+    if ids.min() < 0 or ids.max() >= len(names_all):
+        raise ValueError(f"vocabulary: class ids must lie in 0..{len(names_all) - 1}")
+    if np.unique(ids).size != ids.size:
+        raise ValueError("vocabulary: duplicate class ids")
+    names = tuple(names_all[i] for i in ids)
+    unseen = np.array([i for i, n in enumerate(names) if n in UNSEEN_CLASSES], dtype=np.int64)
+    lut = np.full(len(names_all), IGNORE_LABEL, dtype=np.int64)
+    lut[ids] = np.arange(ids.size)
+    return Vocabulary(ids, names, unseen, lut)
+
+
+def benchmark_vocabulary(num_classes: int) -> Vocabulary:
+    """The K-class benchmark vocabulary (4 unseen + first K-4 others of top-100)."""
+    from seggaussian.classes import benchmark_vocabulary as class_ids_for
+
+    return make_vocabulary(class_ids_for(num_classes))
+
+
+def to_vocabulary_labels(labels: np.ndarray, vocabulary: Vocabulary, what: str = "labels") -> np.ndarray:
+    """Top-100 ids (or IGNORE_LABEL) -> vocabulary indices; ids outside the vocabulary -> IGNORE_LABEL."""
+    labels = np.asarray(labels)
+    if labels.dtype.kind not in "iu":
+        raise TypeError(f"{what}: ground-truth labels must be integers, got {labels.dtype}")
+    flat = labels.astype(np.int64)
+    valid = (flat >= 0) & (flat < vocabulary.lut.size)
+    bad = ~valid & (flat != IGNORE_LABEL)
+    if bad.any():
+        raise ValueError(f"{what}: {int(bad.sum())} labels are neither a top-100 id nor IGNORE_LABEL "
+                         f"(first: {int(flat[bad][0])})")
+    return np.where(valid, vocabulary.lut[np.where(valid, flat, 0)], IGNORE_LABEL)
+
+
+# ---------------------------------------------------------------------------------------------
+# prediction
+# ---------------------------------------------------------------------------------------------
+def classify_vectors(predictor: Predictor, vectors: np.ndarray, vocabulary: Vocabulary,
+                     chunk_rows: int = 65536) -> np.ndarray:
+    """``[M, F]`` vectors -> ``[M]`` vocabulary indices (argmax of the K scores), in chunks of rows."""
+    out = np.empty(vectors.shape[0], dtype=np.int64)
+    for start in range(0, vectors.shape[0], chunk_rows):
+        scores = np.asarray(predictor.classify(vectors[start:start + chunk_rows], vocabulary.class_ids))
+        if scores.shape != (min(chunk_rows, vectors.shape[0] - start), vocabulary.class_ids.size):
+            raise ValueError(f"predictor {getattr(predictor, 'name', predictor)!r} returned scores of shape "
+                             f"{scores.shape}, expected (rows, {vocabulary.class_ids.size})")
+        if not np.isfinite(scores).any(axis=1).all():
+            raise ValueError(f"predictor {getattr(predictor, 'name', predictor)!r} returned a row with no finite score")
+        out[start:start + scores.shape[0]] = np.argmax(np.where(np.isnan(scores), -np.inf, scores), axis=1)
+    return out
+
+
+class BlendFunctions(NamedTuple):
+    """How per-Gaussian vectors become a view's rendered map (injectable for tests).
+
+    Fields:
+        blend: ``(gaussians, camera, top_k) -> BlendWeights`` (ids [H,W,K], weights [H,W,K], residual_alpha [H,W]).
+        render: ``(blend, vectors [N, F]) -> [H, W, F]`` = W S.
+    """
+
+    blend: Callable
+    render: Callable
+
+
+def default_blend_functions() -> BlendFunctions:
+    """``seggaussian.render``'s blend weights and M = W S, wrapped for numpy in and out."""
+    import torch
+
+    from seggaussian import render
+    from seggaussian.render.rasterize import camera_tensors
+
+    def blend(gaussians, camera, top_k):
+        # copies: shard columns are read-only numpy views, which torch.from_numpy warns about
+        t = {name: torch.tensor(getattr(gaussians, name)) for name in ("means", "quats", "log_scales", "opacity_logits")}
+        viewmat, K = camera_tensors(camera)
+        return render.compute_blend_weights(
+            t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
+            camera.width, camera.height, top_k=top_k,
+        )
+
+    def render_vectors(blend_weights, vectors):
+        with torch.no_grad():
+            out = render.render_features(blend_weights, torch.as_tensor(vectors, dtype=torch.float32))
+        return out.detach().cpu().numpy()
+
+    return BlendFunctions(blend, render_vectors)
+
+
+def _safe_name(text: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)
+
+
+def view_blend_weights(functions: BlendFunctions, scene, view, top_k: int, cache_dir: Path | None = None):
+    """The blend weights of one view, read from / written to ``cache_dir/<scene>/<view>.safetensors`` when a
+    cache folder is given (the caller keys the folder by dataset fingerprint and top_k)."""
+    if cache_dir is None:
+        return functions.blend(scene.gaussians, view.camera, top_k)
+    import torch
+    from safetensors.torch import load_file, save_file
+
+    from seggaussian.render import BlendWeights
+
+    path = Path(cache_dir) / _safe_name(scene.scene_id) / f"{_safe_name(view.name)}.safetensors"
+    if path.is_file():
+        t = load_file(str(path))
+        return BlendWeights(t["ids"].long(), t["weights"], t["residual_alpha"])
+    blend = functions.blend(scene.gaussians, view.camera, top_k)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        save_file({"ids": torch.as_tensor(blend.ids).to(torch.int32).contiguous(),
+                   "weights": torch.as_tensor(blend.weights).float().contiguous(),
+                   "residual_alpha": torch.as_tensor(blend.residual_alpha).float().contiguous()}, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return blend
+
+
+def accumulated_alpha(blend_weights) -> np.ndarray:
+    """``[H, W]`` accumulated alpha of a view: the kept weights plus the residual of the dropped contributors."""
+    weights = np.asarray(_to_numpy(blend_weights.weights), dtype=np.float64)
+    residual = getattr(blend_weights, "residual_alpha", None)
+    alpha = weights.sum(axis=-1)
+    if residual is not None:
+        alpha = alpha + np.asarray(_to_numpy(residual), dtype=np.float64)
+    return alpha
+
+
+def _to_numpy(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
+
+
+def predict_view_labels(predictor: Predictor, vectors: np.ndarray, blend_weights, vocabulary: Vocabulary,
+                        functions: BlendFunctions, min_alpha: float, chunk_rows: int = 65536) -> np.ndarray:
+    """``[H, W]`` vocabulary indices of one view, IGNORE_LABEL where the accumulated alpha < ``min_alpha``."""
+    rendered = np.asarray(functions.render(blend_weights, vectors))  # [H, W, F]
+    h, w = rendered.shape[:2]
+    covered = accumulated_alpha(blend_weights).reshape(h, w) >= min_alpha
+    labels = np.full((h, w), IGNORE_LABEL, dtype=np.int64)
+    if covered.any():
+        labels[covered] = classify_vectors(predictor, rendered[covered], vocabulary, chunk_rows)
+    return labels
+
+
+# ---------------------------------------------------------------------------------------------
+# the protocol
+# ---------------------------------------------------------------------------------------------
+def _views_with_role(scene, role: str | None, limit: int | None):
+    views = [v for v in scene.views if role is None or v.role == role]
+    views.sort(key=lambda v: v.name)
+    return views if limit is None else views[:limit]
+
+
+def _present_labels(scene) -> set[int]:
+    """Top-100 ids present in a scene's Gaussian labels and stored label maps."""
+    present = set()
+    semantic = scene.gaussians.extras.get("semantic")
+    if semantic is not None:
+        present.update(int(v) for v in np.unique(semantic))
+    for view in scene.views:
+        if view.semantic is not None:
+            present.update(int(v) for v in np.unique(view.semantic))
+    present.discard(IGNORE_LABEL)
+    return present
+
+
+def evaluate(
+    predictor: Predictor,
+    scenes_by_split: dict[str, Iterable],
+    vocabulary: Vocabulary,
+    *,
+    metrics: Sequence[str] = METRICS,
+    dims: Sequence[str] = ("3d", "2d"),
+    min_alpha: float = DEFAULT_MIN_ALPHA,
+    blend_top_k: int = 16,
+    max_views_per_scene: int | None = None,
+    chunk_rows: int = 65536,
+    functions: BlendFunctions | None = None,
+    progress: Callable[[str, str], None] | None = None,
+    blend_cache: Path | None = None,
+) -> BenchResult:
+    """Score ``predictor`` on the scenes of each split (``{split: iterable of SceneRecord}``).
+
+    Each split is iterated once; a scene's per-Gaussian vectors are computed once and reused for its
+    3D labels and every view. ``blend_cache``: folder of cached blend weights (see view_blend_weights).
+    Returns per-(dim, metric) results and the confusion matrices.
+    """
+    unknown = set(metrics) - set(METRICS)
+    if unknown:
+        raise ValueError(f"unknown metrics {sorted(unknown)}; choose from {METRICS}")
+    if set(dims) - {"3d", "2d"}:
+        raise ValueError(f"unknown dims {sorted(set(dims) - {'3d', '2d'})}; choose from 3d, 2d")
+    k = vocabulary.class_ids.size
+    wanted = [(d, m) for m in metrics for d in METRIC_DIMS[m] if d in dims]
+    if not wanted:
+        raise ValueError(f"nothing to compute: {', '.join(metrics)} in {', '.join(dims)} (NVA exists in 2D only)")
+    # what each split must provide: {split: {dim: view role (2D) or None (3D)}}
+    plan: dict[str, dict[str, str | None]] = {}
+    for dim, metric in wanted:
+        split = METRIC_SPLITS[metric]
+        role = None if metric in ("CSA", "OVA", "CDA") else "novel"
+        plan.setdefault(split, {})[dim] = role
+    if any(d == "2d" for d, _ in wanted) and functions is None:
+        functions = default_blend_functions()
+
+    confusion: dict[tuple[str, str], ConfusionMatrix] = {}
+    counts: dict[tuple[str, str], list[int]] = {}
+    common: set[int] = set()
+    for split, dim_roles in plan.items():
+        for dim in dim_roles:
+            confusion[(split, dim)] = ConfusionMatrix(k)
+            counts[(split, dim)] = [0, 0]
+        for scene in scenes_by_split.get(split, ()):
+            if progress is not None:
+                progress(split, scene.scene_id)
+            if split == "xval":
+                common |= _present_labels(scene)
+            vectors = np.asarray(predictor.encode(scene))
+            n = len(scene.gaussians)
+            if vectors.ndim != 2 or vectors.shape[0] != n:
+                raise ValueError(f"scene {scene.scene_id}: predictor returned vectors of shape {vectors.shape}, "
+                                 f"expected ({n}, F)")
+            if not np.isfinite(vectors).all():
+                raise ValueError(f"scene {scene.scene_id}: predictor returned non-finite vectors")
+            if "3d" in dim_roles:
+                semantic = scene.gaussians.extras.get("semantic")
+                if semantic is None:
+                    raise ValueError(f"scene {scene.scene_id} ({split}): Gaussians have no 'semantic' labels")
+                gt = to_vocabulary_labels(semantic, vocabulary, f"scene {scene.scene_id} Gaussians.semantic")
+                pred = classify_vectors(predictor, vectors, vocabulary, chunk_rows)
+                confusion[(split, "3d")].update(pred, gt)
+                counts[(split, "3d")][0] += 1
+            if "2d" in dim_roles:
+                views = _views_with_role(scene, dim_roles["2d"], max_views_per_scene)
+                for view in views:
+                    if view.semantic is None:
+                        raise ValueError(f"scene {scene.scene_id} view {view.name}: no stored semantic label map")
+                    gt = to_vocabulary_labels(view.semantic, vocabulary, f"scene {scene.scene_id} view {view.name}")
+                    blend_weights = view_blend_weights(functions, scene, view, blend_top_k, blend_cache)
+                    pred = predict_view_labels(predictor, vectors, blend_weights, vocabulary, functions,
+                                               min_alpha, chunk_rows)
+                    if pred.shape != gt.shape:
+                        raise ValueError(f"scene {scene.scene_id} view {view.name}: rendered {pred.shape} but "
+                                         f"the stored label map is {gt.shape}")
+                    confusion[(split, "2d")].update(pred, gt)
+                    counts[(split, "2d")][1] += 1
+                counts[(split, "2d")][0] += 1 if views else 0
+
+    common_idx = None
+    if "xval" in plan:
+        common_idx = np.array(sorted(int(vocabulary.lut[c]) for c in common
+                                     if 0 <= c < vocabulary.lut.size and vocabulary.lut[c] != IGNORE_LABEL),
+                              dtype=np.int64)
+    results = {}
+    for dim, metric in wanted:
+        split = METRIC_SPLITS[metric]
+        if metric == "OVA":
+            classes = vocabulary.unseen
+        elif metric == "CDA":
+            classes = common_idx
+        else:
+            classes = np.arange(k)
+        cm = confusion[(split, dim)]
+        scenes, views = counts[(split, dim)]
+        results[(dim, metric)] = MetricResult(metric, dim, split, classes, cm.scores(classes), scenes, views)
+    return BenchResult(vocabulary, results, common_idx, {key: cm.counts for key, cm in confusion.items()})
+
+
+# ---------------------------------------------------------------------------------------------
+# reporting
+# ---------------------------------------------------------------------------------------------
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{100.0 * value:.2f}"
+
+
+def table1_header() -> str:
+    """Markdown header of a Table-1 row: method | 3D CSA OVA CDA | 2D CSA OVA NVA CDA."""
+    cols = " | ".join(f"{d.upper()} {m}" for d, m in TABLE1_COLUMNS)
+    return f"| method | {cols} |\n|---|" + "---:|" * len(TABLE1_COLUMNS)
+
+
+def table1_row(label: str, result: BenchResult) -> str:
+    """Markdown row of mIoU (%) in Table-1 column order; ``-`` where not computed or nothing scored."""
+    cells = []
+    for dim, metric in TABLE1_COLUMNS:
+        r = result.results.get((dim, metric))
+        cells.append(_pct(None if r is None else r.scores.miou))
+    return f"| {label} | " + " | ".join(cells) + " |"
+
+
+def _finite_or_none(value) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def result_to_dict(result: BenchResult) -> dict:
+    """JSON-ready dict (no NaN: None where a class is not scored): per metric mIoU, mAcc, per-class IoU
+    by name, counts, the Table-1 row and the confusion matrices."""
+    voc = result.vocabulary
+    metrics = {}
+    for (dim, metric), r in result.results.items():
+        metrics.setdefault(dim, {})[metric] = {
+            "split": r.split,
+            "miou": r.scores.miou,
+            "macc": r.scores.macc,
+            "classes": [voc.names[i] for i in r.classes],
+            "scored_classes": [voc.names[i] for i in r.scores.scored_classes],
+            "per_class_iou": {voc.names[i]: _finite_or_none(r.scores.iou[i]) for i in r.classes},
+            "per_class_acc": {voc.names[i]: _finite_or_none(r.scores.acc[i]) for i in r.classes},
+            "num_samples": r.scores.num_samples,
+            "num_unpredicted": r.scores.num_unpredicted,
+            "num_scenes": r.num_scenes,
+            "num_views": r.num_views,
+        }
+    return {
+        "vocabulary": {
+            "num_classes": int(voc.class_ids.size),
+            "class_ids": voc.class_ids.tolist(),
+            "names": list(voc.names),
+            "unseen": [voc.names[i] for i in voc.unseen],
+            "common": None if result.common_classes is None else [voc.names[i] for i in result.common_classes],
+        },
+        "metrics": metrics,
+        "row": {f"{d}_{m}": (None if (d, m) not in result.results else result.results[(d, m)].scores.miou)
+                for d, m in TABLE1_COLUMNS},
+        "confusion": {f"{split}_{dim}": counts.tolist() for (split, dim), counts in result.confusion.items()},
+    }
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def dataset_fingerprint(dataset: Path) -> dict:
+    """What identifies the scored data: sha256 of ``manifest.json`` (which itself lists the sha256 of
+    every shard) and of ``splits.json`` when present."""
+    dataset = Path(dataset)
+    out = {}
+    for name in ("manifest.json", "splits.json"):
+        path = dataset / name
+        out[f"{name.split('.')[0]}_sha256"] = sha256_file(path) if path.is_file() else None
+    return out
+
+
+def write_json_atomic(path: Path, payload: dict) -> None:
+    """Write JSON (NaN as null) to a temp file in the same folder, then rename."""
+    from cli._output import to_json
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(to_json(payload))
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# ---------------------------------------------------------------------------------------------
+# one call for the CLI
+# ---------------------------------------------------------------------------------------------
+class BenchReport(NamedTuple):
+    """What ``ovgaussian bench`` prints and writes.
+
+    Fields:
+        result: the metrics.
+        payload: the JSON document (config, predictor/checkpoint, dataset fingerprint, metrics).
+        row: the Table-1 markdown row (with header).
+    """
+
+    result: BenchResult
+    payload: dict
+    row: str
+
+
+def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
+    """The predictor named by ``config`` and a JSON description of it (checkpoint path + sha256)."""
+    if config.predictor == "model":
+        if config.run is None:
+            raise ValueError("bench: --run is needed to score the model (or pick a baseline --predictor)")
+        from ovgaussian.predict import load_model_predictor
+
+        predictor = load_model_predictor(config.run, config.checkpoint, device=config.device)
+        weights = Path(predictor.checkpoint) / "model.safetensors"
+        return predictor, {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),
+                           "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None}
+    from ovgaussian import baseline
+    from seggaussian import shards
+
+    train = shards.iter_scenes(config.dataset, "train", views=False)
+    if config.predictor == "majority":
+        predictor = baseline.fit_majority(train)
+    elif config.predictor == "nearest-colour":
+        predictor = baseline.fit_nearest_colour(train)
+    else:
+        raise ValueError(f"unknown predictor {config.predictor!r}")
+    return predictor, {"kind": config.predictor, "fitted_on": "train"}
+
+
+def run_bench(config: BenchConfig, predictor: Predictor | None = None, *,
+              functions: BlendFunctions | None = None) -> BenchReport:
+    """Evaluate the configured predictor on the dataset's splits; nothing is written (see write_json_atomic)."""
+    from ovgaussian.train_config import config_to_dict
+    from seggaussian import shards
+
+    vocabulary = benchmark_vocabulary(config.num_classes)
+    description = {"kind": getattr(predictor, "name", "custom")}
+    if predictor is None:
+        predictor, description = make_predictor(config)
+    splits = {METRIC_SPLITS[m] for m in config.metrics}
+    available = {}
+    for split in sorted(splits):
+        ids = list(shards.list_scenes(config.dataset, split))
+        if config.max_scenes is not None:
+            ids = sorted(ids)[: config.max_scenes]
+        available[split] = ids
+
+    bar = None
+    if config.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=sum(len(v) for v in available.values()), desc="bench", unit="scene", leave=False)
+
+    def progress(split, scene_id):
+        if bar is not None:
+            bar.set_postfix_str(f"{split}:{scene_id}")
+            bar.update(1)
+
+    splits_2d = {METRIC_SPLITS[m] for m in config.metrics if "2d" in config.dims and "2d" in METRIC_DIMS[m]}
+
+    def read_split(split: str, ids: list[str]):
+        for scene_id in ids:  # one scene in memory at a time; views (images) only when 2D is scored
+            yield shards.read_scene(config.dataset, split, scene_id, views=split in splits_2d)
+
+    scenes_by_split = {split: read_split(split, ids) for split, ids in available.items()}
+    try:
+        fingerprint = dataset_fingerprint(config.dataset)
+        blend_cache = None
+        if config.cache_dir is not None:
+            blend_cache = Path(config.cache_dir) / f"blend_k{config.blend_top_k}_{fingerprint['manifest_sha256'][:12]}"
+        result = evaluate(predictor, scenes_by_split, vocabulary, metrics=config.metrics, dims=config.dims,
+                          min_alpha=config.min_alpha, blend_top_k=config.blend_top_k,
+                          max_views_per_scene=config.max_views_per_scene, chunk_rows=config.chunk_rows,
+                          functions=functions, progress=progress, blend_cache=blend_cache)
+    finally:
+        if bar is not None:
+            bar.close()
+    payload = {
+        "config": config_to_dict(config),
+        "predictor": description,
+        "dataset": {"path": str(config.dataset), **fingerprint,
+                    "scenes": {split: ids for split, ids in available.items()}},
+        **result_to_dict(result),
+    }
+    label = description.get("run") or description["kind"]
+    row = table1_header() + "\n" + table1_row(str(label), result)
+    return BenchReport(result, payload, row)

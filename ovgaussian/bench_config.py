@@ -1,0 +1,85 @@
+"""Configuration of ``ovgaussian bench`` and ``ovgaussian predict``: frozen dataclasses, no code.
+
+The protocol these settings drive is written down in ``data_specs/BENCHMARK.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+#: Metric names in Table-1 order.
+METRICS = ("CSA", "OVA", "NVA", "CDA")
+#: Which dimensions each metric exists in (NVA is 2D only: novel views).
+METRIC_DIMS = {"CSA": ("3d", "2d"), "OVA": ("3d", "2d"), "NVA": ("2d",), "CDA": ("3d", "2d")}
+#: Which split each metric is scored on.
+METRIC_SPLITS = {"CSA": "val", "OVA": "val", "NVA": "train", "CDA": "xval"}
+#: Columns of a Table-1 row, in the paper's order.
+TABLE1_COLUMNS = (("3d", "CSA"), ("3d", "OVA"), ("3d", "CDA"), ("2d", "CSA"), ("2d", "OVA"), ("2d", "NVA"), ("2d", "CDA"))
+
+#: Default accumulated-alpha threshold below which a rendered pixel has no prediction (IGNORE);
+#: the same value the label maps of the dataset are rendered with (seggaussian.render.render_label_maps).
+DEFAULT_MIN_ALPHA = 0.5
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """One benchmark evaluation."""
+
+    dataset: Path = Path("dataset")
+    """Dataset folder written by ``seggaussian build`` + ``seggaussian split`` (splits train/val/xval)."""
+    run: Optional[Path] = None
+    """Run folder of ``ovgaussian train`` whose model is scored (needed by ``predictor = model``)."""
+    checkpoint: Optional[Path] = None
+    """A checkpoint folder of the run (RUN/checkpoints/epoch-XXXX); None takes the run's latest checkpoint."""
+    predictor: Literal["model", "majority", "nearest-colour"] = "model"
+    """What is scored: the trained model, or a non-learned baseline fitted on the train split (baseline.py)."""
+    metrics: tuple[str, ...] = METRICS
+    """Metrics to compute (subset of CSA, OVA, NVA, CDA)."""
+    dims: tuple[str, ...] = ("3d", "2d")
+    """Dimensions to score: ``3d`` on the Gaussians, ``2d`` on rendered label maps."""
+    num_classes: int = 20
+    """Vocabulary size K (20, 50 or 100): the 4 unseen classes plus the first K-4 other top-100 classes."""
+    min_alpha: float = DEFAULT_MIN_ALPHA
+    """Rendered pixels whose accumulated alpha is below this get no prediction (counted as a miss)."""
+    blend_top_k: int = 16
+    """Contributors kept per pixel in the blend weights W of M = W S."""
+    max_views_per_scene: Optional[int] = None
+    """Score at most this many views (of the metric's role) per scene, the first ones by name; None: all."""
+    max_scenes: Optional[int] = None
+    """Score at most this many scenes per split (the first ones by id); None: all."""
+    chunk_rows: int = 65536
+    """Gaussians or pixels decoded and classified at once (bounds the memory of phi's D-wide output)."""
+    cache_dir: Optional[Path] = None
+    """Folder caching the blend weights of the scored views (safetensors, keyed by the dataset's manifest
+    sha256 and blend_top_k), so repeated evaluations (other K, other runs) skip the rasterizer; None: no cache."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Device of the model."""
+    progress: bool = True
+    """Show a progress bar over scenes."""
+
+
+@dataclass(frozen=True)
+class PredictConfig:
+    """One open-vocabulary query of a scene."""
+
+    run: Path = Path("run")
+    """Run folder of ``ovgaussian train``."""
+    checkpoint: Optional[Path] = None
+    """A checkpoint folder (RUN/checkpoints/epoch-XXXX); None takes the run's latest."""
+    vocabulary: tuple[str, ...] = ()
+    """Free-text class names the Gaussians are labelled with (label i = vocabulary[i])."""
+    colour_mode: Literal["f_dc", "rgb", "both"] = "both"
+    """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
+    red/green/blue properties, or both."""
+    min_alpha: float = DEFAULT_MIN_ALPHA
+    """Pixels of label-map PNGs whose accumulated alpha is below this are written as IGNORE (0 in the colour PNG)."""
+    blend_top_k: int = 16
+    """Contributors kept per pixel when rendering label maps."""
+    on_invalid: Literal["error", "drop", "repair"] = "error"
+    """What to do with invalid Gaussians in the input PLY (see seggaussian.io.ply.read_gaussians_ply)."""
+    chunk_rows: int = 65536
+    """Gaussians or pixels classified at once."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Device of the model."""
