@@ -2,10 +2,12 @@
 
 Part 1 (``conv``): 100,000 active voxels in a 256^3 grid, 32 channels, three submanifold 3^3
 layers, forward + backward, one torch thread. Two site distributions: ``uniform`` (random voxels,
-about 1 neighbour per site) and ``surface`` (voxels on box faces, like a scanned room, about 9). Compared in one run: our custom autograd Function,
-the same gather/matmul/scatter with plain autograd, and spconv 2.3.8 (CPU, single-threaded; its
-backward needs its CUDA-stream lookup patched to 0 at run time, done here without touching the
-installed package). Kernel-map building is timed separately and included in the totals.
+about 1 neighbour per site) and ``surface`` (voxels on box faces, like a scanned room, about 9).
+Compared in one run, round-robin: ours with the implicit-GEMM method (default) and with the
+per-offset gather/matmul/scatter method, each with the kernel map (and GEMM plan) built in the call
+and cached, and spconv 2.3.8 (CPU, single-threaded; its backward needs its CUDA-stream lookup
+patched to 0 at run time, done here without touching the installed package). Kernel-map and plan
+building are also timed separately.
 Outputs and gradients of ours and spconv are compared (max abs difference).
 
 Part 2 (``net``): forward + backward of ``OVGaussianNet`` on 3 synthetic rooms x 50,000 Gaussians
@@ -14,7 +16,11 @@ in its own subprocess so that peak memory is not shared.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_sparse.py [conv|net|all] [--reps 5] [--threads 1]
+    .venv/bin/python benchmarks/bench_sparse.py [conv|net|net-interleaved|all] [--reps 5] [--threads 1]
+        [--widths slim,default] [--methods gemm,scatter]
+
+``net-interleaved``: the semantic-phase step with the conv methods run round-robin in one process
+(``--reps`` timed steps each after one warm-up), the fairer method comparison on a loaded machine.
 """
 
 from __future__ import annotations
@@ -93,7 +99,7 @@ def surface_sites_256(num_voxels: int, seed: int):
 
 def bench_conv(reps: int, distribution: str, num_voxels: int = 100_000, channels: int = 32, layers: int = 3) -> dict:
     from ovgaussian.sparse import VoxelSites, sparse_conv
-    from ovgaussian.sparse.conv import sparse_conv_autograd, torch_row_ops
+    from ovgaussian.sparse.gather_gemm import build_gather_plan, gather_plans
     from ovgaussian.sparse.kernel_map import build_submanifold_map
 
     sites = (random_sites_256 if distribution == "uniform" else surface_sites_256)(num_voxels, 0)
@@ -111,24 +117,32 @@ def bench_conv(reps: int, distribution: str, num_voxels: int = 100_000, channels
     result["ours_map_build_search_s"], _ = median_time(
         lambda: build_submanifold_map(sites.keys, 3, method="search"), reps)
     kmap = build_map()
+    result["ours_gemm_plan_build_s"], _ = median_time(lambda: build_gather_plan(kmap), reps)
+    plan, _ = gather_plans(kmap)
     pairs = sum(int(t.numel()) for t in kmap.in_indices)
     result["kernel_map_pairs"] = pairs
+    result["gemm_groups"] = len(plan.groups)
+    result["gemm_offsets_per_row"] = sum(gr.neighbours.numel() for gr in plan.groups) / num_voxels
 
-    def run(conv_fn, kernel_map):
+    def run(method, kernel_map):
         f = features.clone().requires_grad_(True)
         ws = [w.clone().requires_grad_(True) for w in weights]
         x = f
         for w in ws:
-            x = conv_fn(x, w, kernel_map)
+            x = sparse_conv(x, w, kernel_map, method=method)
         (x * upstream).sum().backward()
         return x.detach(), f.grad, [w.grad for w in ws]
 
-    ours = run(sparse_conv, kmap)
+    ours = run("gemm", kmap)
+    scatter = run("scatter", kmap)
+    result["gemm_vs_scatter_max_abs_out"] = float((ours[0] - scatter[0]).abs().max())
+    result["gemm_vs_scatter_max_abs_grad_features"] = float((ours[1] - scatter[1]).abs().max())
+    result["gemm_vs_scatter_max_abs_grad_weight"] = max(float((a - b).abs().max()) for a, b in zip(ours[2], scatter[2]))
     fns = {
-        "ours_custom_fwd_bwd_s": lambda: run(sparse_conv, kmap),
-        "ours_custom_total_s": lambda: run(sparse_conv, build_map()),
-        "ours_custom_torch_rowops_fwd_bwd_s": lambda: run(lambda f, w, m: sparse_conv(f, w, m, torch_row_ops()), kmap),
-        "ours_plain_autograd_fwd_bwd_s": lambda: run(sparse_conv_autograd, kmap),
+        "ours_gemm_total_s": lambda: run("gemm", build_map()),
+        "ours_gemm_fwd_bwd_s": lambda: run("gemm", kmap),
+        "ours_scatter_total_s": lambda: run("scatter", build_map()),
+        "ours_scatter_fwd_bwd_s": lambda: run("scatter", kmap),
     }
     try:
         spconv_run, info = make_spconv(sites, features, weights, upstream, ours)
@@ -207,12 +221,20 @@ def room_gaussians(num_scenes: int, per_scene: int, seed: int):
     return torch.cat(means), gaussian_attributes(raw), torch.cat(batch)
 
 
-def bench_net_one(width: str, reps: int) -> dict:
-    """Runs in a subprocess: forward + backward of the full net at ``default`` or ``slim`` widths."""
+def bench_net_one(width: str, reps: int, method: str) -> dict:
+    """Runs in a subprocess: forward + backward of the full net at ``default`` or ``slim`` widths.
+
+    ``method``: the sparse conv method of every layer ("gemm", the default, or "scatter"); the
+    modules call ``ovgaussian.sparse.conv.sparse_conv``, rebound here for this process only.
+    """
+    import functools
+
+    import ovgaussian.sparse.conv as conv_module
     from ovgaussian.model import OVGaussianNet
     from ovgaussian.model_config import OVGaussianNetConfig
     from ovgaussian.sparse import voxelize_points
 
+    conv_module.sparse_conv = functools.partial(conv_module.sparse_conv, method=method)
     config = OVGaussianNetConfig() if width == "default" else OVGaussianNetConfig.slim()
     net = OVGaussianNet(config)
     means, attrs, batch = room_gaussians(3, 50_000, seed=2)
@@ -241,6 +263,7 @@ def bench_net_one(width: str, reps: int) -> dict:
     t_dec, times_dec = median_time(step_with_decoders, reps)
     rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {
+        "method": method,
         "widths": list(config.widths), "stem": f"{config.stem_width} ch, {config.stem_kernel_size}^3",
         "parameters": sum(p.numel() for p in net.parameters()), "gaussians": int(means.shape[0]),
         "voxels_finest": len(vox.voxels.sites),
@@ -252,33 +275,69 @@ def bench_net_one(width: str, reps: int) -> dict:
     }
 
 
+def bench_net_interleaved(width: str, reps: int, methods: list[str]) -> dict:
+    """Semantic-phase step (backbone + adapter, fwd + bwd) of one net, conv methods run round-robin in
+    one process (the load hits them alike; peak memory is not separated here)."""
+    import functools
+
+    import ovgaussian.sparse.conv as conv_module
+    from ovgaussian.model import OVGaussianNet
+    from ovgaussian.model_config import OVGaussianNetConfig
+
+    original = conv_module.sparse_conv
+    config = OVGaussianNetConfig() if width == "default" else OVGaussianNetConfig.slim()
+    net = OVGaussianNet(config)
+    means, attrs, batch = room_gaussians(3, 50_000, seed=2)
+    upstream = torch.randn(means.shape[0], config.semantic_width, generator=torch.Generator().manual_seed(3))
+
+    def step(method):
+        conv_module.sparse_conv = functools.partial(original, method=method)
+        net.zero_grad(set_to_none=True)
+        (net(means, attrs, batch) * upstream).sum().backward()
+
+    try:
+        medians = interleaved_medians({f"{m}_semantic_fwd_bwd_s": functools.partial(step, m) for m in methods}, reps)
+    finally:
+        conv_module.sparse_conv = original
+    return {"widths": list(config.widths), "reps": reps, **medians}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("part", nargs="?", default="all", choices=["conv", "net", "all", "_net_one"])
+    parser.add_argument("part", nargs="?", default="all", choices=["conv", "net", "net-interleaved", "all", "_net_one"])
     parser.add_argument("--reps", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--width", default="slim")
+    parser.add_argument("--widths", default="slim,default", help="net: comma-separated widths to run")
+    parser.add_argument("--methods", default="gemm,scatter", help="net: comma-separated conv methods")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if args.part == "_net_one":
-        print(json.dumps(bench_net_one(args.width, args.reps)))
+        print(json.dumps(bench_net_one(args.width, args.reps, args.methods.split(",")[0])))
         return
     results = {}
+    if args.part == "net-interleaved":
+        for width in args.widths.split(","):
+            result = bench_net_interleaved(width, args.reps, args.methods.split(","))
+            print(json.dumps({f"net_interleaved_{width}": result}, indent=1), flush=True)
+        return
     if args.part in ("conv", "all"):
         for distribution in ("uniform", "surface"):
             results[f"conv_{distribution}"] = bench_conv(args.reps, distribution)
             print(json.dumps({f"conv_{distribution}": results[f"conv_{distribution}"]}, indent=1), flush=True)
     if args.part in ("net", "all"):
-        for width in ("slim", "default"):
-            proc = subprocess.run(
-                [sys.executable, __file__, "_net_one", "--width", width, "--reps", str(max(1, args.reps // 2)),
-                 "--threads", str(args.threads)], capture_output=True, text=True, cwd=REPO,
-            )
-            if proc.returncode:
-                results[f"net_{width}"] = {"error": proc.stderr.strip().splitlines()[-1]}
-            else:
-                results[f"net_{width}"] = json.loads(proc.stdout.strip().splitlines()[-1])
-            print(json.dumps({f"net_{width}": results[f"net_{width}"]}, indent=1), flush=True)
+        for width in args.widths.split(","):
+            for method in args.methods.split(","):  # alternate methods per width (load drifts)
+                proc = subprocess.run(
+                    [sys.executable, __file__, "_net_one", "--width", width, "--reps", str(max(1, args.reps // 2)),
+                     "--threads", str(args.threads), "--methods", method], capture_output=True, text=True, cwd=REPO,
+                )
+                name = f"net_{width}_{method}"
+                if proc.returncode:
+                    results[name] = {"error": proc.stderr.strip().splitlines()[-1]}
+                else:
+                    results[name] = json.loads(proc.stdout.strip().splitlines()[-1])
+                print(json.dumps({name: results[name]}, indent=1), flush=True)
 
 
 if __name__ == "__main__":

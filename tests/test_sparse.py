@@ -10,8 +10,9 @@ from ovgaussian.sparse import (
     DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, pack_keys, sparse_conv,
     voxelize_points,
 )
-from ovgaussian.sparse.conv import numba_row_ops, sparse_conv_autograd, torch_row_ops
-from ovgaussian.sparse.kernel_map import build_submanifold_map
+from ovgaussian.sparse.conv import sparse_conv_autograd
+from ovgaussian.sparse.gather_gemm import build_gather_plan, flip_plan, gather_gemm_conv, gather_plans
+from ovgaussian.sparse.kernel_map import KernelMap, build_submanifold_map
 from ovgaussian.sparse.reference import (
     down_conv_dense, naive_submanifold_pairs, submanifold_conv_dense, up_conv_dense,
 )
@@ -104,25 +105,180 @@ def test_submanifold_conv_matches_dense_conv3d(kernel_size):
     torch.testing.assert_close(conv(SparseVoxels(features, sites)).features, want[0], atol=1e-10, rtol=1e-10)
 
 
+METHODS = [("gemm", "numba"), ("gemm", "torch"), ("scatter", "numba"), ("scatter", "torch")]
+
+
+@pytest.mark.parametrize("method,backend", METHODS)
+@pytest.mark.parametrize("kernel_size", [3, 5])
+def test_every_method_and_backend_matches_dense_conv3d_float64(method, backend, kernel_size):
+    sites = random_sites(40, 2, 9, 0.3)
+    features, weight = rand(41, len(sites), 3), rand(42, kernel_size**3, 3, 4)
+    kmap = sites.submanifold_map(kernel_size)
+    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap, method, backend), features, weight)
+    want = forward_backward(
+        lambda f, w: submanifold_conv_dense(f, sites, w, kernel_size, (9, 9, 9), 2), features, weight)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+
+
 def test_submanifold_conv_float32_matches_dense_and_plain_autograd():
     sites = random_sites(5, 2, 10, 0.2)
     features, weight = rand(6, len(sites), 8, dtype=torch.float32), rand(7, 27, 8, 8, dtype=torch.float32)
     kmap = sites.submanifold_map(3)
-    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap, numba_row_ops()), features, weight)
-    with_torch_ops = forward_backward(lambda f, w: sparse_conv(f, w, kmap, torch_row_ops()), features, weight)
     plain = forward_backward(lambda f, w: sparse_conv_autograd(f, w, kmap), features, weight)
     want = forward_backward(lambda f, w: submanifold_conv_dense(f, sites, w, 3, (10, 10, 10), 2), features, weight)
-    for a, b, c, d in zip(got, want, plain, with_torch_ops):
-        torch.testing.assert_close(a, b, atol=5e-5, rtol=1e-5)
-        torch.testing.assert_close(a, c, atol=5e-5, rtol=1e-5)
-        torch.testing.assert_close(a, d, atol=1e-6, rtol=1e-6)
+    for method, backend in METHODS:
+        got = forward_backward(lambda f, w: sparse_conv(f, w, kmap, method, backend), features, weight)
+        for a, b, c in zip(got, want, plain):
+            torch.testing.assert_close(a, b, atol=5e-5, rtol=1e-5)
+            torch.testing.assert_close(a, c, atol=5e-5, rtol=1e-5)
 
 
-def test_down_and_up_conv_match_dense():
+def plan_pairs(plan) -> set[tuple[int, int, int]]:
+    """``(offset, in_row, out_row)`` triples of a plan (absent neighbours skipped)."""
+    pairs = set()
+    if plan.identity_offset >= 0:
+        pairs |= {(plan.identity_offset, i, i) for i in range(plan.num_out)}
+    for k, (ins, outs) in enumerate(zip(plan.residual_in, plan.residual_out)):
+        pairs |= {(k, int(i), int(o)) for i, o in zip(ins, outs)}
+    for group in plan.groups:
+        for row, nbrs in zip(group.rows.tolist(), group.neighbours.tolist()):
+            for k, j in zip(group.offsets.tolist(), nbrs):
+                if j < plan.num_in:
+                    pairs.add((k, j, row))
+    return pairs
+
+
+def map_pairs(kmap) -> set[tuple[int, int, int]]:
+    return {(k, int(i), int(o)) for k in range(kmap.kernel_volume)
+            for i, o in zip(kmap.in_indices[k], kmap.out_indices[k])}
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+@pytest.mark.parametrize("min_group_rows,max_groups", [(1, 10**6), (4, 10**6), (10**9, 10**6), (1, 2)])
+def test_gather_plan_covers_every_row_once_and_every_pair(min_group_rows, max_groups, backend):
+    sites = random_sites(43, 2, 7, 0.35)
+    maps = [sites.submanifold_map(3), sites.downsample()[1], sites.downsample()[1].transposed()]
+    if backend == "numba":  # a 125-offset map: patterns over several mask words (once is enough)
+        maps.append(sites.submanifold_map(5))
+    for kmap in maps:
+        plan = build_gather_plan(kmap, min_group_rows=min_group_rows, max_groups=max_groups, backend=backend)
+        rows = torch.cat([g.rows for g in plan.groups] + [torch.zeros(0, dtype=torch.int64)])
+        assert rows.unique().numel() == rows.numel()  # each output row in at most one group
+        assert plan_pairs(plan) == map_pairs(kmap)
+        # ... and each pair exactly once: in a group, in the residual, or as the identity offset
+        in_groups = sum(int((g.neighbours < plan.num_in).sum()) for g in plan.groups)
+        in_residual = sum(int(t.numel()) for t in plan.residual_in)
+        identity = plan.num_out if plan.identity_offset >= 0 else 0
+        assert in_groups + in_residual + identity == sum(int(t.numel()) for t in kmap.in_indices)
+        if min_group_rows == 1 and max_groups > 10**5:  # each pattern its own group: no absent neighbour
+            assert all(bool((g.neighbours < kmap.num_in).all()) for g in plan.groups)
+        if min_group_rows == 10**9:  # no group: everything in the residual
+            assert len(plan.groups) == 0
+        assert len(plan.groups) <= max_groups + 1
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+@pytest.mark.parametrize("min_group_rows", [1, 3, 10**9])
+def test_gemm_with_forced_groupings_matches_dense_float64(min_group_rows, backend):
+    """Groups only, groups + residual, residual only: all equal dense conv3d (forward and backward)."""
+    sites = random_sites(54, 2, 8, 0.3)
+    coarse, down = sites.downsample()
+    cases = [
+        (sites.submanifold_map(3), lambda f, w: submanifold_conv_dense(f, sites, w, 3, (8, 8, 8), 2), len(sites), 27),
+        (sites.submanifold_map(5), lambda f, w: submanifold_conv_dense(f, sites, w, 5, (8, 8, 8), 2), len(sites), 125),
+        (down, lambda f, w: down_conv_dense(f, sites, coarse, w, (8, 8, 8), 2), len(sites), 8),
+        (down.transposed(), lambda f, w: up_conv_dense(f, coarse, sites, w, (4, 4, 4), 2), len(coarse), 8),
+    ]
+    for i, (kmap, dense, rows, k_vol) in enumerate(cases):
+        plan = build_gather_plan(kmap, min_group_rows=min_group_rows, backend=backend)
+        plan_t = flip_plan(plan) if kmap.symmetric else build_gather_plan(
+            kmap.transposed(), min_group_rows=min_group_rows, backend=backend)
+        if min_group_rows == 1:
+            assert plan.groups and plan_t.groups
+        f, w = rand(55 + i, rows, 3), rand(60 + i, k_vol, 3, 2)
+        got = forward_backward(lambda a, b: gather_gemm_conv(a, b, kmap, backend, (plan, plan_t)), f, w)
+        want = forward_backward(dense, f, w)
+        for a, b in zip(got, want):
+            torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+
+
+def test_flipped_plan_of_a_submanifold_map_is_the_transposed_plan():
+    sites = random_sites(44, 1, 8, 0.3)
+    kmap = sites.submanifold_map(3)
+    plan, plan_t = gather_plans(kmap)
+    assert plan_pairs(flip_plan(plan)) == plan_pairs(build_gather_plan(kmap.transposed())) == map_pairs(kmap.transposed())
+    assert gather_plans(kmap) is gather_plans(kmap)  # cached on the map
+    assert kmap.transposed() is kmap.transposed() and kmap.transposed().transposed() is kmap
+
+
+def test_plan_groups_by_pattern_on_a_plane():
+    """A 6 x 6 plane: interior sites see the 9 in-plane offsets, border sites fewer (residual)."""
+    x, y = torch.meshgrid(torch.arange(6), torch.arange(6), indexing="ij")
+    coords = torch.stack([x.reshape(-1), y.reshape(-1), torch.zeros(36, dtype=torch.long)], 1)
+    sites, _ = VoxelSites.from_coords(torch.zeros(36, dtype=torch.long), coords)
+    plan = build_gather_plan(sites.submanifold_map(3), min_group_rows=16)
+    # 16 interior rows see the 8 in-plane offsets around the centre; the border rows (5 or 3
+    # neighbours: 8 gathered would exceed RESIDUAL_COST_RATIO times that) go to the residual
+    assert plan.identity_offset == 13
+    assert len(plan.groups) == 1 and plan.groups[0].offsets.tolist() == [1, 4, 7, 10, 16, 19, 22, 25]
+    interior = ((sites.coords[:, 0] % 5 != 0) & (sites.coords[:, 1] % 5 != 0)).nonzero().squeeze(1)
+    assert torch.equal(plan.groups[0].rows, interior)
+    assert bool((plan.groups[0].neighbours < 36).all())
+    assert set(torch.cat(plan.residual_out).tolist()) == set(range(36)) - set(interior.tolist())
+    # a row whose pattern is a large part of a group's joins it and sends the rest to the residual
+    sites2, _ = VoxelSites.from_coords(torch.zeros(37, dtype=torch.long), torch.cat([coords, torch.tensor([[2, 2, 1]])]))
+    plan2 = build_gather_plan(sites2.submanifold_map(3), min_group_rows=5)  # 7 rows keep the plain pattern
+    row = int(((sites2.coords == torch.tensor([2, 2, 0])).all(1)).nonzero())
+    assert row in plan2.groups[0].rows.tolist()
+    assert [(k, int(o)) for k, t in enumerate(plan2.residual_out) for o in t if int(o) == row] == [(14, row)]
+    assert plan_pairs(plan2) == map_pairs(sites2.submanifold_map(3))
+    assert plan_pairs(plan) == map_pairs(sites.submanifold_map(3))
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_map_with_two_inputs_per_offset_goes_to_the_residual(backend):
+    kmap = KernelMap((torch.tensor([0, 1]),), (torch.tensor([0, 0]),), (False,), 2, 1)
+    plan = build_gather_plan(kmap, min_group_rows=1, backend=backend)
+    assert plan.groups == () and plan_pairs(plan) == {(0, 0, 0), (0, 1, 0)}
+    f, w = rand(45, 2, 3), rand(46, 1, 3, 2)
+    for method in ("gemm", "scatter"):
+        got = forward_backward(lambda a, b: sparse_conv(a, b, kmap, method, backend), f, w)
+        want = forward_backward(lambda a, b: (a[0:1] + a[1:2]) @ b[0], f, w)
+        for a, b in zip(got, want):
+            torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+    with pytest.raises(ValueError, match="method"):
+        sparse_conv(f, w, kmap, "dense")
+
+
+def test_sparse_map_gets_no_groups():
+    """Under MIN_PAIRS_PER_ROW_FOR_GROUPS non-identity pairs per row: residual only, same result."""
+    sites = random_sites(56, 1, 12, 0.02)
+    kmap = sites.submanifold_map(3)
+    assert sum(int(t.numel()) for t in kmap.in_indices) - len(sites) < len(sites)
+    plan = build_gather_plan(kmap)
+    assert plan.groups == () and plan_pairs(plan) == map_pairs(kmap)
+
+
+@pytest.mark.parametrize("method", ["gemm", "scatter"])
+def test_nan_feature_reaches_exactly_its_neighbours(method):
+    sites = random_sites(47, 1, 6, 0.4)
+    kmap = sites.submanifold_map(3)
+    f = rand(48, len(sites), 2)
+    f[3, 1] = float("nan")
+    out = sparse_conv(f, rand(49, 27, 2, 2), kmap, method)
+    reads_row_3 = torch.zeros(len(sites), dtype=torch.bool)
+    for k in range(27):
+        reads_row_3[kmap.out_indices[k][kmap.in_indices[k] == 3]] = True
+    assert torch.equal(torch.isnan(out).any(1), reads_row_3)
+
+
+@pytest.mark.parametrize("method,backend", METHODS)
+def test_down_and_up_conv_match_dense(method, backend):
     sites = random_sites(8, 2, 8, 0.3)
     coarse, kmap = sites.downsample()
     features, w_down = rand(9, len(sites), 3), rand(10, 8, 3, 6)
-    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap), features, w_down)
+    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap, method, backend), features, w_down)
     want = forward_backward(lambda f, w: down_conv_dense(f, sites, coarse, w, (8, 8, 8), 2), features, w_down)
     for a, b in zip(got, want):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
@@ -131,7 +287,7 @@ def test_down_and_up_conv_match_dense():
     assert torch.equal(coarse.keys, expected)
 
     coarse_features, w_up = rand(11, len(coarse), 6), rand(12, 8, 6, 3)
-    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap.transposed()), coarse_features, w_up)
+    got = forward_backward(lambda f, w: sparse_conv(f, w, kmap.transposed(), method, backend), coarse_features, w_up)
     want = forward_backward(lambda f, w: up_conv_dense(f, coarse, sites, w, (4, 4, 4), 2), coarse_features, w_up)
     for a, b in zip(got, want):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
@@ -266,3 +422,36 @@ def test_kernel_size_outside_the_key_margin_is_rejected():
         build_submanifold_map(sites.keys, 19)
     with pytest.raises(ValueError, match="odd, positive"):
         build_submanifold_map(sites.keys, 4)
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_gather_plan_of_a_map_with_unsorted_pairs(backend):
+    """Pairs in any order within an offset give the same plan pairs and the same conv (other fill path)."""
+    sites = random_sites(50, 1, 7, 0.3)
+    kmap = sites.submanifold_map(3)
+    g = torch.Generator().manual_seed(51)
+    perms = [torch.randperm(rows.numel(), generator=g) for rows in kmap.in_indices]
+    shuffled = KernelMap(tuple(r[p] for r, p in zip(kmap.in_indices, perms)),
+                         tuple(r[p] for r, p in zip(kmap.out_indices, perms)), (False,) * 27, kmap.num_in, kmap.num_out)
+    plan = build_gather_plan(shuffled, backend=backend)
+    assert plan.identity_offset == -1 and plan_pairs(plan) == map_pairs(kmap)
+    f, w = rand(52, len(sites), 3), rand(53, 27, 3, 2)
+    torch.testing.assert_close(sparse_conv(f, w, shuffled, backend=backend), sparse_conv(f, w, kmap, "scatter"),
+                               atol=1e-12, rtol=1e-12)
+
+
+def test_wide_convs_use_the_grouped_plan_and_narrow_ones_the_residual_plan():
+    from ovgaussian.sparse.gather_gemm import MIN_GROUPED_CHANNELS
+
+    x, y = torch.meshgrid(torch.arange(12), torch.arange(12), indexing="ij")  # a plane: 100 interior rows
+    coords = torch.stack([x.reshape(-1), y.reshape(-1), torch.full((144,), 3)], 1)
+    sites, _ = VoxelSites.from_coords(torch.zeros(144, dtype=torch.long), coords)
+    kmap = sites.submanifold_map(3)
+    for c_in, key in ((MIN_GROUPED_CHANNELS, "plans"), (MIN_GROUPED_CHANNELS - 1, "residual_plans")):
+        f, w = rand(58, len(sites), c_in), rand(59, 27, c_in, 3)
+        got = forward_backward(lambda a, b: sparse_conv(a, b, kmap), f, w)
+        want = forward_backward(lambda a, b: submanifold_conv_dense(a, sites, b, 3, (12, 12, 12), 1), f, w)
+        for a, b in zip(got, want):
+            torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+        assert key in kmap.cache
+    assert kmap.cache["plans"][0].groups and not kmap.cache["residual_plans"][0].groups

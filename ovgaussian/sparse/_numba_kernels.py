@@ -1,4 +1,4 @@
-"""Numba kernels of the sparse conv: kernel-map merge join, row gather, row scatter-add (all serial)."""
+"""Numba kernels of the sparse conv: kernel-map merge join, row gather / scatter-add, GEMM-plan building (all serial)."""
 
 from __future__ import annotations
 
@@ -52,3 +52,112 @@ def scatter_add_rows(out: np.ndarray, rows: np.ndarray, y: np.ndarray) -> None: 
         r = rows[p]
         for c in range(out.shape[1]):
             out[r, c] += y[p, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def gather_neighbour_block(x: np.ndarray, neighbours: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """``out[i, p*C:(p+1)*C] = x[neighbours[i, p]]``, zeros where ``neighbours[i, p] >= len(x)`` (absent).
+
+    ``out`` is ``[n, P * C]``: the im2col block of ``n`` output rows over ``P`` kernel offsets.
+    """
+    num_rows = x.shape[0]
+    c_in = x.shape[1]
+    for i in range(neighbours.shape[0]):
+        for p in range(neighbours.shape[1]):
+            r = neighbours[i, p]
+            base = p * c_in
+            if r < num_rows:
+                for c in range(c_in):
+                    out[i, base + c] = x[r, c]
+            else:
+                for c in range(c_in):
+                    out[i, base + c] = 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def fill_neighbour_table(in_rows, out_rows, starts, num_in, num_out, word_bits):  # pragma: no cover - compiled
+    """Neighbour table and pattern bit masks of a kernel map given as concatenated pairs.
+
+    Pairs of offset ``k`` are ``in_rows[starts[k]:starts[k + 1]]`` / ``out_rows[...]``. Returns
+    ``table [num_out, K]`` (``num_in`` where absent), ``words [num_out, W]`` (bit ``k % word_bits``
+    of word ``k // word_bits`` set when offset ``k`` has an input) and the number of pairs that hit an
+    already filled slot (two inputs for one (row, offset): not expressible as a table).
+    When every offset's output rows are strictly increasing (all maps built here) the table is
+    filled row by row, a K-way merge (cache friendly); otherwise offset by offset.
+    """
+    k_vol = starts.shape[0] - 1
+    num_words = max(1, (k_vol + word_bits - 1) // word_bits)
+    table = np.empty((num_out, k_vol), np.int64)
+    words = np.zeros((num_out, num_words), np.int64)
+    collisions = 0
+    increasing = True
+    for k in range(k_vol):
+        for p in range(starts[k] + 1, starts[k + 1]):
+            if out_rows[p] <= out_rows[p - 1]:
+                increasing = False
+    if increasing:
+        ptr = starts[:-1].copy()
+        for o in range(num_out):
+            for k in range(k_vol):
+                p = ptr[k]
+                if p < starts[k + 1] and out_rows[p] == o:
+                    table[o, k] = in_rows[p]
+                    words[o, k // word_bits] |= np.int64(1) << (k % word_bits)
+                    ptr[k] = p + 1
+                else:
+                    table[o, k] = num_in
+        return table, words, collisions
+    table[:, :] = num_in
+    for k in range(k_vol):
+        w = k // word_bits
+        bit = np.int64(1) << (k % word_bits)
+        for p in range(starts[k], starts[k + 1]):
+            o = out_rows[p]
+            if table[o, k] != num_in:
+                collisions += 1
+            table[o, k] = in_rows[p]
+            words[o, w] |= bit
+    return table, words, collisions
+
+
+@numba.njit(cache=True, nogil=True)
+def gather_table_block(table, rows, offsets):  # pragma: no cover - compiled
+    """``table[rows][:, offsets]`` as a new contiguous ``[len(rows), len(offsets)]`` array."""
+    out = np.empty((rows.shape[0], offsets.shape[0]), np.int64)
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        for p in range(offsets.shape[0]):
+            out[i, p] = table[r, offsets[p]]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def residual_pairs(table, group_of_row, group_bits, num_in):  # pragma: no cover - compiled
+    """Pairs of a neighbour table outside each row's group pattern, per offset, rows increasing.
+
+    ``table [M, K]``, ``group_of_row [M]`` (negative: no group), ``group_bits [G, K]`` (uint8, 1 where
+    the group gathers the offset). Returns ``in_rows``, ``out_rows`` (concatenated offset by offset)
+    and ``counts [K]``.
+    """
+    m, k_vol = table.shape
+    counts = np.zeros(k_vol, np.int64)
+    for r in range(m):
+        g = group_of_row[r]
+        for k in range(k_vol):
+            if table[r, k] < num_in and (g < 0 or group_bits[g, k] == 0):
+                counts[k] += 1
+    starts = np.zeros(k_vol + 1, np.int64)
+    for k in range(k_vol):
+        starts[k + 1] = starts[k] + counts[k]
+    in_rows = np.empty(starts[k_vol], np.int64)
+    out_rows = np.empty(starts[k_vol], np.int64)
+    fill = starts[:-1].copy()
+    for r in range(m):
+        g = group_of_row[r]
+        for k in range(k_vol):
+            j = table[r, k]
+            if j < num_in and (g < 0 or group_bits[g, k] == 0):
+                in_rows[fill[k]] = j
+                out_rows[fill[k]] = r
+                fill[k] += 1
+    return in_rows, out_rows, counts

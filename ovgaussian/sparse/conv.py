@@ -1,10 +1,17 @@
-"""Sparse 3D convolution: gather, matmul, scatter (``index_add_``), with a hand-written backward.
+"""Sparse 3D convolution with a hand-written backward, two methods.
 
 ``sparse_conv(features, weight, kernel_map)`` computes, for every kernel offset ``k``,
-``out[out_k] += features[in_k] @ weight[k]``. The custom autograd Function keeps only the input
-features and weight for backward (plain autograd would keep every gathered ``[P_k, C]`` block) and
-computes ``grad_features[in_k] += grad_out[out_k] @ weight[k]^T`` and
-``grad_weight[k] = features[in_k]^T @ grad_out[out_k]``.
+``out[out_k] += features[in_k] @ weight[k]``.
+
+- ``method="gemm"`` (default): implicit GEMM (``gather_gemm.py``): output rows grouped by neighbour
+  pattern, each group's neighbours gathered side by side and one GEMM per row block; the pairs of
+  rare patterns (and every pair of convs with under 16 input channels) go per offset.
+- ``method="scatter"`` (the previous implementation, kept as a second reference and fallback): per
+  offset gather, matmul, scatter-add; backward ``grad_features[in_k] += grad_out[out_k] @ weight[k]^T``
+  and ``grad_weight[k] = features[in_k]^T @ grad_out[out_k]``.
+
+Both custom autograd Functions keep only the input features and weight for backward (plain autograd
+would keep every gathered block).
 
 Weight layout: ``[K, C_in, C_out]`` with ``K`` the kernel offsets in ``(dx, dy, dz)`` lexicographic
 order. ``reference.py`` gives the equivalent dense ``conv3d`` / ``conv_transpose3d`` weights.
@@ -101,10 +108,15 @@ class _SparseConvFunction(torch.autograd.Function):
         return grad_features, grad_weight, None, None
 
 
-def sparse_conv(features: Tensor, weight: Tensor, kernel_map: KernelMap, ops: RowOps | None = None) -> Tensor:
+def sparse_conv(
+    features: Tensor, weight: Tensor, kernel_map: KernelMap, method: str = "gemm", backend: str = "auto"
+) -> Tensor:
     """``[num_out, C_out]`` sparse convolution of ``features [num_in, C_in]`` by ``weight [K, C_in, C_out]``.
 
-    ``ops``: row gather/scatter backend (default: numba when available, else torch).
+    Args:
+        method: ``"gemm"`` (implicit GEMM, default) or ``"scatter"`` (per-offset gather/matmul/scatter).
+        backend: row gather/scatter loops: ``"numba"``, ``"torch"`` or ``"auto"`` (numba on CPU when it
+            imports).
     """
     if weight.ndim != 3 or weight.shape[0] != kernel_map.kernel_volume:
         raise ValueError(f"weight {tuple(weight.shape)} does not match a {kernel_map.kernel_volume}-offset map")
@@ -114,8 +126,29 @@ def sparse_conv(features: Tensor, weight: Tensor, kernel_map: KernelMap, ops: Ro
         )
     if features.dtype != weight.dtype:
         raise ValueError(f"features are {features.dtype}, weight is {weight.dtype}")
+    if method == "gemm":
+        from ovgaussian.sparse.gather_gemm import gather_gemm_conv
+
+        return gather_gemm_conv(features, weight, kernel_map, backend)
+    if method != "scatter":
+        raise ValueError(f"method must be 'gemm' or 'scatter', got {method!r}")
+    return scatter_conv(features, weight, kernel_map, _row_ops(backend, features))
+
+
+def _row_ops(backend: str, features: Tensor) -> RowOps:
+    if backend == "auto":
+        return default_row_ops() if features.device.type == "cpu" else torch_row_ops()
+    if backend == "numba":
+        return numba_row_ops()
+    if backend == "torch":
+        return torch_row_ops()
+    raise ValueError(f"backend must be 'auto', 'numba' or 'torch', got {backend!r}")
+
+
+def scatter_conv(features: Tensor, weight: Tensor, kernel_map: KernelMap, ops: RowOps | None = None) -> Tensor:
+    """The per-offset gather/matmul/scatter-add method (no shape checks: call :func:`sparse_conv`)."""
     if ops is None:
-        ops = default_row_ops() if features.device.type == "cpu" else torch_row_ops()
+        ops = _row_ops("auto", features)
     return _SparseConvFunction.apply(features.contiguous(), weight, kernel_map, ops)
 
 

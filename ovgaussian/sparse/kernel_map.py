@@ -33,6 +33,10 @@ class KernelMap(NamedTuple):
         identity: per offset, True when the pairs are ``(i, i)`` for every row (skip the gather).
         num_in: number of input rows.
         num_out: number of output rows.
+        symmetric: True when output row ``i`` reads input ``j`` through offset ``k`` iff ``j`` reads ``i``
+            through offset ``K - 1 - k`` (submanifold maps); the transposed map is then the same map
+            with the offsets reversed.
+        cache: per-map cache of derived data (the implicit-GEMM plans, the transposed map), or None.
     """
 
     in_indices: tuple[Tensor, ...]
@@ -40,14 +44,27 @@ class KernelMap(NamedTuple):
     identity: tuple[bool, ...]
     num_in: int
     num_out: int
+    symmetric: bool = False
+    cache: dict | None = None
 
     @property
     def kernel_volume(self) -> int:
         return len(self.in_indices)
 
     def transposed(self) -> "KernelMap":
-        """The same pairs with inputs and outputs swapped (the map of the transposed conv)."""
-        return KernelMap(self.out_indices, self.in_indices, self.identity, self.num_out, self.num_in)
+        """The same pairs with inputs and outputs swapped (the map of the transposed conv).
+
+        Cached: a cached map returns the same transposed map every call (whose transpose is this map).
+        """
+        if self.cache is not None and "transposed" in self.cache:
+            return self.cache["transposed"]
+        transposed = KernelMap(
+            self.out_indices, self.in_indices, self.identity, self.num_out, self.num_in, self.symmetric,
+            None if self.cache is None else {"transposed": self},
+        )
+        if self.cache is not None:
+            self.cache["transposed"] = transposed
+        return transposed
 
 
 def kernel_offsets(kernel_size: int) -> list[tuple[int, int, int]]:
@@ -123,7 +140,7 @@ def build_submanifold_map(sorted_keys: Tensor, kernel_size: int, method: str = "
         in_idx[k], out_idx[k] = rows_j, rows_i
         mirror = num_offsets - 1 - k
         in_idx[mirror], out_idx[mirror] = rows_i, rows_j
-    return KernelMap(tuple(in_idx), tuple(out_idx), tuple(identity), m, m)
+    return KernelMap(tuple(in_idx), tuple(out_idx), tuple(identity), m, m, symmetric=True, cache={})
 
 
 def build_downsample_map(batch_index: Tensor, coords: Tensor) -> tuple[Tensor, KernelMap]:
@@ -140,5 +157,5 @@ def build_downsample_map(batch_index: Tensor, coords: Tensor) -> tuple[Tensor, K
     counts = torch.bincount(offset, minlength=8).tolist()
     in_idx = tuple(torch.split(order, counts))
     out_idx = tuple(inverse[rows] for rows in in_idx)
-    kmap = KernelMap(in_idx, out_idx, (False,) * 8, int(coords.shape[0]), int(coarse_keys.numel()))
+    kmap = KernelMap(in_idx, out_idx, (False,) * 8, int(coords.shape[0]), int(coarse_keys.numel()), cache={})
     return coarse_keys, kmap
