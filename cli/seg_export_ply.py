@@ -1,0 +1,28 @@
+"""``seggaussian export-ply DATASET --scene ID --out labelled.ply``: one scene as a labelled 3DGS PLY."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cli._output import finish, json_option
+
+
+@click.command("export-ply")
+@click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--scene", "scene_id", required=True, help="Scene id.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="PLY to write.")
+@json_option
+def command(dataset: Path, scene_id: str, out: Path, as_json: bool) -> None:
+    """Write a scene's Gaussians with semantic, instance (int) and transfer_distance vertex properties."""
+    from seggaussian.build import export_scene_ply
+    from seggaussian.shards import ShardError
+
+    try:
+        info = export_scene_ply(dataset, scene_id, out)
+    except ShardError as exc:
+        raise click.ClickException(str(exc)) from None
+    summary = (f"{out}: scene {scene_id} ({info['split']}), {info['gaussians']} Gaussians, "
+               f"{info['labelled']} labelled")
+    finish(summary, info, as_json)
