@@ -1,0 +1,185 @@
+"""Run-folder checkpoints of OVGaussian training, and loading a trained network.
+
+Layout of a run folder::
+
+    RUN/config.json                      training config, model config, vocabulary, data fingerprint
+    RUN/metrics.jsonl                    one JSON line per step and per epoch
+    RUN/checkpoints/epoch-0003/          model.safetensors (weights + BN buffers),
+                                         optimizer.safetensors (SGD momentum buffers),
+                                         state.json (epoch, global step, optimizer hyper-parameters)
+    RUN/checkpoints/latest.json          {"epoch": 3, "path": "checkpoints/epoch-0003"}
+    RUN/caches/                          text embeddings, blend weights, teacher features
+
+Every file is written under a temporary name in its folder and renamed; a checkpoint folder is
+complete before ``latest.json`` points at it. No pickle: tensors in safetensors, the rest in JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
+
+if TYPE_CHECKING:
+    import torch
+
+CONFIG_NAME = "config.json"
+METRICS_NAME = "metrics.jsonl"
+CHECKPOINTS_DIR = "checkpoints"
+LATEST_NAME = "latest.json"
+
+
+class CheckpointError(ValueError):
+    """A run folder or checkpoint that cannot be used; the message names the file."""
+
+
+def write_json_atomic(path: Path, payload) -> None:
+    """JSON to a temp file in the same folder, then rename (NaN is refused)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(payload, f, indent=2, allow_nan=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_json(path: Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: missing")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise CheckpointError(f"{path}: not valid JSON ({error})") from None
+
+
+def build_network(model_config, teacher_width: int | None = None):
+    """``OVGaussianNet(model_config)``; ``psi`` rebuilt with output width ``teacher_width`` when it differs
+    from ``model_config.embedding_width`` (text and teacher embeddings of different widths)."""
+    import torch
+    from torch import nn
+
+    from ovgaussian.model import OVGaussianNet
+
+    net = OVGaussianNet(model_config)
+    if teacher_width is not None and teacher_width != model_config.embedding_width:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(model_config.seed + 1)
+            net.psi = nn.Sequential(
+                nn.Linear(model_config.semantic_width, model_config.decoder_hidden), nn.ReLU(),
+                nn.Linear(model_config.decoder_hidden, teacher_width),
+            )
+    return net
+
+
+def save_checkpoint(run_dir: Path, epoch: int, net, optimizer, state: dict) -> Path:
+    """Write ``checkpoints/epoch-XXXX`` (weights, momentum, state) then point ``latest.json`` at it."""
+    from safetensors.torch import save_file
+
+    run_dir = Path(run_dir)
+    folder = run_dir / CHECKPOINTS_DIR / f"epoch-{epoch:04d}"
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent if folder.parent.is_dir()
+                                else _mkdir(folder.parent)))
+    try:
+        weights = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+        save_file(weights, str(tmp / "model.safetensors"))
+        opt_state = optimizer.state_dict()
+        buffers = {}
+        for index, entry in opt_state["state"].items():
+            for name, value in entry.items():
+                if hasattr(value, "detach"):
+                    buffers[f"{index}.{name}"] = value.detach().cpu().contiguous()
+        save_file(buffers, str(tmp / "optimizer.safetensors"))
+        groups = [{k: v for k, v in g.items()} for g in opt_state["param_groups"]]
+        write_json_atomic(tmp / "state.json", dict(state, epoch=epoch, param_groups=groups))
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    write_json_atomic(run_dir / CHECKPOINTS_DIR / LATEST_NAME,
+                      {"epoch": epoch, "path": str(folder.relative_to(run_dir))})
+    return folder
+
+
+def _mkdir(path: Path) -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The folder ``latest.json`` points at, or None when the run has no checkpoint."""
+    pointer = Path(run_dir) / CHECKPOINTS_DIR / LATEST_NAME
+    if not pointer.is_file():
+        return None
+    folder = Path(run_dir) / read_json(pointer)["path"]
+    if not (folder / "model.safetensors").is_file():
+        raise CheckpointError(f"{pointer}: points at {folder}, which has no model.safetensors")
+    return folder
+
+
+def load_checkpoint(folder: Path, net, optimizer=None, device: "str | torch.device" = "cpu") -> dict:
+    """Load weights (and momentum buffers) into ``net`` (and ``optimizer``); returns state.json."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    weights = load_file(str(folder / "model.safetensors"), device=str(device))
+    missing, unexpected = net.load_state_dict(weights, strict=False)
+    if missing or unexpected:
+        raise CheckpointError(f"{folder / 'model.safetensors'}: does not match the network "
+                              f"(missing {missing[:5]}, unexpected {unexpected[:5]})")
+    state = read_json(folder / "state.json")
+    if optimizer is not None:
+        buffers = load_file(str(folder / "optimizer.safetensors"), device=str(device))
+        per_param: dict[int, dict] = {}
+        for key, value in buffers.items():
+            index, name = key.split(".", 1)
+            per_param.setdefault(int(index), {})[name] = value
+        optimizer.load_state_dict({"state": per_param, "param_groups": state["param_groups"]})
+    return state
+
+
+class TrainedModel(NamedTuple):
+    """A trained network and what is needed to use it.
+
+    Fields:
+        net: ``OVGaussianNet`` in eval mode.
+        run_config: the run's config.json.
+        checkpoint: the checkpoint folder loaded.
+        seen_class_ids: top-100 ids of the training vocabulary (seen classes).
+    """
+
+    net: object
+    run_config: dict
+    checkpoint: Path
+    seen_class_ids: list
+
+
+def load_trained_model(run_dir: Path, checkpoint: Path | None = None, device: str = "cpu") -> TrainedModel:
+    """The network of a run (latest checkpoint unless ``checkpoint`` is given), ready for inference.
+
+    Text embeddings of any vocabulary come from ``ovgaussian.text.encode_texts(names, text_config)``
+    with ``text_config = config_from_dict(TextConfig, run_config["train"]["text"])``.
+    """
+    from ovgaussian.model_config import OVGaussianNetConfig
+    from ovgaussian.train_config import config_from_dict
+
+    run_dir = Path(run_dir)
+    run_config = read_json(run_dir / CONFIG_NAME)
+    folder = Path(checkpoint) if checkpoint is not None else latest_checkpoint(run_dir)
+    if folder is None:
+        raise CheckpointError(f"{run_dir / CHECKPOINTS_DIR}: no checkpoint (train first)")
+    model_config = config_from_dict(OVGaussianNetConfig, run_config["model"])
+    net = build_network(model_config, run_config.get("teacher_width"))
+    load_checkpoint(folder, net, device=device)
+    net.to(device).eval()
+    return TrainedModel(net, run_config, folder, list(run_config["vocabulary"]["class_ids"]))

@@ -1,0 +1,108 @@
+"""Losses of OVGaussian: hand-computed cases, references, extreme and empty inputs."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from ovgaussian.losses import (
+    combine_losses, compute_text_logits, masked_cosine_loss, masked_cross_entropy, reference_cosine_loss,
+    reference_cross_entropy,
+)
+from seggaussian.constants import IGNORE_LABEL
+
+
+def test_cross_entropy_hand_computed():
+    logits = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    labels = torch.tensor([2, 1, IGNORE_LABEL])
+    loss, count = masked_cross_entropy(logits, labels)
+    expected = (-(3 - math.log(math.e + math.e ** 2 + math.e ** 3)) + math.log(3)) / 2
+    assert count == 2
+    assert float(loss) == pytest.approx(expected, rel=1e-6)
+
+
+def test_text_logits_are_cosines_over_temperature():
+    features = torch.tensor([[2.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
+    text = torch.tensor([[1.0, 0.0], [0.0, 3.0]])  # not normalized on purpose
+    logits = compute_text_logits(features, text, 0.5)
+    expected = torch.tensor([[2.0, 0.0], [0.0, 0.0], [math.sqrt(2.0), math.sqrt(2.0)]])
+    torch.testing.assert_close(logits, expected)
+    loss, _ = masked_cross_entropy(logits[:1], torch.tensor([0]))
+    assert float(loss) == pytest.approx(math.log(1 + math.exp(-2.0)), rel=1e-6)
+    with pytest.raises(ValueError, match="temperature"):
+        compute_text_logits(features, text, 0.0)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_cross_entropy_matches_reference(seed):
+    g = torch.Generator().manual_seed(seed)
+    logits = torch.randn(50, 7, generator=g, dtype=torch.float64) * 10
+    labels = torch.randint(0, 7, (50,), generator=g)
+    labels[torch.rand(50, generator=g) < 0.3] = IGNORE_LABEL
+    loss, _ = masked_cross_entropy(logits, labels)
+    assert float(loss) == pytest.approx(reference_cross_entropy(logits.tolist(), labels.tolist()), rel=1e-12)
+
+
+def test_cross_entropy_is_stable_for_extreme_logits():
+    logits = torch.tensor([[1e4, -1e4, 0.0], [-1e4, 1e4, 1e4]], requires_grad=True)
+    loss, _ = masked_cross_entropy(logits, torch.tensor([1, 0]))
+    assert torch.isfinite(loss)
+    assert float(loss) == pytest.approx((2e4 + 2e4 + math.log(2)) / 2, rel=1e-6)
+    loss.backward()
+    assert torch.isfinite(logits.grad).all()
+    right, _ = masked_cross_entropy(torch.tensor([[1e4, -1e4]]), torch.tensor([0]))
+    assert float(right) == 0.0
+    # extreme decoder outputs go through the cosine: logits stay bounded by 1/temperature
+    huge = torch.tensor([[1e30, -1e30], [1e-30, 0.0], [0.0, 0.0]], requires_grad=True)
+    logits = compute_text_logits(huge, torch.eye(2), 0.07)
+    assert logits.abs().max() <= 1 / 0.07 + 1e-4
+    l2, _ = masked_cross_entropy(logits, torch.tensor([0, 1, 0]))
+    l2.backward()
+    assert torch.isfinite(l2) and torch.isfinite(huge.grad).all()
+
+
+def test_empty_valid_sets_give_zero_not_nan():
+    features = torch.randn(4, 3, requires_grad=True)
+    logits = compute_text_logits(features, torch.eye(3), 0.1)
+    loss, count = masked_cross_entropy(logits, torch.full((4,), IGNORE_LABEL))
+    assert count == 0 and float(loss) == 0.0
+    loss.backward()
+    assert torch.equal(features.grad, torch.zeros_like(features))
+    empty, count = masked_cross_entropy(torch.zeros(0, 3, requires_grad=True), torch.zeros(0, dtype=torch.long))
+    assert count == 0 and float(empty) == 0.0
+    cos, count = masked_cosine_loss(torch.zeros(0, 5), torch.zeros(0, 5), torch.zeros(0, dtype=torch.bool))
+    assert count == 0 and float(cos) == 0.0
+    cos, count = masked_cosine_loss(torch.ones(3, 5), torch.ones(3, 5), torch.zeros(3, dtype=torch.bool))
+    assert count == 0 and float(cos) == 0.0
+
+
+def test_labels_out_of_range_are_an_error():
+    with pytest.raises(ValueError, match="labels must be in 0..2"):
+        masked_cross_entropy(torch.zeros(2, 3), torch.tensor([0, 3]))
+
+
+def test_cosine_loss_hand_computed_and_reference():
+    predicted = torch.tensor([[1.0, 0.0], [1.0, 1.0], [0.0, 0.0], [3.0, 4.0]])
+    target = torch.tensor([[0.0, 1.0], [2.0, 2.0], [1.0, 0.0], [-3.0, -4.0]])
+    valid = torch.tensor([True, True, True, False])
+    loss, count = masked_cosine_loss(predicted, target, valid)
+    assert count == 3
+    assert float(loss) == pytest.approx((1.0 + 0.0 + 1.0) / 3, abs=1e-7)  # a zero vector has cosine 0
+    g = torch.Generator().manual_seed(0)
+    p, t = torch.randn(30, 6, generator=g, dtype=torch.float64), torch.randn(30, 6, generator=g, dtype=torch.float64)
+    v = torch.rand(30, generator=g) < 0.6
+    assert float(masked_cosine_loss(p, t, v)[0]) == pytest.approx(reference_cosine_loss(p.tolist(), t.tolist(), v.tolist()),
+                                                                  rel=1e-12)
+
+
+def test_combine_losses_switches():
+    t3, t2, cs = (torch.tensor(1.0), 10), (torch.tensor(2.0), 20), (torch.tensor(4.0), 30)
+    assert float(combine_losses(t3, t2, cs, no_3dt_align=False, no_vs_align=False).total) == 7.0
+    off3 = combine_losses(t3, t2, cs, no_3dt_align=True, no_vs_align=False)
+    assert float(off3.total) == 6.0 and off3.count_3d == 0 and float(off3.text_3d) == 0.0
+    offv = combine_losses(t3, t2, cs, no_3dt_align=False, no_vs_align=True)
+    assert float(offv.total) == 3.0 and offv.count_cosine == 0
+    assert float(combine_losses(t3, t2, None, no_3dt_align=False, no_vs_align=False).total) == 3.0
+    assert float(combine_losses(t3, t2, cs, no_3dt_align=False, no_vs_align=False, cosine_weight=0.5).total) == 5.0
