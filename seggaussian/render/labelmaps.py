@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -44,33 +45,111 @@ def _majority(labels: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     return torch.gather(labels, -1, best_slot[..., None])[..., 0], best_total
 
 
+def _label_maps_kernel():
+    """The compiled per-pixel vote (built on first use; numba is imported only here)."""
+    import numba
+
+    @numba.njit(parallel=True, cache=True)
+    def kernel(ids, weights, residual, semantic, instance, num_classes, min_alpha, ignore, sem_out, inst_out, soft):
+        height, width, k_max = ids.shape
+        for y in numba.prange(height):
+            for x in range(width):
+                total_alpha = np.float32(0.0)
+                for k in range(k_max):
+                    total_alpha += weights[y, x, k]
+                total_alpha += residual[y, x]
+                sem_out[y, x] = ignore
+                inst_out[y, x] = ignore
+                for which in range(2):
+                    labels = semantic if which == 0 else instance
+                    best_label = ignore
+                    best_total = np.float32(0.0)
+                    for k in range(k_max):
+                        gid = ids[y, x, k]
+                        if gid < 0 or weights[y, x, k] <= 0:
+                            continue
+                        label = labels[gid]
+                        if label == ignore:
+                            continue
+                        if which == 0:
+                            soft[y, x, label] += weights[y, x, k]
+                        total = np.float32(0.0)  # same summation order as the torch reference
+                        for j in range(k_max):
+                            gj = ids[y, x, j]
+                            if gj >= 0 and labels[gj] == label:
+                                total += weights[y, x, j]
+                        if total > best_total:
+                            best_total = total
+                            best_label = label
+                    if total_alpha >= min_alpha and best_total > 0:
+                        if which == 0:
+                            sem_out[y, x] = best_label
+                        else:
+                            inst_out[y, x] = best_label
+
+    return kernel
+
+
 def render_label_maps(
     blend: BlendWeights,
     semantic: Tensor,  # [N] int class ids, IGNORE_LABEL for unlabelled
     instance: Tensor,  # [N] int instance ids, IGNORE_LABEL for none
     num_classes: int,
     min_alpha: float = LABEL_MIN_ALPHA,
+    backend: str = "auto",
 ) -> LabelMaps:
     """Each pixel takes the label with the largest accumulated blend weight among its K contributors.
 
     IGNORE_LABEL where the pixel's accumulated alpha (``weights.sum + residual_alpha``) is below
-    ``min_alpha`` or where no captured contributor carries a label.
+    ``min_alpha`` or where no captured contributor carries a label. ``backend``: ``fast`` (numba, one
+    pass per pixel), ``reference`` (vectorized torch, obviously correct) or ``auto`` (fast).
     """
+    if backend == "reference":
+        return render_label_maps_reference(blend, semantic, instance, num_classes, min_alpha)
+    if backend not in ("auto", "fast"):
+        raise ValueError(f"render_label_maps: backend must be auto, fast or reference, got {backend!r}")
+    semantic, instance = _check_labels(blend, semantic, instance, num_classes)
+    ids = blend.ids.to(torch.int64).contiguous().numpy()
+    weights = blend.weights.to(torch.float32).contiguous().numpy()
+    height, width, _ = ids.shape
+    residual = blend.residual_alpha.to(torch.float32).reshape(height, width).contiguous().numpy()
+    sem_out = np.empty((height, width), np.int64)
+    inst_out = np.empty((height, width), np.int64)
+    soft = np.zeros((height, width, num_classes), np.float32)
+    _label_maps_kernel()(ids, weights, residual, semantic.numpy(), instance.numpy(), int(num_classes),
+                         np.float32(min_alpha), IGNORE_LABEL, sem_out, inst_out, soft)
+    return LabelMaps(torch.from_numpy(sem_out), torch.from_numpy(inst_out), torch.from_numpy(soft))
+
+
+def _check_labels(blend: BlendWeights, semantic, instance, num_classes: int) -> tuple[Tensor, Tensor]:
+    """Labels as flat int64 tensors, after checking they fit the blend weights and the class count."""
     semantic = torch.as_tensor(semantic).to(torch.int64).reshape(-1)
     instance = torch.as_tensor(instance).to(torch.int64).reshape(-1)
     n = semantic.shape[0]
     if instance.shape[0] != n:
         raise ValueError(f"render_label_maps: semantic has {n} entries but instance has {instance.shape[0]}")
-    ids, weights = blend.ids, blend.weights.to(torch.float32)
-    used = ids >= 0
-    if used.any() and int(ids.max()) >= n:
+    ids = blend.ids
+    if (ids >= 0).any() and int(ids.max()) >= n:
         raise ValueError(f"render_label_maps: blend weights refer to Gaussian {int(ids.max())} but only {n} labels")
-    sem_ok = (semantic >= 0) & (semantic < num_classes)
-    bad = ~sem_ok & (semantic != IGNORE_LABEL)
+    bad = ~((semantic >= 0) & (semantic < num_classes)) & (semantic != IGNORE_LABEL)
     if bool(bad.any()):
         raise ValueError(
             f"render_label_maps: {int(bad.sum())} semantic labels outside 0..{num_classes - 1} and not IGNORE_LABEL"
         )
+    return semantic, instance
+
+
+def render_label_maps_reference(
+    blend: BlendWeights,
+    semantic: Tensor,  # [N] int class ids, IGNORE_LABEL for unlabelled
+    instance: Tensor,  # [N] int instance ids, IGNORE_LABEL for none
+    num_classes: int,
+    min_alpha: float = LABEL_MIN_ALPHA,
+) -> LabelMaps:
+    """The vectorized torch reference of ``render_label_maps`` (same rule, same tie-breaking)."""
+    semantic, instance = _check_labels(blend, semantic, instance, num_classes)
+    ids, weights = blend.ids, blend.weights.to(torch.float32)
+    used = ids >= 0
     safe = ids.clamp_min(0)
     sem = torch.where(used, semantic[safe], torch.full_like(ids, IGNORE_LABEL))
     inst = torch.where(used, instance[safe], torch.full_like(ids, IGNORE_LABEL))

@@ -1,0 +1,47 @@
+"""The numba label-map vote against the vectorized torch reference."""
+
+import numpy as np
+import pytest
+import torch
+
+from seggaussian.constants import IGNORE_LABEL
+from seggaussian.render import render_label_maps
+from seggaussian.render.blend import BlendWeights
+from seggaussian.render.labelmaps import render_label_maps_reference
+
+
+def random_blend(seed, h=13, w=17, k=8, n=30, quantized=False):
+    rng = np.random.default_rng(seed)
+    ids = rng.integers(-1, n, size=(h, w, k))
+    weights = rng.random((h, w, k)).astype(np.float32) * 0.2
+    if quantized:  # many exact ties between labels
+        weights = np.round(weights * 8) / 8
+    weights[ids < 0] = 0
+    residual = (rng.random((h, w)) * 0.3).astype(np.float32)
+    return BlendWeights(torch.as_tensor(ids), torch.as_tensor(weights), torch.as_tensor(residual)), rng
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("quantized", [False, True])
+def test_fast_label_maps_match_reference(seed, quantized):
+    blend, rng = random_blend(seed, quantized=quantized)
+    semantic = rng.integers(0, 5, size=30)
+    semantic[rng.random(30) < 0.2] = IGNORE_LABEL
+    instance = rng.integers(0, 9, size=30)
+    instance[rng.random(30) < 0.2] = IGNORE_LABEL
+    fast = render_label_maps(blend, torch.as_tensor(semantic), torch.as_tensor(instance), 5, min_alpha=0.4)
+    ref = render_label_maps_reference(blend, torch.as_tensor(semantic), torch.as_tensor(instance), 5, min_alpha=0.4)
+    assert torch.equal(fast.semantic, ref.semantic)
+    assert torch.equal(fast.instance, ref.instance)
+    torch.testing.assert_close(fast.soft, ref.soft, rtol=1e-6, atol=1e-7)
+    assert (fast.semantic == IGNORE_LABEL).any() and (fast.semantic != IGNORE_LABEL).any()
+
+
+def test_empty_view_and_bad_labels():
+    blend = BlendWeights(torch.full((4, 5, 3), -1), torch.zeros(4, 5, 3), torch.zeros(4, 5))
+    maps = render_label_maps(blend, torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), 3)
+    assert (maps.semantic == IGNORE_LABEL).all() and (maps.instance == IGNORE_LABEL).all()
+    assert maps.soft.shape == (4, 5, 3) and float(maps.soft.sum()) == 0.0
+    blend, _ = random_blend(0, n=30)
+    with pytest.raises(ValueError, match="outside"):
+        render_label_maps(blend, torch.full((30,), 7), torch.zeros(30, dtype=torch.int64), 5)
