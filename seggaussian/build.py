@@ -377,8 +377,26 @@ def _sample_visible(points, faces, cameras, n, rng, config: OracleConfig):
     uv = ans["primitive_uvs"].numpy().astype(np.float64)
     hit = np.isfinite(t_hit) & (tri >= 0) & (tri < len(faces))
     bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-    sigma = config.scale_factor * t_hit * footprint
-    return tri[hit], np.clip(bary[hit], 0.0, 1.0), sigma[hit]
+    # In-plane size from the realized sample density: every view's samples land on the same surfaces, so a
+    # per-view pixel footprint would overestimate the spacing by about sqrt(number of views).
+    hit_points = rays[hit, :3] + rays[hit, 3:] * t_hit[hit, None]
+    sigma = config.scale_factor * _mean_neighbour_distance(hit_points, fallback=t_hit[hit] * footprint[hit])
+    return tri[hit], np.clip(bary[hit], 0.0, 1.0), sigma
+
+
+#: Neighbours averaged for the in-plane spacing of sampled oracle Gaussians.
+SPACING_NEIGHBOURS = 3
+
+
+def _mean_neighbour_distance(points: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """``[m]`` mean distance of each point to its SPACING_NEIGHBOURS nearest others (``fallback`` when too few)."""
+    if len(points) <= SPACING_NEIGHBOURS:
+        return fallback
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points, k=SPACING_NEIGHBOURS + 1, workers=-1)
+    spacing = d[:, 1:].mean(axis=1)
+    return np.where(spacing > 0, spacing, fallback)
 
 
 def quats_from_z_axis(normals: np.ndarray) -> np.ndarray:

@@ -33,8 +33,11 @@ class TransferConfig:
     max_distance: float | None = None
     #: Derived gate = ``gate_factor`` x median nearest-neighbour spacing of the candidate points.
     gate_factor: float = 4.0
-    #: Lower bound of the derived gate (metres): fitted Gaussians sit a few cm off dense meshes.
-    gate_min: float = 0.02
+    #: Lower bound of the derived gate (metres): fitted Gaussians sit a few cm off dense meshes. With the
+    #: densified label points the derived gate falls to this floor; 0.02 left 5.8% of off-surface Gaussians
+    #: unlabelled (label accuracy 0.912) where 0.05 labels them all (0.969) at the same cost
+    #: (``seggaussian bench --stage transfer``, benchmarks/results/stages.md).
+    gate_min: float = 0.05
     #: Points sampled (seeded) to estimate the median spacing; the estimate costs one small query.
     spacing_samples: int = 10_000
     #: Bounding-box prefilter margin (metres). The effective margin is max(box_margin, gate), so the
@@ -56,6 +59,7 @@ class OracleConfig:
     #: fitted 3DGS would; False samples every triangle by area (hidden contact faces included).
     visible_only: bool = True
     #: In-plane standard deviation = ``scale_factor`` x the sample spacing (sqrt(area / N) when sampling
+    #: by area; the mean distance to the 3 nearest other samples when sampling visible surfaces)
     #: by area; the pixel-sample footprint at the hit depth when sampling visible surfaces).
     scale_factor: float = 0.8
     #: Thickness (normal-axis standard deviation) as a share of the in-plane one.

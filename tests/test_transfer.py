@@ -134,11 +134,15 @@ def test_bad_shapes_and_nan_points_raise_clear_errors():
 
 
 def test_derived_gate_follows_point_spacing():
-    # A 0.01 m grid: median spacing 0.01, gate = max(gate_min, 4 * 0.01) = 0.04.
+    # A 0.01 m grid: median spacing 0.01, gate = max(gate_min = 0.02, 4 * 0.01) = 0.04.
     g = np.arange(0, 0.5, 0.01)
     points = np.stack(np.meshgrid(g, g, [0.0]), -1).reshape(-1, 3)
     sem = np.zeros(len(points), np.int32)
-    res = transfer_labels(np.array([[0.2, 0.2, 0.03], [0.2, 0.2, 0.05]]), points, sem, sem)
+    res = transfer_labels(np.array([[0.2, 0.2, 0.03], [0.2, 0.2, 0.05]]), points, sem, sem,
+                          config=TransferConfig(gate_min=0.02))
+    assert res.stats.gate == pytest.approx(0.04, rel=1e-6)
+    floor = transfer_labels(np.array([[0.2, 0.2, 0.03]]), points, sem, sem)  # default floor wins
+    assert floor.stats.gate == pytest.approx(TransferConfig().gate_min)
     assert res.stats.spacing == pytest.approx(0.01, rel=1e-6)
     assert res.stats.gate == pytest.approx(0.04, rel=1e-6)
     assert res.semantic.tolist() == [0, IGNORE_LABEL]
