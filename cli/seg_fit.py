@@ -1,0 +1,51 @@
+"""``seggaussian fit --source ... --root RAW --scene ID --out SCENE.ply``: fit 3D Gaussians to one scene on the CPU."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import click
+
+from cli._output import finish, json_option
+
+
+@click.command("fit")
+@click.option("--source", type=click.Choice(["synthetic", "scannetpp", "replica"]), default="synthetic",
+              show_default=True, help="Raw tree kind (synthetic = output of `seggaussian synth`).")
+@click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True,
+              help="Raw tree.")
+@click.option("--scene", "scene_id", required=True, help="Scene id.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="PLY to write; metrics go to SCENE.fit.json next to it.")
+@click.option("--iterations", type=int, default=None, help="Optimization steps (default: FitConfig); the densification/reset schedule scales with it.")
+@click.option("--downscale", type=float, default=None, help="Divide image size by this factor.")
+@click.option("--max-gaussians", type=int, default=None, help="Cap on the number of Gaussians.")
+@click.option("--sh-degree", type=int, default=None, help="Largest SH degree fitted.")
+@click.option("--time-budget", type=float, default=None, help="Stop after this many seconds.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+@json_option
+def command(source, root, scene_id, out, iterations, downscale, max_gaussians, sh_degree, time_budget, seed, progress,
+            as_json) -> None:
+    """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json."""
+    from seggaussian.fit import FitInputError, fit_to_ply, metrics_path
+    from seggaussian.fit_config import FitConfig
+
+    overrides = {"downscale": downscale, "max_gaussians": max_gaussians, "sh_degree": sh_degree,
+                 "time_budget_seconds": time_budget}
+    try:
+        config = FitConfig()
+        if iterations is not None:  # the whole schedule scales with the number of iterations
+            config = config.with_iterations(iterations)
+        config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
+        result = fit_to_ply(source, root, scene_id, out, config, seed=seed, progress=progress and not as_json)
+    except (FitInputError, FileNotFoundError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    m = result.metrics
+    psnr = "n/a" if m["novel_psnr"] is None else f"{m['novel_psnr']:.2f} dB"
+    ssim = "n/a" if m["novel_ssim"] is None else f"{m['novel_ssim']:.3f}"
+    summary = (f"{out}: scene {scene_id}, {m['gaussians']} Gaussians, {m['iterations']} iterations in "
+               f"{m['seconds']:.1f} s, novel-view PSNR {psnr}, SSIM {ssim} ({m['early_stop_reason']})")
+    payload = {k: v for k, v in m.items() if k != "densification"}
+    finish(summary, dict(payload, ply=str(out), metrics_json=str(metrics_path(out))), as_json)
