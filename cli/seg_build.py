@@ -48,7 +48,7 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
     if oracle_gaussians is not None:
         config = replace(config, oracle=replace(config.oracle, num_gaussians=oracle_gaussians))
     if fit_iterations is not None:
-        config = replace(config, fit_config=replace(config.fit_config, iterations=fit_iterations))
+        config = replace(config, fit_config=config.fit_config.with_iterations(fit_iterations))
     if max_image_side is not None:
         config = replace(config, views=replace(config.views, max_image_side=max_image_side))
     if view_stride is not None:

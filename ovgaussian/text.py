@@ -80,12 +80,21 @@ def mean_pool(token_embeddings: "torch.Tensor", attention_mask: "torch.Tensor") 
     return (token_embeddings * mask).sum(1) / mask.sum(1).clamp_min(MEAN_POOL_MIN_TOKENS)
 
 
+def _quiet_transformers() -> None:
+    """No weight-loading progress bars from transformers: commands keep stderr for their own progress and
+    ``--json`` output clean."""
+    from transformers.utils import logging as hf_logging
+
+    hf_logging.disable_progress_bar()
+
+
 def encode_minilm(prompts: Sequence[str], model_path: Path, batch_size: int) -> "torch.Tensor":
     """Sentence embeddings ``[C, 384]`` of the prompts with the MiniLM at ``model_path``."""
     import torch
     from transformers import AutoModel, AutoTokenizer
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    _quiet_transformers()
     tokenizer = AutoTokenizer.from_pretrained(str(model_path), local_files_only=True)
     model = AutoModel.from_pretrained(str(model_path), local_files_only=True).eval()
     chunks = []
@@ -104,6 +113,7 @@ def encode_clip_text(prompts: Sequence[str], model_path: Path, batch_size: int) 
     from transformers import CLIPModel, CLIPTokenizer
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    _quiet_transformers()
     try:
         tokenizer = CLIPTokenizer.from_pretrained(str(model_path), local_files_only=True)
     except (OSError, ValueError, TypeError) as error:
