@@ -348,7 +348,26 @@ def truncate_metrics(path: Path, keep_epochs_below: int) -> None:
 # --- the loop ------------------------------------------------------------------------------------
 
 
-def train(
+def train(config: "TrainConfig", **kwargs) -> "TrainResult":
+    """Train (or resume) a run; see ``train_in_process_group`` for the arguments.
+
+    Under torchrun, the process group this call creates is destroyed when it returns or fails: a gloo group
+    left alive at interpreter exit can abort the process ("terminate called without an active exception").
+    """
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    owns_group = False
+    if world_size > 1:
+        import torch.distributed as dist
+
+        owns_group = not dist.is_initialized()
+    try:
+        return train_in_process_group(config, **kwargs)
+    finally:
+        if owns_group and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def train_in_process_group(
     config: TrainConfig,
     *,
     source=None,
