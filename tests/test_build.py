@@ -331,3 +331,19 @@ def test_oracle_samples_lie_on_the_mesh_with_their_surface_label():
     empty, t0 = build_mod.sample_oracle_gaussians(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32),
                                                   None, OracleConfig(), np.random.default_rng(0))
     assert len(empty) == 0 and len(t0) == 0
+
+
+def test_ray_executor_builds_the_same_bytes(built, raw, tmp_path):
+    """Scenes as Ray tasks on a local Ray instance give byte-identical shards to the local executor."""
+    ray = pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'seggaussian[ray]')")
+    ds, _ = built
+    out = tmp_path / "ray"
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        report = build_mod.build_dataset(replace(_config(raw, out), executor="ray"))
+    finally:
+        ray.shutdown()
+    assert report.counts["failed"] == 0 and report.counts["built"] == 3
+    local, remote = _public_files(ds), _public_files(out)
+    shards = [name for name in local if name.endswith(".parquet")]
+    assert shards and all(local[name] == remote[name] for name in shards)
