@@ -14,7 +14,7 @@ VIEWS=${VIEWS:-16}                # views per room
 GAUSSIANS=${GAUSSIANS:-15000}     # Gaussians per room sampled on the labelled mesh
 EPOCHS=${EPOCHS:-120}
 CLASSES=${CLASSES:-20}
-FIT_ITERATIONS=${FIT_ITERATIONS:-1000}
+FIT_SECONDS=${FIT_SECONDS:-60}       # time budget of the one-room CPU fit (default FitConfig schedule)
 export PYTHONUNBUFFERED=1
 mkdir -p "$OUT"
 T0=$SECONDS
@@ -25,9 +25,9 @@ $BIN/seggaussian synth --out "$OUT/raw" --scenes "$SCENES" --replica-scenes "$RE
     --views "$VIEWS" --seed 0 --no-progress
 
 FIRST=$(ls "$OUT/raw/scannetpp/data" | head -n 1)
-step "fit: CPU 3DGS on $FIRST ($FIT_ITERATIONS iterations; the build below samples Gaussians on the mesh to stay fast)"
+step "fit: CPU 3DGS on $FIRST (${FIT_SECONDS} s budget; the build below samples Gaussians on the mesh to stay fast)"
 $BIN/seggaussian fit --source scannetpp --root "$OUT/raw/scannetpp" --scene "$FIRST" \
-    --out "$OUT/fit/$FIRST.ply" --iterations "$FIT_ITERATIONS" --max-gaussians 60000 --no-progress | tail -n 1
+    --out "$OUT/fit/$FIRST.ply" --time-budget "$FIT_SECONDS" --no-progress | tail -n 1
 
 step "build: oracle Gaussians, label transfer, label maps, shards"
 $BIN/seggaussian build --source synthetic --root "$OUT/raw" --out "$OUT/dataset" --gaussians oracle \
