@@ -22,7 +22,6 @@ baselines of ``baseline.py`` and test stand-ins all fit it.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -40,6 +39,7 @@ from ovgaussian.bench_config import (
 )
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+from seggaussian.shards import sha256_file
 
 
 class Predictor(Protocol):
@@ -435,14 +435,6 @@ def result_to_dict(result: BenchResult) -> dict:
                 for d, m in TABLE1_COLUMNS},
         "confusion": {f"{split}_{dim}": counts.tolist() for (split, dim), counts in result.confusion.items()},
     }
-
-
-def sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def dataset_fingerprint(dataset: Path) -> dict:
