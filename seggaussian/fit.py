@@ -680,6 +680,7 @@ def write_fit_outputs(result: FitResult, config: FitConfig, ply_path: str | Path
     import tempfile
 
     from seggaussian.io.ply import write_gaussians_ply
+    from seggaussian.jsonsafe import json_safe
 
     ply_path = Path(ply_path)
     ply_path.parent.mkdir(parents=True, exist_ok=True)
@@ -688,21 +689,10 @@ def write_fit_outputs(result: FitResult, config: FitConfig, ply_path: str | Path
     payload = {"metrics": result.metrics, "config": config.to_dict(), "history": result.history,
                "ply": ply_path.name}
 
-    def clean(x):
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {str(k): clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        if isinstance(x, (np.integer, np.floating)):
-            return clean(x.item())
-        return x
-
     fd, tmp = tempfile.mkstemp(prefix=f".{json_path.name}.", suffix=".tmp", dir=json_path.parent)
     try:
         with os.fdopen(fd, "w") as f:
-            json.dump(clean(payload), f, indent=2, allow_nan=False)
+            json.dump(json_safe(payload), f, indent=2, allow_nan=False)
         os.replace(tmp, json_path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
