@@ -22,8 +22,6 @@ baselines of ``baseline.py`` and test stand-ins all fit it.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Callable, Iterable, NamedTuple, Protocol, Sequence
 
@@ -39,6 +37,7 @@ from ovgaussian.bench_config import (
 )
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+from seggaussian.atomic import atomic_path, write_json_atomic  # noqa: F401 (write_json_atomic: CLI API)
 from seggaussian.shards import sha256_file
 
 
@@ -213,17 +212,10 @@ def view_blend_weights(functions: BlendFunctions, scene, view, top_k: int, cache
         t = load_file(str(path))
         return BlendWeights(t["ids"].long(), t["weights"], t["residual_alpha"])
     blend = functions.blend(scene.gaussians, view.camera, top_k)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         save_file({"ids": torch.as_tensor(blend.ids).to(torch.int32).contiguous(),
                    "weights": torch.as_tensor(blend.weights).float().contiguous(),
-                   "residual_alpha": torch.as_tensor(blend.residual_alpha).float().contiguous()}, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+                   "residual_alpha": torch.as_tensor(blend.residual_alpha).float().contiguous()}, str(tmp))
     return blend
 
 
@@ -446,23 +438,6 @@ def dataset_fingerprint(dataset: Path) -> dict:
         path = dataset / name
         out[f"{name.split('.')[0]}_sha256"] = sha256_file(path) if path.is_file() else None
     return out
-
-
-def write_json_atomic(path: Path, payload: dict) -> None:
-    """Write JSON (NaN as null) to a temp file in the same folder, then rename."""
-    from cli._output import to_json
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(to_json(payload))
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ---------------------------------------------------------------------------------------------

@@ -38,17 +38,11 @@ class CheckpointError(ValueError):
 
 def write_json_atomic(path: Path, payload) -> None:
     """JSON to a temp file in the same folder, then rename (NaN is refused)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=2, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    from seggaussian.atomic import atomic_path
+
+    text = json.dumps(payload, indent=2, allow_nan=False) + "\n"  # raises on NaN before anything is written
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def read_json(path: Path) -> dict:

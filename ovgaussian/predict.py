@@ -13,8 +13,6 @@ as the benchmark (semantic vectors blended, then classified) and written as PNGs
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -263,15 +261,11 @@ def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig,
 def _write_png_atomic(path: Path, image: np.ndarray) -> None:
     import cv2
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        if not cv2.imwrite(tmp, image):
+    from seggaussian.atomic import atomic_path
+
+    with atomic_path(path, suffix=".png") as tmp:
+        if not cv2.imwrite(str(tmp), image):
             raise OSError(f"{path}: could not encode the PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_label_maps(folder: Path, label_maps: dict, num_classes: int) -> list[Path]:

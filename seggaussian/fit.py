@@ -675,12 +675,8 @@ def metrics_path(ply_path: str | Path) -> Path:
 
 def write_fit_outputs(result: FitResult, config: FitConfig, ply_path: str | Path) -> Path:
     """Write the PLY and ``SCENE.fit.json`` (metrics, config, history), both atomically; returns the JSON path."""
-    import json
-    import os
-    import tempfile
-
     from seggaussian.io.ply import write_gaussians_ply
-    from seggaussian.jsonsafe import json_safe
+    from seggaussian.atomic import write_json_atomic
 
     ply_path = Path(ply_path)
     ply_path.parent.mkdir(parents=True, exist_ok=True)
@@ -689,14 +685,7 @@ def write_fit_outputs(result: FitResult, config: FitConfig, ply_path: str | Path
     payload = {"metrics": result.metrics, "config": config.to_dict(), "history": result.history,
                "ply": ply_path.name}
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{json_path.name}.", suffix=".tmp", dir=json_path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(json_safe(payload), f, indent=2, allow_nan=False)
-        os.replace(tmp, json_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_json_atomic(json_path, payload)
     return json_path
 
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Literal, NamedTuple
 
@@ -545,25 +544,16 @@ def _ascii_body(table: np.ndarray) -> bytes:
 
 def write_atomic(path: str | os.PathLike, chunks) -> None:
     """Write ``chunks`` (bytes-like or arrays) to a temp file in the same folder, then ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            for chunk in chunks:
-                if isinstance(chunk, np.ndarray):
-                    chunk.tofile(f)
-                else:
-                    f.write(chunk)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    from seggaussian.atomic import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        for chunk in chunks:
+            if isinstance(chunk, np.ndarray):
+                chunk.tofile(f)
+            else:
+                f.write(chunk)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def write_vertex_table(path: str | os.PathLike, table: np.ndarray, *, fmt: PlyFormat = "binary_little_endian",
