@@ -135,13 +135,17 @@ def code_hash(*relative: str) -> str:
     return h.hexdigest()
 
 
+#: The suffixes of data_specs/ files that code reads (prose, the package marker and bytecode stay out of the key).
+DATA_SUFFIXES = (".txt", ".json", ".csv")
+
+
 def data_specs_hash() -> str:
-    """sha256 of the data files readers use (class lists, mappings) in ``data_specs/`` (prose excluded)."""
+    """sha256 of the data files readers use (class lists, mappings) in ``data_specs/`` (prose and code excluded)."""
     from seggaussian.constants import DATA_SPECS_DIR
 
     h = hashlib.sha256()
     if DATA_SPECS_DIR.is_dir():
-        for f in sorted(p for p in DATA_SPECS_DIR.rglob("*") if p.is_file() and p.suffix != ".md"):
+        for f in sorted(p for p in DATA_SPECS_DIR.rglob("*") if p.is_file() and p.suffix in DATA_SUFFIXES):
             h.update(str(f.relative_to(DATA_SPECS_DIR)).encode())
             h.update(f.read_bytes())
     return h.hexdigest()

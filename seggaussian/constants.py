@@ -5,10 +5,13 @@ See ``data_specs/CONVENTIONS.md`` for the prose version of these rules.
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 
-#: Folder holding the data files read by code (class lists, vocabularies, mappings, schemas).
-DATA_SPECS_DIR = Path(__file__).resolve().parent.parent / "data_specs"
+#: Folder holding the data files read by code (class lists, vocabularies, mappings, schemas): the
+#: repository's top-level ``data_specs/``, installed as the package ``seggaussian.data_specs`` so that
+#: an editable install and a wheel both find it.
+DATA_SPECS_DIR = Path(str(files("seggaussian.data_specs")))
 
 #: The single ignore label, used for Gaussians, points, label maps (uint16 PNG) and losses
 #: (``ignore_index``). 65535 fits a 16-bit PNG and an int32 PLY property, and never collides
