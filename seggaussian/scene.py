@@ -25,6 +25,9 @@ class View:
         semantic_path: ground-truth semantic label image (uint16 PNG of class ids, IGNORE_LABEL
             for void) when the source has one.
         instance_path: ground-truth instance image (uint16 PNG) when the source has one.
+        mask_path: anonymization mask of the image (8-bit PNG, the ScanNet++ convention: 255 = valid,
+            anything else = anonymized) when the source has one; its anonymized pixels are ignore in
+            the stored label maps and carry no weight in the RGB losses (``read_valid_mask``).
     """
 
     name: str
@@ -33,6 +36,7 @@ class View:
     role: ViewRole = "train"
     semantic_path: Path | None = None
     instance_path: Path | None = None
+    mask_path: Path | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -211,6 +211,35 @@ def read_image(path: Path, what: str, *, unchanged: bool = False) -> np.ndarray:
     return image
 
 
+#: Value of a valid (not anonymized) pixel in a ScanNet++ anonymization mask; the toolkit writes
+#: 255 = valid, 0 = anonymized, and sets every value below 255 to 0 after resizing/undistorting.
+MASK_VALID_VALUE = 255
+#: A mask of another size than its view must scale width and height alike, up to this relative
+#: difference (rounding of odd sizes when the toolkit or the build resizes).
+MASK_ASPECT_TOL = 0.02
+
+
+def read_valid_mask(path: Path, width: int, height: int) -> np.ndarray:
+    """``[height, width]`` bool: True where the pixel is valid, False where an anonymization mask marks it.
+
+    ``path`` is an 8-bit mask image (``MASK_VALID_VALUE`` = valid). A mask of another size than the
+    wanted one (a resized view) is resampled conservatively: an output pixel is valid only if every
+    mask pixel it covers is valid (area resampling of the anonymized share, any share > 0 is anonymized).
+    """
+    import cv2
+
+    mask = read_image(path, "anonymization mask", unchanged=True)
+    if mask.ndim == 3:
+        mask = mask[:, :, 0]
+    anonymized = (mask != MASK_VALID_VALUE).astype(np.float32)
+    if anonymized.shape != (height, width):
+        src_h, src_w = anonymized.shape
+        if abs(src_w / width - src_h / height) > MASK_ASPECT_TOL * max(src_w / width, src_h / height):
+            raise SourceError(path, None, f"mask is {src_w}x{src_h}, not a resize of the {width}x{height} view")
+        anonymized = cv2.resize(anonymized, (width, height), interpolation=cv2.INTER_AREA)
+    return anonymized <= 0.0
+
+
 def image_size(path: Path, what: str) -> tuple[int, int]:
     """(width, height) of an image file, reading only its header."""
     from PIL import Image, UnidentifiedImageError

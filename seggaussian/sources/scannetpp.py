@@ -1,6 +1,6 @@
 """ScanNet++ reader: labelled mesh vertices and undistorted DSLR views of one scene.
 
-``root`` is the ScanNet++ DATA_ROOT::
+``root`` is the ScanNet++ DATA_ROOT, as the toolkit's ``common/scene_release.py`` names it. Read::
 
     data/<scene_id>/scans/mesh_aligned_0.05.ply           vertices (x, y, z, red, green, blue) + faces
     data/<scene_id>/scans/segments.json                   {"segIndices": [segment id per vertex]}
@@ -8,10 +8,17 @@
     data/<scene_id>/scans/mesh_aligned_0.05_mask.txt      vertex ids to ignore (anonymized areas)
     data/<scene_id>/dslr/colmap/images.txt                COLMAP world-to-camera poses (mesh frame)
     data/<scene_id>/dslr/nerfstudio/transforms_undistorted.json   pinhole intrinsics + frame list
-    data/<scene_id>/dslr/undistorted_images/<name>        (or resized_undistorted_images/)
+    data/<scene_id>/dslr/undistorted_images/<name>        (else resized_undistorted_images/)
+    data/<scene_id>/dslr/undistorted_anon_masks/<mask>    (else resized_undistorted_masks/), optional
     data/<scene_id>/dslr/train_test_lists.json            {"train": [...], "test": [...]}
     metadata/semantic_benchmark/{map_benchmark.csv, top100.txt}
     splits/nvs_sem_{train,val}.txt
+
+Present in every downloaded scene and ignored: the distorted fisheye DSLR data (``resized_images/``,
+``resized_anon_masks/``, ``original_images/``, ``original_anon_masks/``, ``nerfstudio/transforms.json``),
+``scans/pc_aligned*``, ``scans/mesh_aligned_0.05_semantic.ply``, ``scans/scanner_poses.json``,
+``iphone/`` and ``panocam/``. Only when no undistorted data exists (no ``transforms_undistorted.json``)
+does the reader stop, with the toolkit's undistortion command.
 
 Labels: raw ``segGroups[].label`` -> ``map_benchmark.csv`` (``semantic_map_to`` empty keeps, ``None``
 drops, anything else renames) -> ``top100.txt`` (else ignore). A vertex in several groups takes
@@ -53,8 +60,14 @@ COLMAP_CAMERAS_FILE = "dslr/colmap/cameras.txt"
 TRANSFORMS_FILE = "dslr/nerfstudio/transforms_undistorted.json"
 DISTORTED_TRANSFORMS_FILE = "dslr/nerfstudio/transforms.json"
 TRAIN_TEST_FILE = "dslr/train_test_lists.json"
+#: Undistorted DSLR image folders, in order of preference, each with its anonymization-mask folder
+#: (toolkit ``dslr/configs/undistort.yml`` out_image_dir / out_mask_dir and the release's resized copies).
 IMAGE_DIRS = ("dslr/undistorted_images", "dslr/resized_undistorted_images")
-DISTORTED_IMAGE_DIR = "dslr/resized_images"
+MASK_DIRS = ("dslr/undistorted_anon_masks", "dslr/resized_undistorted_masks")
+#: Distorted (OPENCV_FISHEYE) DSLR data of the download: never read, only named in the undistortion hint.
+DISTORTED_IMAGE_DIRS = ("dslr/resized_images", "dslr/original_images")
+#: The toolkit command that writes the undistorted data (run from the toolkit checkout).
+UNDISTORT_COMMAND = "python -m dslr.undistort dslr/configs/undistort.yml"
 #: Ground-truth label images (uint16 PNG, ``<image stem>.png``): written by the synthetic
 #: generator (a toolkit extension; real ScanNet++ has none), read when present.
 SEMANTIC_RENDER_DIR = "dslr/render_semantic"
@@ -330,20 +343,27 @@ def read_colmap_images(path: Path) -> dict[str, np.ndarray]:
 
 
 def _check_undistorted(scene_dir: Path) -> None:
-    """Only distorted fisheye data present: stop and say how to undistort."""
-    cameras = scene_dir / COLMAP_CAMERAS_FILE
-    model = ""
-    if cameras.is_file():
-        for line in cameras.read_text().splitlines():
-            if line.strip() and not line.startswith("#"):
-                model = line.split()[1] if len(line.split()) > 1 else ""
-                break
-    if (scene_dir / DISTORTED_TRANSFORMS_FILE).is_file() or (scene_dir / DISTORTED_IMAGE_DIR).is_dir():
+    """Stop with the toolkit's undistortion command when the scene has no undistorted DSLR data.
+
+    ``transforms_undistorted.json`` decides: when it exists, the distorted data beside it (every
+    download has ``nerfstudio/transforms.json`` and ``resized_images/``) is simply not used.
+    """
+    if (scene_dir / TRANSFORMS_FILE).is_file():
+        return
+    distorted = [p for p in (DISTORTED_TRANSFORMS_FILE, *DISTORTED_IMAGE_DIRS) if (scene_dir / p).exists()]
+    if distorted:
+        cameras = scene_dir / COLMAP_CAMERAS_FILE
+        model = ""
+        if cameras.is_file():
+            for line in cameras.read_text().splitlines():
+                if line.strip() and not line.startswith("#"):
+                    model = line.split()[1] if len(line.split()) > 1 else ""
+                    break
         raise SourceError(
             scene_dir / TRANSFORMS_FILE, None,
-            f"missing: this scene only has distorted {model or 'fisheye'} DSLR images. Undistort them first with the "
-            "ScanNet++ toolkit (python -m dslr.undistort dslr/configs/undistort.yml), which writes "
-            "dslr/undistorted_images/ and dslr/nerfstudio/transforms_undistorted.json",
+            f"missing: this scene only has distorted {model or 'fisheye'} DSLR data ({', '.join(distorted)}). "
+            f"Undistort it first with the ScanNet++ toolkit ({UNDISTORT_COMMAND}), which writes "
+            "dslr/undistorted_images/, dslr/undistorted_anon_masks/ and dslr/nerfstudio/transforms_undistorted.json",
         )
     require_file(scene_dir / TRANSFORMS_FILE, "pinhole intrinsics and frame list")
 
@@ -371,9 +391,12 @@ def _read_views(scene_dir: Path, stats: dict) -> list[View]:
     else:
         novel = {Path(f.get("file_path", "")).name for key, f in frames if key == "test_frames" and isinstance(f, dict)}
 
-    image_dir = next((scene_dir / d for d in IMAGE_DIRS if (scene_dir / d).is_dir()), None)
-    if image_dir is None:
+    which = next((k for k, d in enumerate(IMAGE_DIRS) if (scene_dir / d).is_dir()), None)
+    if which is None:
         raise SourceError(scene_dir / IMAGE_DIRS[0], None, "missing (undistorted DSLR images)")
+    image_dir, mask_dir = scene_dir / IMAGE_DIRS[which], scene_dir / MASK_DIRS[which]
+    stats["image_dir"] = IMAGE_DIRS[which]
+    stats["anon_masks"] = 0
     K = intrinsics(fx, fy, cx, cy)
 
     views: list[View] = []
@@ -409,6 +432,8 @@ def _read_views(scene_dir: Path, stats: dict) -> list[View]:
             viewmat = undone
         image_path = image_dir / name
         require_file(image_path, f"DSLR image of {tpath.name} {where}")
+        mask_path = _mask_path(mask_dir, frame, name, tpath, where)
+        stats["anon_masks"] += mask_path is not None
         views.append(View(
             name=name,
             camera=Camera(K, viewmat, width, height),
@@ -416,6 +441,7 @@ def _read_views(scene_dir: Path, stats: dict) -> list[View]:
             role="novel" if name in novel else "train",
             semantic_path=_optional(scene_dir / SEMANTIC_RENDER_DIR / f"{Path(name).stem}.png"),
             instance_path=_optional(scene_dir / INSTANCE_RENDER_DIR / f"{Path(name).stem}.png"),
+            mask_path=mask_path,
         ))
     if views:  # resized image folders: scale the intrinsics to the images' actual size
         actual_w, actual_h = image_size(views[0].image_path, "DSLR image")
@@ -423,8 +449,22 @@ def _read_views(scene_dir: Path, stats: dict) -> list[View]:
             scale = actual_w / width
             if abs(actual_h / height - scale) > RESIZE_ASPECT_TOL:
                 raise SourceError(views[0].image_path, None, f"size {actual_w}x{actual_h} does not match w/h {width}x{height} of {tpath} at one scale")
-            views = [View(v.name, v.camera.scaled(scale), v.image_path, v.role, v.semantic_path, v.instance_path) for v in views]
+            views = [View(v.name, v.camera.scaled(scale), v.image_path, v.role, v.semantic_path, v.instance_path,
+                          v.mask_path) for v in views]
     return views
+
+
+def _mask_path(mask_dir: Path, frame: dict, name: str, tpath: Path, where: str) -> Path | None:
+    """The frame's anonymization mask: ``mask_dir / frame["mask_path"]`` (the toolkit's field), else
+    ``<image stem>.png``; None when the scene has no mask folder. A listed mask that is missing is an error."""
+    if not mask_dir.is_dir():
+        return None
+    listed = frame.get("mask_path")
+    if listed is not None and not isinstance(listed, str):
+        raise SourceError(tpath, f"{where}.mask_path", "not a string")
+    path = mask_dir / (listed if listed else f"{Path(name).stem}.png")
+    require_file(path, f"anonymization mask of {tpath.name} {where}")
+    return path
 
 
 def _optional(path: Path) -> Path | None:
