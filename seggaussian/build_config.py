@@ -19,12 +19,13 @@ DEFAULT_BOX_MARGIN = 0.25
 
 @dataclass(frozen=True)
 class TransferConfig:
-    """Nearest-labelled-point label transfer (``seggaussian.transfer``)."""
+    """Nearest-point label transfer (``seggaussian.transfer``)."""
 
-    #: Which points may give their label: ``labelled`` = only points whose semantic id is not
-    #: IGNORE_LABEL (DESIGN.md: "nearest labelled point"); ``all`` = every point, and a Gaussian whose
-    #: nearest point is unlabelled gets IGNORE_LABEL (respects masked regions more strictly).
-    candidates: Literal["labelled", "all"] = "labelled"
+    #: Which points may give their label: ``all`` = every point, and a Gaussian whose nearest point is
+    #: unlabelled (masked, None-mapped, out of the vocabulary) gets IGNORE_LABEL (DESIGN.md; no label
+    #: spills onto unlabelled surfaces); ``labelled`` = only points whose semantic id is not IGNORE_LABEL
+    #: (a Gaussian on an unlabelled surface takes the nearest labelled surface's label within the gate).
+    candidates: Literal["labelled", "all"] = "all"
     #: Mesh sources: labelled points are the vertices plus samples on the triangles about this far apart
     #: (metres; ``transfer.densify_labelled_mesh``), so that a Gaussian takes the label of the nearest
     #: surface even where differently labelled surfaces are closer than the vertex spacing. 0 = vertices only.

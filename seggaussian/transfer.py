@@ -1,13 +1,19 @@
-"""Label transfer: every Gaussian takes the labels of its nearest labelled point, within a distance gate.
+"""Label transfer: every Gaussian takes the labels of its nearest source point, within a distance gate.
 
-Data flow: ``points`` (labelled mesh vertices / scan points) -> candidate points -> KD-tree -> one
-nearest-neighbour query for the Gaussian centres inside the (enlarged) bounding box of the candidates
--> labels, distances, statistics.
+Data flow: ``points`` (mesh vertices + surface samples / scan points) -> candidate points -> KD-tree ->
+one nearest-neighbour query for the Gaussian centres inside the (enlarged) bounding box of the
+candidates -> labels, distances, statistics.
 
 Conventions (documented again in ``data_specs/SHARDS.md``):
-- Candidates are the points whose semantic id is not IGNORE_LABEL (``TransferConfig.candidates =
-  "labelled"``, DESIGN.md "nearest labelled point"); with ``"all"`` every point is a candidate and a
-  Gaussian whose nearest point is unlabelled is ignored.
+- Candidates are all points, labelled or not (``TransferConfig.candidates = "all"``, the default):
+  a Gaussian whose nearest point is unlabelled (no group, masked, None-mapped or out of the
+  vocabulary) stays ignore, instance and multilabel included, so labels never spill from a labelled
+  surface onto an unlabelled one beside it. ``"labelled"`` (only points with a label are candidates:
+  every Gaussian within the gate of *some* labelled point gets that label) is kept as an option for
+  sources whose unlabelled points are noise rather than unlabelled surfaces.
+- The gate is ``max(gate_min, gate_factor x median spacing)``; the spacing is measured between
+  *distinct* coordinates (exact duplicates, e.g. the vertices of a mesh split at seams, are skipped),
+  so it is the sampling density of the surface and never 0 because of repeated points.
 - ``distances`` holds the Euclidean distance (metres, float32) to the nearest candidate for every
   Gaussian that was queried, including those beyond the gate. Gaussians that were not queried
   (outside the box, non-finite centre, no candidate at all) get ``DISTANCE_NOT_MEASURED`` (-1): the
@@ -31,6 +37,10 @@ DISTANCE_NOT_MEASURED = -1.0
 DISTANCE_QUANTILES = (0.5, 0.9, 0.99, 1.0)
 #: Rows per block of the brute-force reference (bounds its [block, P] distance matrix).
 REFERENCE_BLOCK = 256
+#: Neighbours queried per sampled point when estimating the spacing: the first one at a distance > 0 is
+#: its nearest *distinct* point. A point with this many exact copies of itself (never seen in meshes,
+#: which repeat a vertex at most a few times at seams) is left out of the median and counted.
+SPACING_NEIGHBOURS = 8
 
 
 class TransferStats(NamedTuple):
@@ -38,14 +48,15 @@ class TransferStats(NamedTuple):
 
     Fields:
         num_gaussians, num_points, num_candidates: input sizes (candidates = points that may give labels).
-        spacing: median nearest-neighbour spacing of the candidates (metres; 0 when < 2 candidates).
+        spacing: median distance from a candidate to its nearest distinct candidate (metres; exact duplicate
+            coordinates skipped; 0 when fewer than 2 distinct candidates).
         gate: distance gate used (metres).
         box_margin: effective bounding-box margin (metres) = max(config margin, gate).
         outside_box: Gaussians outside the enlarged box, ignored without a query.
         nonfinite: Gaussians with a NaN/Inf centre, ignored without a query.
         no_candidates: Gaussians ignored because there was no candidate point at all.
         beyond_gate: queried Gaussians whose nearest candidate is farther than the gate.
-        unlabelled_nearest: (candidates="all") queried Gaussians whose nearest point is unlabelled.
+        unlabelled_nearest: (candidates="all") Gaussians within the gate whose nearest point is unlabelled.
         ignored: total Gaussians with IGNORE_LABEL; ``ignored_share`` = ignored / num_gaussians (0 if none).
         distance_quantiles: {"q50", "q90", "q99", "max"} of the measured distances (0.0 when none).
         class_histogram: {class id: count} of the transferred semantic labels (IGNORE excluded).
@@ -254,24 +265,36 @@ def _query(tree, queries: np.ndarray, backend: str, k: int = 1) -> tuple[np.ndar
 
 
 def _median_spacing(tree, cand_points: np.ndarray, config: TransferConfig) -> float:
-    """Median distance from a (seeded) sample of candidates to their nearest other candidate."""
+    """Median distance from a (seeded) sample of candidates to their nearest distinct candidate.
+
+    Exact duplicates are skipped: of the ``SPACING_NEIGHBOURS`` nearest candidates of a sampled point,
+    the first at a distance > 0 counts (the point itself and its copies are at distance 0).
+    """
     if len(cand_points) < 2:
         return 0.0
     rng = np.random.default_rng(config.seed)
     m = min(config.spacing_samples, len(cand_points))
     sample = np.sort(rng.choice(len(cand_points), size=m, replace=False))
-    d, _ = _query(tree, cand_points[sample], config.backend, k=2)
-    return float(np.median(d[:, 1]))
+    k = min(SPACING_NEIGHBOURS, len(cand_points))
+    d, _ = _query(tree, cand_points[sample], config.backend, k=k)
+    d = d.reshape(m, k)
+    distinct = d > 0.0
+    found = distinct.any(axis=1)
+    if not found.any():
+        return 0.0
+    first = d[found, np.argmax(distinct[found], axis=1)]
+    return float(np.median(first))
 
 
 def _median_spacing_reference(cand_points: np.ndarray) -> float:
-    """Exact median nearest-other-point distance over all candidates (brute force)."""
-    if len(cand_points) < 2:
+    """Exact median nearest-distinct-point distance over all distinct candidates (brute force)."""
+    unique = np.unique(cand_points + 0.0, axis=0)  # + 0.0: -0.0 and 0.0 are one coordinate
+    if len(unique) < 2:
         return 0.0
-    out = np.empty(len(cand_points))
-    for start in range(0, len(cand_points), REFERENCE_BLOCK):
-        block = cand_points[start:start + REFERENCE_BLOCK]
-        diff = block[:, None, :] - cand_points[None, :, :]
+    out = np.empty(len(unique))
+    for start in range(0, len(unique), REFERENCE_BLOCK):
+        block = unique[start:start + REFERENCE_BLOCK]
+        diff = block[:, None, :] - unique[None, :, :]
         d2 = np.einsum("ijk,ijk->ij", diff, diff)
         d2[np.arange(len(block)), np.arange(start, start + len(block))] = np.inf
         out[start:start + len(block)] = np.sqrt(d2.min(axis=1))
@@ -368,6 +391,9 @@ def densify_labelled_mesh(
     first corner), i.e. the label it would get from the nearest vertex of its own triangle. Used when a
     mesh's vertices are farther apart than the gaps between differently labelled surfaces (a window 2 cm in
     front of a wall): the nearest *surface* label then wins instead of a vertex of the surface behind.
+    Samples on an edge shared by two triangles are generated by both; the copy from the later triangle
+    (exact same coordinates) is dropped, so every sample is one distinct point (the transfer's spacing
+    estimate and its nearest-point choice see each surface point once).
     Returns (points [S, 3], [labels of the samples, one array per ``labels`` argument]).
     """
     vertices = np.asarray(vertices, np.float64)
@@ -393,7 +419,18 @@ def densify_labelled_mesh(
             out.append(np.asarray(lab)[src])
     if not points_out:
         return np.zeros((0, 3)), [np.asarray(l)[:0] for l in labels]
-    return np.concatenate(points_out), [np.concatenate(o) for o in labels_out]
+    points = np.concatenate(points_out)
+    keep = first_occurrences(points)
+    return points[keep], [np.concatenate(o)[keep] for o in labels_out]
+
+
+def first_occurrences(points: np.ndarray) -> np.ndarray:
+    """``[U]`` sorted row indices of the first occurrence of each distinct row of ``points`` ``[S, 3]``
+    (exact float equality; -0.0 equals 0.0)."""
+    rows = np.ascontiguousarray(np.asarray(points, np.float64) + 0.0)
+    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
+    _, first = np.unique(keys, return_index=True)
+    return np.sort(first)
 
 
 # --- scoring against the mesh (per-scene accuracy report) --------------------------------------------

@@ -9,6 +9,8 @@ from seggaussian.build_config import TransferConfig
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.transfer import (
     DISTANCE_NOT_MEASURED,
+    densify_labelled_mesh,
+    first_occurrences,
     label_accuracy,
     surface_labels,
     transfer_labels,
@@ -59,17 +61,48 @@ def test_open3d_backend_matches_reference():
     _assert_same(fast, ref)
 
 
-def test_nearest_is_labelled_point_by_default():
-    # The nearest point is unlabelled; the next one (labelled) within the gate gives its label.
+def test_unlabelled_nearest_point_gives_ignore_by_default():
+    # The nearest point is unlabelled: by default (candidates="all") the Gaussian stays ignore, instance
+    # and multilabel too; the labelled-only option gives the label of the next (labelled) point instead.
     points = np.array([[0.0, 0, 0], [0.05, 0, 0]])
     sem = np.array([IGNORE_LABEL, 7], np.int32)
-    inst = np.array([IGNORE_LABEL, 3], np.int32)
+    inst = np.array([5, 3], np.int32)  # an instance id on an unlabelled point must not survive either
     means = np.array([[0.01, 0, 0]])
-    lab = transfer_labels(means, points, sem, inst, None, TransferConfig(max_distance=0.1))
+    assert TransferConfig().candidates == "all"
+    strict = transfer_labels(means, points, sem, inst, None, TransferConfig(max_distance=0.1))
+    assert strict.semantic.tolist() == [IGNORE_LABEL] and strict.instance.tolist() == [IGNORE_LABEL]
+    assert (strict.multilabel == IGNORE_LABEL).all() and strict.stats.unlabelled_nearest == 1
+    assert strict.distances[0] == pytest.approx(0.01)
+    lab = transfer_labels(means, points, sem, inst, None, TransferConfig(max_distance=0.1, candidates="labelled"))
     assert lab.semantic.tolist() == [7] and lab.instance.tolist() == [3]
     assert lab.distances[0] == pytest.approx(0.04)
-    strict = transfer_labels(means, points, sem, inst, None, TransferConfig(max_distance=0.1, candidates="all"))
-    assert strict.semantic.tolist() == [IGNORE_LABEL] and strict.stats.unlabelled_nearest == 1
+
+
+def test_spacing_skips_exact_duplicates():
+    # A 0.01 m grid where every point is repeated (as samples on shared mesh edges were): the median
+    # spacing is still 0.01, not 0, in the fast estimate and in the brute-force reference.
+    g = np.arange(0, 0.3, 0.01)
+    grid = np.stack(np.meshgrid(g, g, [0.0]), -1).reshape(-1, 3)
+    points = np.concatenate([grid, grid, grid[:100]])
+    sem = np.zeros(len(points), np.int32)
+    res = transfer_labels(np.zeros((1, 3)), points, sem, sem, config=TransferConfig(gate_min=0.001))
+    ref = transfer_labels_reference(np.zeros((1, 3)), points, sem, sem, config=TransferConfig(gate_min=0.001))
+    assert res.stats.spacing == pytest.approx(0.01, rel=1e-6)
+    assert ref.stats.spacing == pytest.approx(0.01, rel=1e-6)
+    assert res.stats.gate == pytest.approx(0.04, rel=1e-6)
+
+
+def test_densified_mesh_has_no_duplicate_samples():
+    # Two triangles sharing an edge, 4 steps per edge: the 3 inner samples of the shared edge appear once.
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    labels = np.array([1, 2, 3, 4])
+    pts, (lab,) = densify_labelled_mesh(vertices, faces, 0.36, labels)  # ceil(sqrt(2) / 0.36) = 4 steps
+    per_triangle = 15 - 3  # (n+1)(n+2)/2 grid points for n = 4, corners excluded
+    assert len(pts) == 2 * per_triangle - 3
+    assert len(np.unique(pts, axis=0)) == len(pts)
+    assert lab.shape == (len(pts),)
+    assert first_occurrences(np.array([[0.0, 1, 2], [-0.0, 1, 2], [1, 1, 2], [0, 1, 2]])).tolist() == [0, 2]
 
 
 def test_gate_and_prefilter_count_what_they_remove():
@@ -120,8 +153,12 @@ def test_empty_inputs(n, p):
 
 def test_all_points_unlabelled_counts_no_candidates():
     points = np.zeros((5, 3))
-    res = transfer_labels(np.zeros((3, 3)), points, np.full(5, IGNORE_LABEL), np.zeros(5))
+    labelled_only = TransferConfig(candidates="labelled")
+    res = transfer_labels(np.zeros((3, 3)), points, np.full(5, IGNORE_LABEL), np.zeros(5), config=labelled_only)
     assert res.stats.num_candidates == 0 and res.stats.no_candidates == 3 and res.stats.ignored == 3
+    every = transfer_labels(np.zeros((3, 3)), points, np.full(5, IGNORE_LABEL), np.zeros(5))  # default: all points
+    assert every.stats.num_candidates == 5 and every.stats.unlabelled_nearest == 3 and every.stats.ignored == 3
+    assert (every.instance == IGNORE_LABEL).all()
 
 
 def test_bad_shapes_and_nan_points_raise_clear_errors():
