@@ -72,7 +72,8 @@ def hand_blend(ids, weights, residual=None) -> BlendWeights:
 
 def test_label_maps_majority_threshold_and_ignore():
     # pixels: 0 majority of class 1 over a nearer class 0; 1 low alpha -> ignore;
-    # 2 only an IGNORE-labelled Gaussian -> ignore; 3 an IGNORE Gaussian in front, class 2 behind
+    # 2 only an IGNORE-labelled Gaussian -> ignore; 3 an IGNORE Gaussian in front, class 1 behind -> ignore
+    # (ignore is a label of its own in the vote: the unlabelled Gaussian occludes)
     blend = hand_blend(
         [[0, 1, 2], [0, -1, -1], [3, -1, -1], [3, 2, -1]],
         [[0.3, 0.25, 0.2], [0.2, 0.0, 0.0], [0.9, 0.0, 0.0], [0.7, 0.2, 0.0]],
@@ -80,7 +81,7 @@ def test_label_maps_majority_threshold_and_ignore():
     semantic = torch.tensor([0, 1, 1, IGNORE_LABEL])
     instance = torch.tensor([10, 11, 12, 13])
     maps = render_label_maps(blend, semantic, instance, num_classes=3, min_alpha=0.5)
-    assert maps.semantic[0].tolist() == [1, IGNORE_LABEL, IGNORE_LABEL, 1]
+    assert maps.semantic[0].tolist() == [1, IGNORE_LABEL, IGNORE_LABEL, IGNORE_LABEL]
     assert maps.instance[0].tolist() == [10, IGNORE_LABEL, 13, 13]
     assert torch.allclose(maps.soft[0, 0], torch.tensor([0.3, 0.45, 0.0]))
     assert torch.allclose(maps.soft[0, 3], torch.tensor([0.0, 0.2, 0.0]))

@@ -23,6 +23,8 @@ BOXES = [
     (1, (-0.75, -0.25, 0.0), (-0.25, 0.25, 0.5)),
     (2, (0.1, 0.1, 0.0), (0.7, 0.5, 0.6)),
     (3, (0.15, -0.75, 0.0), (0.45, -0.45, 0.3)),
+    # an unlabelled box (a class outside the benchmark) between the camera and box 3: it must occlude
+    (IGNORE_LABEL, (0.5, -1.1, 0.0), (0.8, -0.85, 0.45)),
 ]
 # rotations taking the Gaussian's local z (the thin axis) onto a face normal axis
 QUAT_FOR_AXIS = {2: (1.0, 0.0, 0.0, 0.0), 0: (np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0),
@@ -83,11 +85,16 @@ def test_label_maps_match_raycast_of_labelled_boxes():
     truth = np.full((HEIGHT, WIDTH), IGNORE_LABEL, np.int64)
     for gid, label in geometry_label.items():
         truth[geometry_ids == gid] = label
+    unlabelled_box = geometry_ids == next(g for g, label in geometry_label.items() if label == IGNORE_LABEL)
 
     both = (rendered != IGNORE_LABEL) & (truth != IGNORE_LABEL)
     assert both.mean() > 0.3, "the view must see the scene"
     assert set(np.unique(truth[both])) == {0, 1, 2, 3}, "every box must be visible"
     agreement = (rendered[both] == truth[both]).mean()
     assert agreement >= 0.98, f"label agreement {agreement:.4f} on {both.sum()} pixels"
-    # where the ray misses, the Gaussians must not claim a label either (except at silhouettes)
+    # where the ray misses or hits the unlabelled box, the Gaussians must not claim a label either (except
+    # at silhouettes): the unlabelled Gaussians in front occlude the labelled surfaces behind them
     assert ((truth == IGNORE_LABEL) & (rendered != IGNORE_LABEL)).mean() < 0.02
+    assert unlabelled_box.sum() > 500, "the unlabelled box must be in view"
+    # (the former rule, labelled contributors only, left 1.4% of these pixels with the label behind)
+    assert (rendered[unlabelled_box] == IGNORE_LABEL).mean() >= 0.995

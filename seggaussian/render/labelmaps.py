@@ -1,4 +1,11 @@
-"""Semantic and instance label maps from per-pixel blend weights (majority by accumulated weight)."""
+"""Semantic and instance label maps from per-pixel blend weights (majority by accumulated weight).
+
+The vote counts IGNORE_LABEL as a label of its own: an unlabelled Gaussian contributes its blend
+weight to "ignore" like any other label, so an opaque unlabelled Gaussian in front of a labelled one
+makes the pixel ignore (what a raycast of the labelled mesh gives there: the first surface hit has
+no label). Front-most contributors carry the largest weights (alpha compositing), so the winner is
+the label of what is in front, not of a surface hidden behind it.
+"""
 
 from __future__ import annotations
 
@@ -20,8 +27,9 @@ class LabelMaps(NamedTuple):
     """Label images of one view.
 
     Fields:
-        semantic: ``[H, W]`` int64 class id with the largest accumulated weight, or IGNORE_LABEL.
-        instance: ``[H, W]`` int64 instance id with the largest accumulated weight, or IGNORE_LABEL.
+        semantic: ``[H, W]`` int64 class id with the largest accumulated weight, or IGNORE_LABEL (ignore
+            won the vote, or the pixel is mostly background).
+        instance: ``[H, W]`` int64 instance id with the largest accumulated weight, or IGNORE_LABEL (same rule).
         soft: ``[H, W, C]`` float32 accumulated blend weight per class (IGNORE-labelled Gaussians add
             to no class).
     """
@@ -34,7 +42,8 @@ class LabelMaps(NamedTuple):
 def _majority(labels: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     """Per pixel, the label whose slots carry the most weight. labels/weights: [H, W, K].
 
-    Slots with weight 0 (unused, or IGNORE-labelled) never win; ties go to the earlier (front-most) slot.
+    IGNORE_LABEL slots vote like any label. Slots with weight 0 (unused) never win; ties go to the
+    earlier (front-most) slot.
     Returns (label [H, W], its total weight [H, W]).
     """
     total = torch.zeros_like(weights)
@@ -69,9 +78,7 @@ def _label_maps_kernel():
                         if gid < 0 or weights[y, x, k] <= 0:
                             continue
                         label = labels[gid]
-                        if label == ignore:
-                            continue
-                        if which == 0:
+                        if which == 0 and label != ignore:
                             soft[y, x, label] += weights[y, x, k]
                         total = np.float32(0.0)  # same summation order as the torch reference
                         for j in range(k_max):
@@ -81,7 +88,7 @@ def _label_maps_kernel():
                         if total > best_total:
                             best_total = total
                             best_label = label
-                    if total_alpha >= min_alpha and best_total > 0:
+                    if total_alpha >= min_alpha and best_total > 0 and best_label != ignore:
                         if which == 0:
                             sem_out[y, x] = best_label
                         else:
@@ -98,10 +105,11 @@ def render_label_maps(
     min_alpha: float = LABEL_MIN_ALPHA,
     backend: str = "auto",
 ) -> LabelMaps:
-    """Each pixel takes the label with the largest accumulated blend weight among its K contributors.
+    """Each pixel takes the label with the largest accumulated blend weight among its K contributors,
+    IGNORE_LABEL counted as a label of its own (unlabelled Gaussians occlude).
 
-    IGNORE_LABEL where the pixel's accumulated alpha (``weights.sum + residual_alpha``) is below
-    ``min_alpha`` or where no captured contributor carries a label. ``backend``: ``fast`` (numba, one
+    IGNORE_LABEL where ignore wins, where the pixel's accumulated alpha (``weights.sum + residual_alpha``)
+    is below ``min_alpha``, or where no captured contributor has weight. ``backend``: ``fast`` (numba, one
     pass per pixel), ``reference`` (vectorized torch, obviously correct) or ``auto`` (fast).
     """
     if backend == "reference":
@@ -153,18 +161,18 @@ def render_label_maps_reference(
     safe = ids.clamp_min(0)
     sem = torch.where(used, semantic[safe], torch.full_like(ids, IGNORE_LABEL))
     inst = torch.where(used, instance[safe], torch.full_like(ids, IGNORE_LABEL))
-    w_sem = torch.where(used & (sem != IGNORE_LABEL), weights, torch.zeros_like(weights))
-    w_inst = torch.where(used & (inst != IGNORE_LABEL), weights, torch.zeros_like(weights))
+    w_used = torch.where(used, weights, torch.zeros_like(weights))  # ignore-labelled slots vote too
+    w_class = torch.where(used & (sem != IGNORE_LABEL), weights, torch.zeros_like(weights))
 
     height, width, _ = ids.shape
     soft = torch.zeros(height, width, num_classes, dtype=torch.float32)
-    soft.scatter_add_(-1, torch.where(sem == IGNORE_LABEL, torch.zeros_like(sem), sem), w_sem)
+    soft.scatter_add_(-1, torch.where(sem == IGNORE_LABEL, torch.zeros_like(sem), sem), w_class)
 
     total_alpha = weights.sum(-1) + blend.residual_alpha.to(torch.float32)
     opaque = total_alpha >= min_alpha
     ignore = torch.full((height, width), IGNORE_LABEL, dtype=torch.int64)
-    sem_best, sem_weight = _majority(sem, w_sem)
-    inst_best, inst_weight = _majority(inst, w_inst)
+    sem_best, sem_weight = _majority(sem, w_used)
+    inst_best, inst_weight = _majority(inst, w_used)
     semantic_map = torch.where(opaque & (sem_weight > 0), sem_best, ignore)
     instance_map = torch.where(opaque & (inst_weight > 0), inst_best, ignore)
     return LabelMaps(semantic_map, instance_map, soft)
