@@ -41,6 +41,9 @@ STAGES = ("gaussians", "transfer", "views")
 CACHE_DIR = ".build"
 #: Bumped when the oracle sampler's output changes.
 ORACLE_VERSION = 1
+#: Bumped when ``run_views`` (code outside the hashed render package) changes the stored views;
+#: 2 = anonymization masks make their pixels ignore in the label maps.
+VIEWS_VERSION = 2
 #: Triangles with an area below this (m^2) get no oracle samples (their normal is undefined).
 MIN_TRIANGLE_AREA = 1e-12
 #: A unit normal within this of -z (1 + n.z below it) is rotated by 180 degrees about x: the half-way
@@ -557,6 +560,7 @@ def run_views(scene, gaussians: Gaussians, config: BuildConfig, num_classes: int
     from seggaussian.render import compute_blend_weights, render_label_maps
     from seggaussian.render.rasterize import camera_tensors
     from seggaussian.shards import ViewRow, encode_label_map, encode_rgb, image_format
+    from seggaussian.sources._common import read_valid_mask
 
     t = gaussians.to_torch()
     semantic = torch.from_numpy(gaussians.extras["semantic"].astype(np.int64))
@@ -595,6 +599,10 @@ def run_views(scene, gaussians: Gaussians, config: BuildConfig, num_classes: int
         else:
             sem_map = np.full((cam.height, cam.width), IGNORE_LABEL, np.int64)
             inst_map = sem_map.copy()
+        if view.mask_path is not None:  # anonymized pixels carry no label
+            valid = read_valid_mask(view.mask_path, cam.width, cam.height)
+            sem_map[~valid] = IGNORE_LABEL
+            inst_map[~valid] = IGNORE_LABEL
         rows.append(ViewRow(view.name, view.role, cam, rgb_bytes, encode_label_map(sem_map), encode_label_map(inst_map),
                             float((sem_map != IGNORE_LABEL).mean())))
     coverage = [r.label_coverage for r in rows]
@@ -632,7 +640,8 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
     parts = {
         "gaussians": [task.fingerprint, g_cfg],
         "transfer": [task.fingerprint, asdict(config.transfer), code_hash("transfer.py", "shards.py", "shard_schema.py")],
-        "views": [asdict(config.views), len(class_names), code_hash("render", "shards.py", "shard_schema.py")],
+        "views": [asdict(config.views), len(class_names), code_hash("render", "shards.py", "shard_schema.py"),
+                  VIEWS_VERSION],
     }
     keys = {"gaussians": sha256_json(parts["gaussians"])}
     keys["transfer"] = sha256_json([keys["gaussians"], *parts["transfer"]])

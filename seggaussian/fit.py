@@ -32,6 +32,7 @@ from seggaussian.constants import NEAR_PLANE, QUAT_NORM_EPS, RADIUS_SIGMAS, SH_C
 from seggaussian.fit_config import FitConfig
 from seggaussian.gaussians import Gaussians
 from seggaussian.scene import Scene
+from seggaussian.sources._common import read_valid_mask
 
 if TYPE_CHECKING:
     import torch
@@ -102,6 +103,17 @@ class ViewData(NamedTuple):
     image: "torch.Tensor"  # [H, W, 3] float32 in [0, 1]
     viewmat: "torch.Tensor"  # [4, 4] float32
     K: "torch.Tensor"  # [3, 3] float32
+    valid: "torch.Tensor | None" = None  # [H, W] bool, False on anonymized pixels; None = all valid
+
+
+def masked_render(image: "torch.Tensor", view: ViewData) -> "torch.Tensor":
+    """The render ``[H, W, 3]`` with its anonymized pixels replaced by the target's: those pixels add
+    nothing to L1, D-SSIM or PSNR and pass no gradient (the anonymization masks' pixels are ignored)."""
+    import torch
+
+    if view.valid is None:
+        return image
+    return torch.where(view.valid[..., None], image, view.image)
 
 
 def needs_fit(mode: str, trained_ply_path: str | Path | None) -> bool:
@@ -172,8 +184,12 @@ def load_views(views: Sequence, downscale: float) -> list[ViewData]:
             camera = camera.scaled(1.0 / downscale)
             rgb = cv2.resize(rgb, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
         image = torch.from_numpy(rgb.astype(np.float32) / 255.0)
+        valid = None
+        if view.mask_path is not None:
+            mask = read_valid_mask(view.mask_path, camera.width, camera.height)
+            valid = None if mask.all() else torch.from_numpy(mask)
         out.append(ViewData(view.name, camera, image, torch.from_numpy(camera.viewmat.astype(np.float32)),
-                            torch.from_numpy(camera.K.astype(np.float32))))
+                            torch.from_numpy(camera.K.astype(np.float32)), valid))
     return out
 
 
@@ -484,7 +500,7 @@ def evaluate(params: GaussianParameters, views: Sequence[ViewData], sh_degree: i
     psnrs, ssims, l1s = [], [], []
     with torch.no_grad():
         for view in views:
-            image = render_view(params, view, sh_degree, background).image.clamp(0.0, 1.0)
+            image = masked_render(render_view(params, view, sh_degree, background).image.clamp(0.0, 1.0), view)
             psnrs.append(float(psnr(image, view.image)))
             ssims.append(float(ssim(image, view.image)))
             l1s.append(float(l1_loss(image, view.image)))
@@ -552,7 +568,7 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
         params.set_lr("means", means_lr(iteration - 1, config, extent))
 
         out = render_view(params, view, sh_degree, background)
-        loss = fitting_loss(out.image, view.image, config.lambda_dssim)
+        loss = fitting_loss(masked_render(out.image, view), view.image, config.lambda_dssim)
         loss.backward()
         loss_value = float(loss.detach())
         if not math.isfinite(loss_value):
