@@ -103,9 +103,13 @@ def test_resized_images_scale_intrinsics(scene_root, tmp_path):
     copy = tmp_path / "root"
     shutil.copytree(root, copy)
     dslr = copy / "data" / scene_id / "dslr"
-    (dslr / "undistorted_images").rename(dslr / "resized_undistorted_images")
+    shutil.rmtree(dslr / "undistorted_images")  # the release's resized copies are the fallback
+    shutil.rmtree(dslr / "undistorted_anon_masks")
     for image in (dslr / "resized_undistorted_images").iterdir():
         cv2.imwrite(str(image), cv2.resize(cv2.imread(str(image)), (32, 24)))
+    for mask in (dslr / "resized_undistorted_masks").iterdir():
+        cv2.imwrite(str(mask), cv2.resize(cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE), (32, 24),
+                                          interpolation=cv2.INTER_NEAREST))
     original = scannetpp.read_scene(root, scene_id).views[0].camera
     view = scannetpp.read_scene(copy, scene_id).views[0].camera
     assert (view.width, view.height) == (32, 24)

@@ -156,12 +156,13 @@ def test_empty_scenes_raise_a_countable_error(trees):
 
 
 def test_fisheye_only_scene_says_what_to_run(trees):
+    # a download before undistortion: distorted data (fisheye transforms.json, resized_images/) only
     s_root, s_id, s_dir, *_ = trees
     dslr = s_dir / "dslr"
-    (dslr / "nerfstudio/transforms_undistorted.json").rename(dslr / "nerfstudio/transforms.json")
-    (dslr / "undistorted_images").rename(dslr / "resized_images")
-    (dslr / "colmap/cameras.txt").write_text("1 OPENCV_FISHEYE 48 36 40 40 24 18 0.01 0.0 0.0 0.0\n")
-    _expect(lambda: scannetpp.read_scene(s_root, s_id), "OPENCV_FISHEYE", "dslr.undistort")
+    (dslr / "nerfstudio/transforms_undistorted.json").unlink()
+    for folder in ("undistorted_images", "undistorted_anon_masks", "resized_undistorted_images", "resized_undistorted_masks"):
+        shutil.rmtree(dslr / folder)
+    _expect(lambda: scannetpp.read_scene(s_root, s_id), "OPENCV_FISHEYE", "dslr.undistort", "resized_images")
 
 
 def test_split_files_and_listing(trees, tmp_path):
