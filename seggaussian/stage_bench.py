@@ -11,18 +11,24 @@ Ground truth comes from the labelled mesh, never from the stage under test:
 - transfer: oracle Gaussians sampled on the visible labelled triangles carry their true label (the corner
   of the sampled triangle with the largest barycentric weight, ``build.sample_oracle_gaussians``); their
   centres are pushed off the surface along the normal by seeded noise (``TransferSweep.surface_noise``)
-  because fitted Gaussians sit a few cm off the mesh. Quality = label accuracy (an ignored Gaussian counts
-  as wrong);
+  because fitted Gaussians sit a few cm off the mesh. Quality = label agreement over all Gaussians, ignore
+  counted as a label: a Gaussian on a labelled surface must get its class (ignore is wrong), one on an
+  unlabelled surface (rug, None-mapped object, masked disc) must stay ignore. ``label_accuracy`` (labelled
+  surfaces only) and ``unlabelled_kept`` (unlabelled surfaces only) are reported beside it;
 - render: the same labelled oracle Gaussians; label maps are compared with label images raycast from the
   mesh at the same resolution (hit triangle's corner with the largest barycentric weight, the rule that
-  labels the oracle Gaussians). Quality = pixel agreement over labelled ground-truth pixels; the
-  feature-render residual ``|render_features(W, f) - rasterize(features=f)|`` is reported next to it;
+  labels the oracle Gaussians). Quality = pixel agreement over the pixels whose ray hits the mesh, ignore
+  counted as a label (a hit on an unlabelled surface must render ignore); ``labelled_agreement`` (labelled
+  ground-truth pixels, the quality before 2026-11) and ``unlabelled_kept`` are reported beside it, and the
+  ``vote`` knob's ``labelled_only`` row replays the former label-map rule (unlabelled contributors did not
+  vote) on the same blend weights. The feature-render residual ``|render_features(W, f) - rasterize(features=f)|``
+  is reported too;
 - build: every setting must give byte-identical shards; quality = 1 when the Parquet shards equal those of
   the first (jobs 1, fresh folder) build, else 0; seconds per scene is the cost.
 
 The k-nearest vote of the transfer bench (``transfer_labels_vote``) is implemented here on the same KD-tree
-backends and gate rule as ``seggaussian.transfer``; with k = 1 it equals ``transfer_labels`` exactly
-(tested), and ``transfer_labels_vote_reference`` is its brute-force reference.
+backends, candidates, spacing estimate and gate rule as ``seggaussian.transfer``; with k = 1 it equals
+``transfer_labels`` exactly (tested), and ``transfer_labels_vote_reference`` is its brute-force reference.
 """
 
 from __future__ import annotations
@@ -43,7 +49,7 @@ from seggaussian.stage_bench_config import STAGES, StageBenchConfig
 #: Quality axis of each stage (higher is better) and its unit, as printed in tables and plots.
 QUALITY = {
     "fit": ("novel_psnr", "dB"),
-    "transfer": ("label_accuracy", "share"),
+    "transfer": ("label_agreement", "share"),
     "render": ("pixel_agreement", "share"),
     "build": ("identical_output", "0/1"),
 }
@@ -280,27 +286,24 @@ def transfer_labels_vote(
     k: int,
     config,  # TransferConfig
 ) -> tuple[np.ndarray, float]:  # ([N] int32 labels, gate)
-    """Majority vote of the ``k`` nearest labelled points within the distance gate (ties: the label of
-    the nearest voter). Same candidates (``candidates="labelled"``), gate rule and spacing sample as
-    ``transfer.transfer_labels``; with ``k = 1`` the labels are identical to it."""
+    """Majority vote of the ``k`` nearest candidates within the distance gate (ties: the label of the
+    nearest voter). Same candidates (``config.candidates``: with ``all``, unlabelled points vote for
+    ignore), spacing estimate and gate rule as ``transfer.transfer_labels``; with ``k = 1`` the labels are
+    identical to it."""
+    from seggaussian.transfer import median_spacing
+
     means = np.asarray(gaussian_means, np.float64)
     points = np.asarray(points, np.float64)
     semantic = np.asarray(semantic).astype(np.int32)
-    if config.candidates != "labelled":
-        raise ValueError("transfer_labels_vote supports candidates='labelled' only")
-    cand = np.flatnonzero(semantic != IGNORE_LABEL)
+    if config.candidates not in ("all", "labelled"):
+        raise ValueError(f"transfer_labels_vote: candidates must be 'all' or 'labelled', got {config.candidates!r}")
+    cand = np.arange(len(points)) if config.candidates == "all" else np.flatnonzero(semantic != IGNORE_LABEL)
     cpts, csem = points[cand], semantic[cand]
     labels = np.full(len(means), IGNORE_LABEL, np.int32)
     if not len(cpts) or not len(means):
         return labels, float(config.max_distance or config.gate_min)
     query = _knn_backend(cpts, config.backend)
-    spacing = 0.0
-    if len(cpts) >= 2:
-        rng = np.random.default_rng(config.seed)
-        m = min(config.spacing_samples, len(cpts))
-        sample = np.sort(rng.choice(len(cpts), size=m, replace=False))
-        d2, _ = query(cpts[sample], 2)
-        spacing = float(np.median(d2[:, 1]))
+    spacing = median_spacing(query, cpts, config)
     gate = float(config.max_distance) if config.max_distance is not None else max(config.gate_min,
                                                                                  config.gate_factor * spacing)
     finite = np.flatnonzero(np.isfinite(means).all(axis=1))
@@ -312,7 +315,8 @@ def transfer_labels_vote(
 
 def vote(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``[Q]`` majority label of each row of ``labels`` ``[Q, k]`` over its ``valid`` slots (slots ordered
-    nearest first; ties go to the earliest slot); IGNORE_LABEL for rows without a valid slot."""
+    nearest first; ties go to the earliest slot; IGNORE_LABEL votes like any label); IGNORE_LABEL for rows
+    without a valid slot."""
     counts = np.zeros(labels.shape, np.int64)
     for j in range(labels.shape[1]):
         counts += valid[:, j : j + 1] & (labels == labels[:, j : j + 1])
@@ -322,11 +326,11 @@ def vote(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(valid.any(axis=1), out, IGNORE_LABEL).astype(np.int32)
 
 
-def transfer_labels_vote_reference(means, points, semantic, k: int, gate: float) -> np.ndarray:
+def transfer_labels_vote_reference(means, points, semantic, k: int, gate: float, candidates: str = "all") -> np.ndarray:
     """Brute-force reference of ``transfer_labels_vote`` for a given gate (tiny inputs only)."""
     means, points = np.asarray(means, np.float64), np.asarray(points, np.float64)
     semantic = np.asarray(semantic).astype(np.int32)
-    cand = semantic != IGNORE_LABEL
+    cand = np.ones(len(points), bool) if candidates == "all" else semantic != IGNORE_LABEL
     cpts, csem = points[cand], semantic[cand]
     out = np.full(len(means), IGNORE_LABEL, np.int32)
     for r, x in enumerate(means):
@@ -392,7 +396,7 @@ def run_transfer_setting(scene, means: np.ndarray, settings: dict, seed: int) ->
 
     tcfg = replace(TransferConfig(), backend=settings["backend"], gate_factor=float(settings["gate_factor"]),
                    gate_min=float(settings["gate_min"]), mesh_sample_spacing=float(settings["mesh_sample_spacing"]),
-                   seed=seed)
+                   candidates=settings["candidates"], seed=seed)
     points, semantic, instance = scene.points, scene.semantic, scene.instance
     if tcfg.mesh_sample_spacing > 0:
         samples, (s_sem, s_inst) = densify_labelled_mesh(points, scene.faces, tcfg.mesh_sample_spacing, semantic,
@@ -406,9 +410,9 @@ def run_transfer_setting(scene, means: np.ndarray, settings: dict, seed: int) ->
         points, semantic, instance = points[keep], semantic[keep], instance[keep]
     if int(settings["vote_k"]) == 1:
         result = transfer_labels(means, points, semantic, instance, None, tcfg)
-        return result.semantic, {"points": len(points), "gate": result.stats.gate}
+        return result.semantic, {"points": len(points), "gate": result.stats.gate, "spacing": result.stats.spacing}
     labels, gate = transfer_labels_vote(means, points, semantic, int(settings["vote_k"]), tcfg)
-    return labels, {"points": len(points), "gate": gate}
+    return labels, {"points": len(points), "gate": gate, "spacing": None}
 
 
 def bench_transfer(config: StageBenchConfig, tasks: list, progress: Progress | None = None) -> tuple[list, list]:
@@ -417,12 +421,12 @@ def bench_transfer(config: StageBenchConfig, tasks: list, progress: Progress | N
 
     sweep = config.transfer
     shipped = TransferConfig()
-    base = {"backend": shipped.backend, "vote_k": 1, "point_fraction": 1.0,
+    base = {"candidates": shipped.candidates, "backend": shipped.backend, "vote_k": 1, "point_fraction": 1.0,
             "mesh_sample_spacing": shipped.mesh_sample_spacing, "gate_factor": shipped.gate_factor,
             "gate_min": shipped.gate_min}
-    grids = {"backend": sweep.backend, "vote_k": sweep.vote_k, "point_fraction": sweep.point_fraction,
-             "mesh_sample_spacing": sweep.mesh_sample_spacing, "gate_factor": sweep.gate_factor,
-             "gate_min": sweep.gate_min}
+    grids = {"candidates": sweep.candidates, "backend": sweep.backend, "vote_k": sweep.vote_k,
+             "point_fraction": sweep.point_fraction, "mesh_sample_spacing": sweep.mesh_sample_spacing,
+             "gate_factor": sweep.gate_factor, "gate_min": sweep.gate_min}
     shipped_base = dict(base)
     base.update(sweep.base)
     rows = one_at_a_time(base, grids)
@@ -437,7 +441,8 @@ def bench_transfer(config: StageBenchConfig, tasks: list, progress: Progress | N
     for knob, settings in rows:
         if progress:
             progress(f"transfer {knob}: {settings}")
-        seconds, correct, scored, ignored, total, points, gates = [], 0, 0, 0, 0, 0, []
+        seconds, correct, scored, ignored, total, points, gates, spacings = [], 0, 0, 0, 0, 0, [], []
+        unlabelled, kept = 0, 0
         for scene, means, truth in prepared:
             times = []
             for _ in range(max(1, sweep.repeats)):
@@ -449,22 +454,30 @@ def bench_transfer(config: StageBenchConfig, tasks: list, progress: Progress | N
             correct += acc["correct"]
             scored += acc["scored"]
             ignored += int(((labels == IGNORE_LABEL) & (truth != IGNORE_LABEL)).sum())
+            unlabelled += int((truth == IGNORE_LABEL).sum())
+            kept += int(((labels == IGNORE_LABEL) & (truth == IGNORE_LABEL)).sum())
             total += len(labels)
             points += facts["points"]
             gates.append(facts["gate"])
-        accuracy = correct / scored if scored else float("nan")
-        metrics = {"scored": scored, "correct": correct, "ignored_share": ignored / scored if scored else None,
+            if facts["spacing"] is not None:
+                spacings.append(facts["spacing"])
+        agreement = (correct + kept) / total if total else float("nan")
+        metrics = {"scored": scored, "correct": correct, "label_accuracy": correct / scored if scored else None,
+                   "ignored_share": ignored / scored if scored else None,
                    "wrong_label_share": (scored - correct - ignored) / scored if scored else None,
-                   "gaussians": total, "label_points": points, "gate_median": float(np.median(gates))}
+                   "unlabelled": unlabelled, "unlabelled_kept": kept / unlabelled if unlabelled else None,
+                   "gaussians": total, "label_points": points, "gate_median": float(np.median(gates)),
+                   "spacing_median": float(np.median(spacings)) if spacings else None}
         is_default = settings == shipped_base
-        trials.append(Trial("transfer", knob, settings, float(sum(seconds)), accuracy, metrics, is_default))
+        trials.append(Trial("transfer", knob, settings, float(sum(seconds)), agreement, metrics, is_default))
     return trials, []
 
 
 # --- render ---------------------------------------------------------------------------------------------
-def raycast_labels(caster, camera, semantic: np.ndarray) -> np.ndarray:
-    """``[H, W]`` ground-truth class per pixel: the hit triangle's corner with the largest barycentric weight
-    (the oracle Gaussians' labelling rule); IGNORE_LABEL where the ray misses."""
+def raycast_labels(caster, camera, semantic: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(``[H, W]`` ground-truth class per pixel, ``[H, W]`` bool ray hit): the hit triangle's corner with the
+    largest barycentric weight (the oracle Gaussians' labelling rule); IGNORE_LABEL where the ray misses or
+    the hit surface is unlabelled."""
     hits = caster.cast(camera)
     out = np.full(hits.face_ids.shape, IGNORE_LABEL, np.int64)
     hit = hits.face_ids >= 0
@@ -472,7 +485,21 @@ def raycast_labels(caster, camera, semantic: np.ndarray) -> np.ndarray:
     bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
     vertex = caster.faces[hits.face_ids[hit], np.argmax(bary, axis=1)]
     out[hit] = np.asarray(semantic, np.int64)[vertex]
-    return out
+    return out, hit
+
+
+def labelled_only_blend(blend, semantic):
+    """The blend weights on which the shipped vote reproduces the former label-map rule (only labelled
+    contributors voted): unlabelled contributors' weight moves into ``residual_alpha``, so the coverage
+    test (weights + residual >= min_alpha) is unchanged and they can no longer win."""
+    import torch
+
+    from seggaussian.render.blend import BlendWeights
+
+    used = blend.ids >= 0
+    unlabelled = used & (semantic[blend.ids.clamp_min(0)] == IGNORE_LABEL)
+    moved = torch.where(unlabelled, blend.weights, torch.zeros_like(blend.weights))
+    return BlendWeights(blend.ids, blend.weights - moved, blend.residual_alpha + moved.sum(-1))
 
 
 def evenly_spaced(items: Sequence, count: int) -> list:
@@ -516,8 +543,9 @@ def bench_render(config: StageBenchConfig, tasks: list, progress: Progress | Non
                          MeshRaycaster(scene.points, scene.faces)))
     cam0 = prepared[0][3][0].camera
     default_scale = view_scale(cam0.width, cam0.height, shipped)
-    base = {"scale": default_scale, "top_k": shipped.top_k, "min_alpha": shipped.min_alpha, "backend": fast}
-    grids = {"scale": tuple(sweep.scale), "top_k": sweep.top_k, "min_alpha": sweep.min_alpha}
+    base = {"scale": default_scale, "top_k": shipped.top_k, "min_alpha": shipped.min_alpha, "vote": "ignore_occludes",
+            "backend": fast}
+    grids = {"scale": tuple(sweep.scale), "top_k": sweep.top_k, "min_alpha": sweep.min_alpha, "vote": sweep.vote}
     rows = one_at_a_time(base, grids)
     # fast vs reference, both at the tiny reference width (the reference is O(N x pixels))
     rows.append(("backend", {**base, "scale": None, "backend": fast, "tiny": True}))
@@ -532,6 +560,7 @@ def bench_render(config: StageBenchConfig, tasks: list, progress: Progress | Non
         if progress:
             progress(f"render {knob}: {settings}")
         seconds, agree, labelled, ignored, res_sum, res_max, res_n, residual_alpha, pixels = 0.0, 0, 0, 0, 0.0, 0.0, 0, 0.0, 0
+        hit_agree, hit_pixels, unlabelled, kept = 0, 0, 0, 0
         size = None
         for si, (scene, t, truth, views, features, caster) in enumerate(prepared):
             views_here = views[:1] if settings.get("tiny") else views
@@ -541,7 +570,7 @@ def bench_render(config: StageBenchConfig, tasks: list, progress: Progress | Non
                 key = (si, vi, cam.width, cam.height)
                 if key not in gt_cache:
                     gt_cache[key] = raycast_labels(caster, cam, scene.semantic)
-                gt = gt_cache[key]
+                gt, hit = gt_cache[key]
                 viewmat, K = camera_tensors(cam)
                 times = []
                 for _ in range(max(1, sweep.repeats)):
@@ -549,7 +578,8 @@ def bench_render(config: StageBenchConfig, tasks: list, progress: Progress | Non
                     blend = compute_blend_weights(t["means"], t["quats"], t["log_scales"], t["opacity_logits"],
                                                   viewmat, K, cam.width, cam.height, top_k=settings["top_k"],
                                                   backend=settings["backend"])
-                    maps = render_label_maps(blend, truth, torch.zeros_like(truth), num_classes,
+                    voting = blend if settings["vote"] == "ignore_occludes" else labelled_only_blend(blend, truth)
+                    maps = render_label_maps(voting, truth, torch.zeros_like(truth), num_classes,
                                              min_alpha=settings["min_alpha"])
                     times.append(time.perf_counter() - t0)
                 seconds += float(np.median(times))
@@ -558,6 +588,10 @@ def bench_render(config: StageBenchConfig, tasks: list, progress: Progress | Non
                 agree += int((pred[mask] == gt[mask]).sum())
                 labelled += int(mask.sum())
                 ignored += int((pred[mask] == IGNORE_LABEL).sum())
+                hit_agree += int((pred[hit] == gt[hit]).sum())
+                hit_pixels += int(hit.sum())
+                unlabelled += int((hit & ~mask).sum())
+                kept += int((pred[hit & ~mask] == IGNORE_LABEL).sum())
                 with torch.no_grad():
                     direct = rasterize(t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
                                        cam.width, cam.height, features=features, backend=settings["backend"]).image
@@ -568,6 +602,9 @@ def bench_render(config: StageBenchConfig, tasks: list, progress: Progress | Non
                 residual_alpha += float(blend.residual_alpha.sum())
                 pixels += cam.width * cam.height
         metrics = {"labelled_pixels": labelled, "agreeing_pixels": agree,
+                   "labelled_agreement": agree / labelled if labelled else None,
+                   "hit_pixels": hit_pixels, "unlabelled_pixels": unlabelled,
+                   "unlabelled_kept": kept / unlabelled if unlabelled else None,
                    "ignored_share": ignored / labelled if labelled else None,
                    "feature_residual_mean": res_sum / res_n if res_n else None, "feature_residual_max": res_max,
                    "residual_alpha_mean": residual_alpha / pixels if pixels else None,
@@ -576,7 +613,7 @@ def bench_render(config: StageBenchConfig, tasks: list, progress: Progress | Non
         if settings.get("tiny"):
             settings_out["scale"] = f"{sweep.reference_width}px"
         is_default = not settings.get("tiny") and settings == base
-        trials.append(Trial("render", knob, settings_out, seconds, agree / labelled if labelled else float("nan"),
+        trials.append(Trial("render", knob, settings_out, seconds, hit_agree / hit_pixels if hit_pixels else float("nan"),
                             metrics, is_default))
     return trials, skipped
 
@@ -787,8 +824,10 @@ def _fmt(value) -> str:
 #: Extra columns of each stage's table (metric keys).
 TABLE_METRICS = {
     "fit": ("novel_ssim", "novel_l1", "iterations_run", "gaussians"),
-    "transfer": ("ignored_share", "wrong_label_share", "gate_median", "label_points"),
-    "render": ("ignored_share", "feature_residual_mean", "feature_residual_max", "residual_alpha_mean", "image_size"),
+    "transfer": ("label_accuracy", "unlabelled_kept", "ignored_share", "wrong_label_share", "spacing_median",
+                 "gate_median", "label_points"),
+    "render": ("labelled_agreement", "unlabelled_kept", "ignored_share", "feature_residual_mean", "feature_residual_max",
+               "residual_alpha_mean", "image_size"),
     "build": ("scenes_per_minute", "stages_run", "stages_cached", "shards_rewritten"),
 }
 

@@ -39,6 +39,9 @@ class FitSweep:
 class TransferSweep:
     """Knobs of the label transfer swept by the transfer bench."""
 
+    candidates: tuple[str, ...] = ("all", "labelled")
+    """``TransferConfig.candidates`` values (``all`` = unlabelled points keep ignore; ``labelled`` = the rule
+    before 2026-11, labels spill onto unlabelled surfaces within the gate)."""
     backend: tuple[str, ...] = ("scipy", "open3d")
     """Nearest-neighbour backends (``TransferConfig.backend``)."""
     vote_k: tuple[int, ...] = (1, 3, 5)
@@ -73,6 +76,9 @@ class RenderSweep:
     """``ViewConfig.top_k`` values (contributors kept per pixel)."""
     min_alpha: tuple[float, ...] = (0.1, 0.3, 0.5, 0.7, 0.9)
     """``ViewConfig.min_alpha`` values (label maps: IGNORE below this accumulated alpha)."""
+    vote: tuple[str, ...] = ("ignore_occludes", "labelled_only")
+    """Label-map vote: ``ignore_occludes`` (shipped: ignore is a label of its own) or ``labelled_only`` (the
+    rule before 2026-11, replayed by moving unlabelled contributors' weight into the residual alpha)."""
     reference_width: int = 32
     """The reference (per-pixel torch) path is run only at this image width (it is O(N x pixels)); the
     fast path is run at the same width next to it for comparison."""
@@ -226,6 +232,7 @@ def quick_config(stage: Stage, **overrides) -> StageBenchConfig:
                                num_gaussians=2000,
                                repeats=1, base={"mesh_sample_spacing": 0.1}),
         render=RenderSweep(scale=(0.5, 1.0), top_k=(2, 16), min_alpha=(0.3, 0.5), reference_width=12,
+                           vote=("ignore_occludes", "labelled_only"),
                            num_gaussians=1500, views=1),
         build=BuildSweep(jobs=(1,), executors=("local",), cache=(False, True), num_gaussians=1000,
                          max_image_side=48),

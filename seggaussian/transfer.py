@@ -132,7 +132,7 @@ def transfer_labels(
     prep = _prepare(gaussian_means, points, semantic, instance, multilabel, config)
     cand_points = prep.points if prep.all_candidates else prep.points[prep.candidate_index]
     tree = _build_index(cand_points, config.backend)
-    spacing = _median_spacing(tree, cand_points, config)
+    spacing = median_spacing(lambda x, k: _query(tree, x, config.backend, k), cand_points, config)
     gate = _gate(spacing, config)
     query_mask, outside_box, nonfinite = _prefilter(prep.means, cand_points, max(config.box_margin, gate))
     n = len(prep.means)
@@ -264,11 +264,12 @@ def _query(tree, queries: np.ndarray, backend: str, k: int = 1) -> tuple[np.ndar
     return (d[:, 0], i[:, 0]) if k == 1 else (d, i)
 
 
-def _median_spacing(tree, cand_points: np.ndarray, config: TransferConfig) -> float:
+def median_spacing(query, cand_points: np.ndarray, config: TransferConfig) -> float:
     """Median distance from a (seeded) sample of candidates to their nearest distinct candidate.
 
-    Exact duplicates are skipped: of the ``SPACING_NEIGHBOURS`` nearest candidates of a sampled point,
-    the first at a distance > 0 counts (the point itself and its copies are at distance 0).
+    ``query(x [Q, 3], k) -> (distances [Q, k] ascending, indices)`` searches the candidates (the caller's
+    KD-tree). Exact duplicates are skipped: of the ``SPACING_NEIGHBOURS`` nearest candidates of a sampled
+    point, the first at a distance > 0 counts (the point itself and its copies are at distance 0).
     """
     if len(cand_points) < 2:
         return 0.0
@@ -276,8 +277,8 @@ def _median_spacing(tree, cand_points: np.ndarray, config: TransferConfig) -> fl
     m = min(config.spacing_samples, len(cand_points))
     sample = np.sort(rng.choice(len(cand_points), size=m, replace=False))
     k = min(SPACING_NEIGHBOURS, len(cand_points))
-    d, _ = _query(tree, cand_points[sample], config.backend, k=k)
-    d = d.reshape(m, k)
+    d, _ = query(cand_points[sample], k)
+    d = np.asarray(d, np.float64).reshape(m, k)
     distinct = d > 0.0
     found = distinct.any(axis=1)
     if not found.any():

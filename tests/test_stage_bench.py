@@ -99,25 +99,29 @@ def test_vote_k1_equals_shipped_transfer(backend):
     semantic[::7] = I
     means = rng.uniform(-0.2, 1.2, (300, 3))
     means[3] = np.nan
+    points = np.concatenate([points, points[:50]])  # exact duplicates: the spacing skips them in both
+    semantic = np.concatenate([semantic, semantic[:50]])
     cfg = replace(TransferConfig(), backend=backend, box_margin=0.0)
-    shipped = transfer_labels(means, points, semantic, np.zeros(400, np.int32), None, cfg)
+    shipped = transfer_labels(means, points, semantic, np.zeros(len(points), np.int32), None, cfg)
     labels, gate = transfer_labels_vote(means, points, semantic, 1, cfg)
-    assert gate == pytest.approx(shipped.stats.gate)
+    assert gate == pytest.approx(shipped.stats.gate) and shipped.stats.spacing > 0
     np.testing.assert_array_equal(labels, shipped.semantic)
     assert labels[3] == I
+    assert (labels == I).sum() > 1 + (shipped.stats.beyond_gate + shipped.stats.outside_box)  # unlabelled nearest
 
 
 @pytest.mark.parametrize("k", [1, 3, 5])
-def test_vote_matches_brute_force_reference(k):
+@pytest.mark.parametrize("candidates", ["all", "labelled"])
+def test_vote_matches_brute_force_reference(k, candidates):
     rng = np.random.default_rng(k)
     points = rng.uniform(0, 1, (150, 3))
     semantic = rng.integers(0, 3, 150).astype(np.int32)
-    semantic[:10] = I
+    semantic[:40] = I
     means = rng.uniform(0, 1, (80, 3))
-    cfg = replace(TransferConfig(), max_distance=0.12)
+    cfg = replace(TransferConfig(), max_distance=0.12, candidates=candidates)
     labels, gate = transfer_labels_vote(means, points, semantic, k, cfg)
     assert gate == 0.12
-    np.testing.assert_array_equal(labels, transfer_labels_vote_reference(means, points, semantic, k, 0.12))
+    np.testing.assert_array_equal(labels, transfer_labels_vote_reference(means, points, semantic, k, 0.12, candidates))
     assert (labels == I).any() and (labels != I).any()  # the gate both keeps and rejects
 
 
@@ -162,10 +166,17 @@ def test_quick_transfer(work):
     # the backends give the same labels; vertices only (no mesh samples) uses fewer label points
     assert by[("backend", "open3d")].quality == pytest.approx(base.quality, abs=0.01)
     assert by[("mesh_sample_spacing", "0.0")].metrics["label_points"] < base.metrics["label_points"]
-    assert base.quality > 0.2
+    assert base.quality > 0.2 and base.settings["candidates"] == "all"
     for t in result.trials:
         m = t.metrics
-        assert m["ignored_share"] + m["wrong_label_share"] == pytest.approx(1.0 - t.quality)
+        assert m["ignored_share"] + m["wrong_label_share"] == pytest.approx(1.0 - m["label_accuracy"])
+        kept = m["unlabelled_kept"] * m["unlabelled"]
+        assert t.quality == pytest.approx((m["correct"] + kept) / m["gaussians"])
+    # the synthetic room has unlabelled surfaces (rug, clutter, masked disc): the labelled-only rule spills
+    labelled_only = by[("candidates", "labelled")]
+    assert base.metrics["unlabelled"] > 0
+    assert base.metrics["unlabelled_kept"] > labelled_only.metrics["unlabelled_kept"]
+    assert base.metrics["spacing_median"] > 0.0  # measured between distinct points, never 0
 
 
 def test_quick_render(work):
@@ -180,6 +191,11 @@ def test_quick_render(work):
     assert fast.metrics["feature_residual_mean"] == pytest.approx(ref.metrics["feature_residual_mean"], abs=1e-3)
     # fewer contributors -> more weight left out of the blend weights
     assert rows["top_k2"].metrics["residual_alpha_mean"] > base.metrics["residual_alpha_mean"]
+    # the former rule (unlabelled contributors do not vote) labels more pixels of unlabelled surfaces
+    before = rows["votelabelled_only"]
+    assert base.metrics["unlabelled_pixels"] > 0
+    assert base.metrics["unlabelled_kept"] >= before.metrics["unlabelled_kept"]
+    assert base.settings["vote"] == "ignore_occludes" and base.quality >= before.quality - 1e-9
     for t in result.trials:
         assert 0.0 <= t.metrics["feature_residual_mean"] <= 1.0
         assert 0.0 <= t.metrics["residual_alpha_mean"] <= 1.0
