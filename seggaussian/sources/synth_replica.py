@@ -22,6 +22,10 @@ from seggaussian.sources.synth_room import CLASS_TABLE, RoomMesh
 
 #: Depth PNG values saturate here (uint16 max / NICE_SLAM_DEPTH_SCALE ~ 10 m).
 MAX_DEPTH_VALUE = 65535
+#: Bytes of a placeholder file whose content no reader uses (textures, navmeshes, segmentations).
+PLACEHOLDER = b"seggaussian synthetic placeholder\n"
+#: NICE-SLAM's root ``cam_params.json`` (its Replica download: 1200x680 renders, depth scale 6553.5).
+NICE_SLAM_CAM_PARAMS = "cam_params.json"
 
 
 def replica_size(width: int) -> tuple[int, int]:
@@ -63,7 +67,7 @@ def _info(room: RoomMesh) -> dict:
             "objects": objects, "id_to_label": id_to_label, "gravity_dir": [0.0, 0.0, -1.0]}
 
 
-def _ply_bytes(room: RoomMesh) -> bytes:
+def _ply_bytes(room: RoomMesh, with_object_id: bool = True) -> bytes:
     vertex = np.empty(len(room.vertices), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
                                                  ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     for k, axis in enumerate("xyz"):
@@ -71,14 +75,17 @@ def _ply_bytes(room: RoomMesh) -> bytes:
         vertex["n" + axis] = room.normals[:, k]
     for k, channel in enumerate(("red", "green", "blue")):
         vertex[channel] = room.colors[:, k]
-    return encode_mesh_ply(vertex, room.quads, {"object_id": object_ids(room)[room.vertex_object[room.quads[:, 0]]]})
+    faces = {"object_id": object_ids(room)[room.vertex_object[room.quads[:, 0]]]} if with_object_id else None
+    return encode_mesh_ply(vertex, room.quads, faces)
 
 
 def write_scene(root: Path, room_name: str, room: RoomMesh, cameras: list[Camera]) -> None:
     """All files of one room under ``root/<room_name>``."""
     room_dir = Path(root) / room_name
-    atomic_write_bytes(room_dir / layout.MESH_FILE, _ply_bytes(room))
+    semantic_mesh = _ply_bytes(room)
+    atomic_write_bytes(room_dir / layout.MESH_FILE, semantic_mesh)
     atomic_write_json(room_dir / layout.INFO_FILE, _info(room), indent=None)
+    _write_unused_assets(room_dir, room, semantic_mesh)
     atomic_write_text(room_dir / layout.NICE_SLAM_TRAJ, "".join(" ".join(f"{x:.12e}" for x in c.c2w.reshape(-1)) + "\n" for c in cameras))
     triangles, tri_face = triangulate_quads(room.quads)
     sem_obj, ins_obj = _object_labels(room)
@@ -90,3 +97,28 @@ def write_scene(root: Path, room_name: str, room: RoomMesh, cameras: list[Camera
         atomic_write_image(room_dir / layout.NICE_SLAM_DIR / layout.NICE_SLAM_DEPTH.format(i), depth)
         atomic_write_image(room_dir / layout.GT_DIR / layout.GT_SEMANTIC.format(i), render.semantic.astype(np.uint16))
         atomic_write_image(room_dir / layout.GT_DIR / layout.GT_INSTANCE.format(i), render.instance.astype(np.uint16))
+
+
+def _write_unused_assets(room_dir: Path, room: RoomMesh, semantic_mesh: bytes) -> None:
+    """The rest of an official Replica scene folder (Replica-Dataset README "Dataset Layout"), never read:
+    the plain quad mesh, glass surfaces, pre-segmentation and segmentation, textures, habitat extras."""
+    atomic_write_bytes(room_dir / "mesh.ply", _ply_bytes(room, with_object_id=False))
+    for name in ("glass.sur", "preseg.bin", "semantic.bin", "textures/0-color-ptex.hdr", "textures/0-color-ptex.w",
+                 "habitat/mesh_semantic.navmesh", "habitat/mesh_preseg_semantic.navmesh"):
+        atomic_write_bytes(room_dir / name, PLACEHOLDER)
+    for name in ("preseg.json", "semantic.json", "textures/parameters.json", "habitat/info_preseg_semantic.json",
+                 "habitat/replica_stage.stage_config.json"):
+        atomic_write_json(room_dir / name, {})
+    atomic_write_bytes(room_dir / "habitat/mesh_preseg_semantic.ply", semantic_mesh)
+
+
+def write_root_files(root: Path, room_names: list[str]) -> None:
+    """NICE-SLAM's files beside the room folders: ``cam_params.json`` and ``<room>_mesh.ply`` (its culled
+    mesh; here a copy of the room's plain mesh). Never read; the reader lists room folders only."""
+    root = Path(root)
+    w, h = layout.NICE_SLAM_SIZE
+    fx, fy, cx, cy = layout.NICE_SLAM_INTRINSICS
+    atomic_write_json(root / NICE_SLAM_CAM_PARAMS, {"camera": {"w": w, "h": h, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
+                                                                "scale": layout.NICE_SLAM_DEPTH_SCALE}})
+    for name in room_names:
+        atomic_write_bytes(root / f"{name}_mesh.ply", (root / name / "mesh.ply").read_bytes())

@@ -117,6 +117,10 @@ def synthesize(
         from seggaussian.sources import synth_scannetpp
 
         synth_scannetpp.write_metadata(out, ids)
+    else:
+        from seggaussian.sources import synth_replica
+
+        synth_replica.write_root_files(out, ids)
     return ids
 
 

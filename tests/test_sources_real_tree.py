@@ -1,8 +1,9 @@
-"""The ScanNet++ reader on the complete generated v2 tree (distorted download + undistortion output).
+"""The readers on complete generated trees: ScanNet++ v2 (distorted download + undistortion output) and
+Replica (official release folder + NICE-SLAM renders).
 
 The names checked here come from the ScanNet++ toolkit (``common/scene_release.py``,
-``dslr/configs/undistort.yml``), not from our reader: the generator must write what a real download
-holds, and the reader must read such a tree.
+``dslr/configs/undistort.yml``) and the Replica-Dataset README / NICE-SLAM download, not from our
+readers: the generators must write what a real download holds, and the readers must read such a tree.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from seggaussian.build_config import BuildConfig, OracleConfig
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.fit import load_views, masked_render
 from seggaussian.losses import fitting_loss
-from seggaussian.sources import scannetpp, synth_scannetpp, synthetic
+from seggaussian.sources import replica, scannetpp, synth_scannetpp, synthetic
 from seggaussian.sources._common import SourceError, atomic_write_image, read_image, read_valid_mask
 
 SMALL = synthetic.SynthConfig(width=48, num_views=6, max_edge=0.2)
@@ -40,6 +41,13 @@ RELEASE_SCENE_PATHS = (
     "panocam/images/", "panocam/anon_mask/", "panocam/depth/", "panocam/azim/", "panocam/elev/",
     "panocam/resized_images/", "panocam/resized_depth/", "panocam/resized_anon_mask/", "panocam/resized_azim/",
     "panocam/resized_elev/",
+)
+#: An official Replica scene folder (Replica-Dataset README "Dataset Layout") plus NICE-SLAM's renders.
+REPLICA_ROOM_PATHS = (
+    "glass.sur", "mesh.ply", "preseg.bin", "preseg.json", "semantic.bin", "semantic.json", "textures/parameters.json",
+    "textures/0-color-ptex.hdr", "textures/0-color-ptex.w", "habitat/mesh_semantic.ply", "habitat/mesh_semantic.navmesh",
+    "habitat/info_semantic.json", "habitat/mesh_preseg_semantic.ply", "habitat/mesh_preseg_semantic.navmesh",
+    "habitat/info_preseg_semantic.json", "traj.txt", "results/frame000000.jpg", "results/depth000000.png",
 )
 RELEASE_ROOT_PATHS = ("metadata/semantic_benchmark/map_benchmark.csv", "metadata/semantic_classes.txt",
                       "metadata/instance_classes.txt", "splits/nvs_sem_train.txt", "splits/nvs_sem_val.txt")
@@ -175,6 +183,10 @@ def test_build_succeeds_on_the_complete_tree_and_masks_label_maps(pristine, tmp_
                          oracle=OracleConfig(num_gaussians=3000))
     report = build_mod.build_dataset(config)
     assert report.counts["built"] == 1 and report.counts["failed"] == 0
+    # the transfer report of a generated room: a real (non-zero) median spacing of the mesh points
+    transfer = report.outcomes[0].info["transfer"]
+    assert 0.0 < transfer["spacing"] < config.transfer.mesh_sample_spacing
+    assert transfer["gate"] == pytest.approx(max(config.transfer.gate_min, config.transfer.gate_factor * transfer["spacing"]))
     (split,) = [s for s in ("train", "val", "xval") if scene_id in shards.list_scenes(out, s)]
     record = shards.read_scene(out, split, scene_id)
     scene = scannetpp.read_scene(root, scene_id)
@@ -191,3 +203,15 @@ def test_build_succeeds_on_the_complete_tree_and_masks_label_maps(pristine, tmp_
         truth = read_image(by_name[stored.name].semantic_path, "ground truth", unchanged=True)
         assert truth.shape == valid.shape and (truth[~valid] != IGNORE_LABEL).mean() > 0.5
     assert masked_views >= 1
+
+
+def test_replica_generator_writes_the_release_folder_and_the_reader_reads_it(tmp_path):
+    (room,) = synthetic.synthesize(tmp_path, 1, 3, "replica", synthetic.SynthConfig(width=48, num_views=3, max_edge=0.2))
+    for rel in REPLICA_ROOM_PATHS:
+        assert (tmp_path / room / rel).is_file(), rel
+    # NICE-SLAM's root files beside the room folders are not scenes
+    assert (tmp_path / "cam_params.json").is_file() and (tmp_path / f"{room}_mesh.ply").is_file()
+    assert replica.list_scenes(tmp_path) == [room]
+    scene = replica.read_scene(tmp_path, room)
+    assert len(scene.views) == 3 and scene.stats.get("views_source") != "none"
+    assert (scene.semantic != IGNORE_LABEL).any()
