@@ -10,9 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from seggaussian.build_config import TransferConfig
 from seggaussian.constants import IGNORE_LABEL
+from seggaussian.render import render_label_maps
+from seggaussian.render.blend import BlendWeights
 from seggaussian.stage_bench import (
     PARETO_TIME_TOLERANCE,
     QUALITY_TOLERANCE,
@@ -21,6 +24,7 @@ from seggaussian.stage_bench import (
     Trial,
     default_verdict,
     format_table,
+    labelled_only_blend,
     mark_pareto,
     one_at_a_time,
     pareto_mask,
@@ -291,3 +295,31 @@ def test_with_params_overrides_and_errors():
         with_params(StageBenchConfig(stage="render"), ("top_k=x",))
     with pytest.raises(ValueError, match="FitConfig field"):
         with_params(StageBenchConfig(stage="fit"), (), ("nope=1",))
+
+
+def test_labelled_only_replay_is_the_former_vote():
+    # the former rule, written out per pixel: only labelled contributors vote, coverage uses all weights
+    rng = np.random.default_rng(3)
+    h, w, k, n = 6, 7, 5, 12
+    ids = rng.integers(-1, n, (h, w, k))
+    weights = np.where(ids >= 0, rng.random((h, w, k)) * 0.3, 0.0).astype(np.float32)
+    residual = (rng.random((h, w)) * 0.2).astype(np.float32)
+    semantic = rng.integers(0, 3, n)
+    semantic[rng.random(n) < 0.4] = I
+    blend = BlendWeights(torch.as_tensor(ids), torch.as_tensor(weights), torch.as_tensor(residual))
+    replay = render_label_maps(labelled_only_blend(blend, torch.as_tensor(semantic)), torch.as_tensor(semantic),
+                               torch.zeros(n, dtype=torch.int64), 3, min_alpha=0.4).semantic.numpy()
+    expected = np.full((h, w), I)
+    for y in range(h):
+        for x in range(w):
+            if weights[y, x].sum() + residual[y, x] < 0.4:
+                continue
+            tally: dict[int, float] = {}
+            for j in range(k):  # front-most first: ties keep the earlier label
+                if ids[y, x, j] >= 0 and weights[y, x, j] > 0 and semantic[ids[y, x, j]] != I:
+                    tally[int(semantic[ids[y, x, j]])] = tally.get(int(semantic[ids[y, x, j]]), 0.0) + weights[y, x, j]
+            if tally:
+                expected[y, x] = max(tally, key=lambda c: tally[c])  # first maximum in insertion order
+    np.testing.assert_array_equal(replay, expected)
+    shipped = render_label_maps(blend, torch.as_tensor(semantic), torch.zeros(n, dtype=torch.int64), 3, min_alpha=0.4)
+    assert (shipped.semantic.numpy() == I).sum() > (replay == I).sum()  # ignore now wins some pixels
