@@ -6,20 +6,20 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 from ovgaussian.bench_config import DEFAULT_MIN_ALPHA
 
 
 @click.command("predict")
-@click.argument("scene", type=click.Path(path_type=Path, dir_okay=False, exists=True))
-@click.option("--run", type=click.Path(path_type=Path, file_okay=False, exists=True), required=True,
+@click.argument("scene", type=click.Path(path_type=Path, dir_okay=False))
+@click.option("--run", type=click.Path(path_type=Path, file_okay=False), required=True,
               help="Run folder of ovgaussian train.")
 @click.option("--checkpoint", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="A checkpoint folder RUN/checkpoints/epoch-XXXX (default: the latest).")
 @click.option("--vocab", required=True, help='Comma-separated class names, e.g. "chair, table, sofa".')
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="Labelled PLY to write (int property 'semantic' = index into --vocab, class colours).")
-@click.option("--cameras", type=click.Path(path_type=Path, dir_okay=False, exists=True), default=None,
+@click.option("--cameras", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help='JSON {"cameras": [{"name", "width", "height", "K", "viewmat" | "c2w"}]}: also write label-map PNGs.')
 @click.option("--views-dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Folder of the label-map PNGs (default: OUT's name + '_views').")
@@ -30,6 +30,7 @@ from ovgaussian.bench_config import DEFAULT_MIN_ALPHA
 @click.option("--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True,
               help="Label-map pixels with less accumulated alpha are left unlabelled.")
 @json_option
+@guarded
 def command(scene, run, checkpoint, vocab, out, cameras, views_dir, colour_mode, on_invalid, min_alpha, as_json):
     """Open-vocabulary segmentation of SCENE (a 3DGS PLY) with a trained run."""
     from ovgaussian.bench_config import PredictConfig

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 from ovgaussian.train_config import (
     DataConfig, LossConfig, OptimConfig, TeacherConfig, TextConfig, TrainConfig, field_help,
 )
@@ -40,11 +40,13 @@ _T, _D, _X, _L, _O = (field_help(c) for c in (TrainConfig, DataConfig, TextConfi
 @click.option("--pixels-per-view", type=click.IntRange(min=1), default=None, help=_D["pixels_per_view"])
 @click.option("--temperature", type=click.FloatRange(min=0, min_open=True), default=LossConfig.temperature,
               show_default=True, help=_L["temperature"])
+@click.option("--verify", is_flag=True, help=_D["verify"])
 @click.option("--progress/--no-progress", default=True, show_default=True, help=_T["progress"])
 @json_option
+@guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
-            no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, temperature, progress,
-            as_json):
+            no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, temperature, verify,
+            progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
@@ -55,7 +57,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
     config = TrainConfig(
         out=out, epochs=epochs, batch_scenes=batch_scenes, seed=seed, device=device, resume=resume,
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
-        data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view),
+        data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
+                        verify=verify),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),
         loss=LossConfig(temperature=temperature, no_3dt_align=no_3dt_align, no_vs_align=no_vs_align),

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 STAGE_CHOICES = ("fit", "transfer", "render", "build", "all")
 
@@ -32,9 +32,10 @@ STAGE_CHOICES = ("fit", "transfer", "render", "build", "all")
               help="Override a sweep field of the stage: NAME=V1,V2 (e.g. iterations=300,1000; views=2).")
 @click.option("--base", "base", multiple=True,
               help="Override the base row: NAME=VALUE (fit: a FitConfig field; transfer: a swept knob).")
-@click.option("--from-json", "from_json", multiple=True, type=click.Path(exists=True, path_type=Path),
+@click.option("--from-json", "from_json", multiple=True, type=click.Path(path_type=Path),
               help="Load results saved with --json instead of running (repeat; combine with --markdown/--plot).")
 @json_option
+@guarded
 def command(stages, data, work_dir, scenes, seed, quick, plot, markdown, params, base, from_json, as_json) -> None:
     """Time against error for each setting of a stage's speed knobs, with ground truth from the synthetic
     meshes (or held-out views / meshes of real raw data). P marks Pareto-optimal rows, D the shipped default."""

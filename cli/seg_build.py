@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 @click.command("build")
@@ -31,10 +31,13 @@ from cli._output import finish, json_option
 @click.option("--fit-iterations", type=int, default=None, help="Fitting iterations per scene.")
 @click.option("--max-image-side", type=int, default=None, help="Longest side of stored views (pixels, 0 = source size).")
 @click.option("--view-stride", type=int, default=None, help="Keep every n-th train view (novel views always kept).")
+@click.option("--keep-going", is_flag=True,
+              help="Exit 0 even when scenes failed (a failed scene built before keeps its last good copy).")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
+@guarded
 def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussians_mode, ply_dir, seed, gate,
-            oracle_gaussians, fit_iterations, max_image_side, view_stride, progress, as_json) -> None:
+            oracle_gaussians, fit_iterations, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
     from seggaussian.build import build_dataset, summary_table
     from seggaussian.build_config import BuildConfig
@@ -53,10 +56,7 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
         config = replace(config, views=replace(config.views, max_image_side=max_image_side))
     if view_stride is not None:
         config = replace(config, views=replace(config.views, view_stride=view_stride))
-    try:
-        report = build_dataset(config)
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        raise click.ClickException(str(exc)) from None
+    report = build_dataset(config)
     c = report.counts
     summary = (f"built {c['built']}, skipped {c['skipped']} (cached), failed {c['failed']} scenes -> {report.dataset} "
                f"({report.split_counts.get('train', 0)} train / {report.split_counts.get('val', 0)} val / "
@@ -71,9 +71,13 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
         "assembled": report.assembled,
         "synthesized": report.synthesized,
         "seconds": report.seconds,
+        "kept_last_good": list(report.kept),
+        "swept_temps": report.swept,
         "scenes": [{"scene": o.scene_id, "source": o.domain, "status": o.status, "stages_run": list(o.stages_run),
                     "reason": o.reason, "seconds": o.seconds, **o.info} for o in report.outcomes],
     }
+    for scene_id in report.kept:
+        click.echo(f"warning: scene {scene_id} failed to build; the shards keep its last good copy", err=True)
     finish(summary, payload, as_json, summary_table(report))
-    if c["failed"]:
+    if c["failed"] and not keep_going:
         raise SystemExit(1)

@@ -6,14 +6,15 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 @click.command("export-ply")
-@click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("dataset", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--scene", "scene_id", required=True, help="Scene id.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="PLY to write.")
 @json_option
+@guarded
 def command(dataset: Path, scene_id: str, out: Path, as_json: bool) -> None:
     """Write a scene's Gaussians with semantic, instance (int) and transfer_distance vertex properties."""
     from seggaussian.build import export_scene_ply

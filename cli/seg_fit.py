@@ -7,13 +7,13 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 @click.command("fit")
 @click.option("--source", type=click.Choice(["synthetic", "scannetpp", "replica"]), default="synthetic",
               show_default=True, help="Raw tree kind (synthetic = output of `seggaussian synth`).")
-@click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True,
+@click.option("--root", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Raw tree.")
 @click.option("--scene", "scene_id", required=True, help="Scene id.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
@@ -26,6 +26,7 @@ from cli._output import finish, json_option
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
+@guarded
 def command(source, root, scene_id, out, iterations, downscale, max_gaussians, sh_degree, time_budget, seed, progress,
             as_json) -> None:
     """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json."""

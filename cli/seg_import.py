@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 @click.command("import")
@@ -17,6 +17,7 @@ from cli._output import finish, json_option
               help="Non-finite values, zero quaternions, overflowing log-scales, saturated opacity logits: "
                    "refuse, drop those rows, or repair them (see seggaussian/io/validate.py).")
 @json_option
+@guarded
 def command(scene: Path, out_dir: Path, on_invalid: str, as_json: bool) -> None:
     """Read a 3DGS PLY, validate it, write a standard PLY and a JSON report into OUT."""
     from seggaussian.io.ply import PlyFormatError

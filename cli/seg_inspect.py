@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
-def _inspect_dataset(path: Path, as_json: bool) -> None:
+def _inspect_dataset(path: Path, as_json: bool, verify: bool) -> None:
     """A dataset folder (``manifest.json``): delegated to ``seggaussian.shards.inspect_dataset``."""
     try:
         shards = importlib.import_module("seggaussian.shards")
@@ -18,13 +18,11 @@ def _inspect_dataset(path: Path, as_json: bool) -> None:
     except (ImportError, AttributeError):
         raise click.ClickException(f"{path}: inspecting a dataset needs seggaussian.shards.inspect_dataset, "
                                    "which is not available in this installation") from None
-    summary_payload = inspect_dataset(path)
-    if isinstance(summary_payload, tuple) and len(summary_payload) == 2:
-        summary, payload = summary_payload
-    else:
-        payload = summary_payload if isinstance(summary_payload, dict) else {"result": summary_payload}
-        summary = payload.get("summary", f"dataset {path}")
-    finish(str(summary), payload, as_json)
+    payload = inspect_dataset(path, verify=verify)
+    problems = payload.get("problems", [])
+    finish(str(payload["summary"]), payload, as_json, "\n".join(f"problem: {p}" for p in problems) or None)
+    if problems:
+        raise SystemExit(1)
 
 
 def _format_ply(info: dict) -> str:
@@ -54,13 +52,17 @@ def _format_ply(info: dict) -> str:
 
 
 @click.command("inspect")
-@click.argument("path", type=click.Path(exists=True, path_type=Path))
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--verify", is_flag=True,
+              help="Dataset folder: also check every shard's sha256 against the manifest (sizes are always checked).")
 @json_option
-def command(path: Path, as_json: bool) -> None:
-    """Summarize a 3DGS PLY (count, SH degree, bounds, scale/opacity/colour statistics, validation)."""
+@guarded
+def command(path: Path, verify: bool, as_json: bool) -> None:
+    """Summarize a 3DGS PLY (count, SH degree, bounds, scale/opacity/colour statistics, validation) or a
+    dataset folder (exit 1 when a shard is missing, truncated or, with --verify, corrupted)."""
     if path.is_dir():
         if (path / "manifest.json").is_file():
-            _inspect_dataset(path, as_json)
+            _inspect_dataset(path, as_json, verify)
             return
         raise click.ClickException(f"{path}: a folder without manifest.json is not a dataset")
     from seggaussian.io.ply import PlyFormatError

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 @click.command("render")
-@click.argument("ply", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("ply", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="PNG to write.")
-@click.option("--camera", "camera_json", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+@click.option("--camera", "camera_json", type=click.Path(dir_okay=False, path_type=Path),
               help="JSON with K (3x3), viewmat (4x4 world-to-camera, OpenCV), width, height.")
 @click.option("--look-at", "look_at", is_flag=True,
               help="Orbit camera looking at the scene centre (the default when --camera is not given).")
@@ -27,6 +27,7 @@ from cli._output import finish, json_option
               help="Background RGB in [0, 1].")
 @click.option("--backend", type=click.Choice(["auto", "fast", "reference"]), default="auto", show_default=True)
 @json_option
+@guarded
 def command(ply, out, camera_json, look_at, width, height, azimuth, elevation, fov, sh_degree, background, backend,
             as_json) -> None:
     """Render one view of a 3DGS PLY to a PNG."""

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 def _ratios(ctx, param, value: str) -> tuple[int, int, int]:
@@ -20,13 +20,14 @@ def _ratios(ctx, param, value: str) -> tuple[int, int, int]:
 
 
 @click.command("split")
-@click.option("--data", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True,
+@click.option("--data", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Dataset folder written by `seggaussian build`.")
 @click.option("--ratios", default="230,50,8", show_default=True, callback=_ratios,
               help="train,val,xval. ScanNet++ scenes split train:val; every Replica scene is xval.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the stable hash order.")
 @click.option("--reassign", is_flag=True, help="Recompute every assignment (default: existing scenes never move).")
 @json_option
+@guarded
 def command(data: Path, ratios, seed: int, reassign: bool, as_json: bool) -> None:
     """Assign scenes to train / val / xval and write splits.json and the split-named shards."""
     from seggaussian.build import split_dataset

@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 @click.command("stress")
@@ -15,6 +15,7 @@ from cli._output import finish, json_option
 @click.option("--backend", type=click.Choice(["auto", "fast", "reference"]), default="auto", show_default=True,
               help="Rasterizer backend exercised.")
 @json_option
+@guarded
 def command(cases: int, seed: int, backend: str, as_json: bool) -> None:
     """Malformed and extreme PLYs, degenerate cameras, label-transfer ties, extreme losses: counts clean
     errors, repairs and NaN/Inf outputs (which must be 0). Exit status 1 when anything failed."""

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from cli._output import finish, json_option
+from cli._output import finish, guarded, json_option
 
 
 @click.command("synth")
@@ -25,6 +25,7 @@ from cli._output import finish, json_option
 @click.option("--max-edge", type=click.FloatRange(min=0.005), default=0.05, show_default=True, help="Longest mesh edge (metres).")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
+@guarded
 def command(out, scenes, replica_scenes, seed, layout, width, views, max_edge, progress, as_json) -> None:
     """Write synthetic furnished rooms (mesh, labels, cameras, RGB and ground-truth label images)."""
     from seggaussian.sources.synthetic import SynthConfig, synthesize

@@ -471,7 +471,7 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
     from ovgaussian import baseline
     from seggaussian import shards
 
-    train = shards.iter_scenes(config.dataset, "train", views=False)
+    train = shards.iter_scenes(config.dataset, "train", views=False, verify=config.verify)
     if config.predictor == "majority":
         predictor = baseline.fit_majority(train)
     elif config.predictor == "nearest-colour":
@@ -514,7 +514,8 @@ def run_bench(config: BenchConfig, predictor: Predictor | None = None, *,
 
     def read_split(split: str, ids: list[str]):
         for scene_id in ids:  # one scene in memory at a time; views (images) only when 2D is scored
-            yield shards.read_scene(config.dataset, split, scene_id, views=split in splits_2d)
+            yield shards.read_scene(config.dataset, split, scene_id, views=split in splits_2d,
+                                    verify=config.verify)
 
     scenes_by_split = {split: read_split(split, ids) for split, ids in available.items()}
     try:

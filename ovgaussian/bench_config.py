@@ -58,6 +58,8 @@ class BenchConfig:
     """Device of the model."""
     progress: bool = True
     """Show a progress bar over scenes."""
+    verify: bool = False
+    """Check every shard read against the manifest's sha256 (sizes are always checked)."""
 
 
 @dataclass(frozen=True)

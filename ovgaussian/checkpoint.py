@@ -17,11 +17,10 @@ complete before ``latest.json`` points at it. No pickle: tensors in safetensors,
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
+
+from seggaussian.atomic import atomic_dir, sweep_temps, write_bytes_atomic
 
 if TYPE_CHECKING:
     import torch
@@ -38,11 +37,8 @@ class CheckpointError(ValueError):
 
 def write_json_atomic(path: Path, payload) -> None:
     """JSON to a temp file in the same folder, then rename (NaN is refused)."""
-    from seggaussian.atomic import atomic_path
-
     text = json.dumps(payload, indent=2, allow_nan=False) + "\n"  # raises on NaN before anything is written
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
+    write_bytes_atomic(path, text.encode())
 
 
 def read_json(path: Path) -> dict:
@@ -80,9 +76,7 @@ def save_checkpoint(run_dir: Path, epoch: int, net, optimizer, state: dict) -> P
 
     run_dir = Path(run_dir)
     folder = run_dir / CHECKPOINTS_DIR / f"epoch-{epoch:04d}"
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent if folder.parent.is_dir()
-                                else _mkdir(folder.parent)))
-    try:
+    with atomic_dir(folder) as tmp:
         weights = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
         save_file(weights, str(tmp / "model.safetensors"))
         opt_state = optimizer.state_dict()
@@ -94,20 +88,14 @@ def save_checkpoint(run_dir: Path, epoch: int, net, optimizer, state: dict) -> P
         save_file(buffers, str(tmp / "optimizer.safetensors"))
         groups = [{k: v for k, v in g.items()} for g in opt_state["param_groups"]]
         write_json_atomic(tmp / "state.json", dict(state, epoch=epoch, param_groups=groups))
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     write_json_atomic(run_dir / CHECKPOINTS_DIR / LATEST_NAME,
                       {"epoch": epoch, "path": str(folder.relative_to(run_dir))})
     return folder
 
 
-def _mkdir(path: Path) -> Path:
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+def sweep_run_temps(run_dir: Path) -> int:
+    """Remove temporaries (half-written checkpoint folders, JSON, caches) a killed run left in ``run_dir``."""
+    return sweep_temps(run_dir, recursive=True)
 
 
 def latest_checkpoint(run_dir: Path) -> Path | None:

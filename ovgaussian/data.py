@@ -214,8 +214,8 @@ class SceneSource(Protocol):
 class ShardSource:
     """Scenes of one split of a dataset written by ``seggaussian build``/``split``."""
 
-    def __init__(self, dataset: Path, split: str):
-        self.dataset, self.split = Path(dataset), split
+    def __init__(self, dataset: Path, split: str, verify: bool = False):
+        self.dataset, self.split, self.verify = Path(dataset), split, verify
 
     def list_scenes(self) -> list[str]:
         from seggaussian import shards
@@ -225,7 +225,7 @@ class ShardSource:
     def read_scene(self, scene_id: str):
         from seggaussian import shards
 
-        return shards.read_scene(self.dataset, self.split, scene_id)
+        return shards.read_scene(self.dataset, self.split, scene_id, verify=self.verify)
 
     def fingerprint_files(self) -> dict[str, str]:
         """sha256 of the dataset's manifest files (``*manifest*.json``)."""

@@ -148,13 +148,13 @@ class DenseTeacher:
             if size == tuple(rgb.shape[:2]):
                 return TeacherFeatures(loaded["patch_features"], size)
         features = self.compute_patch_features(rgb)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         import torch
 
-        save_file({"patch_features": features.patch_features,
-                   "image_size": torch.tensor(features.image_size, dtype=torch.int64)}, str(tmp))
-        os.replace(tmp, path)
+        from seggaussian.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            save_file({"patch_features": features.patch_features,
+                       "image_size": torch.tensor(features.image_size, dtype=torch.int64)}, str(tmp))
         return features
 
 

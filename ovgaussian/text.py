@@ -175,9 +175,9 @@ def load_or_encode_texts(names: Sequence[str], config: TextConfig, cache_dir: Pa
     if path.is_file():
         return load_file(str(path))["embeddings"]
     embeddings = encode_texts(names, config)
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    save_file({"embeddings": embeddings.contiguous()}, str(tmp), metadata={"names": json.dumps(list(names)),
-                                                                          "encoder": encoder_key(config)})
-    os.replace(tmp, path)
+    from seggaussian.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        save_file({"embeddings": embeddings.contiguous()}, str(tmp), metadata={"names": json.dumps(list(names)),
+                                                                              "encoder": encoder_key(config)})
     return embeddings

@@ -40,13 +40,14 @@ import numpy as np
 
 from ovgaussian.checkpoint import (
     CONFIG_NAME, METRICS_NAME, CheckpointError, build_network, latest_checkpoint, load_checkpoint, read_json,
-    save_checkpoint, write_json_atomic,
+    save_checkpoint, sweep_run_temps, write_json_atomic,
 )
 from ovgaussian.data import (
     InMemorySource, SceneSample, ShardSource, TrainingData, epoch_batches, make_vocabulary, rank_slice,
     sample_seed, scan_scenes,
 )
 from ovgaussian.train_config import TrainConfig, config_from_dict, config_to_dict
+from seggaussian.atomic import make_dirs, write_text_atomic
 from seggaussian.constants import IGNORE_LABEL
 
 if TYPE_CHECKING:
@@ -340,9 +341,7 @@ def truncate_metrics(path: Path, keep_epochs_below: int) -> None:
         return
     lines = [line for line in path.read_text().splitlines()
              if line.strip() and json.loads(line)["epoch"] < keep_epochs_below]
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text("".join(line + "\n" for line in lines))
-    os.replace(tmp, path)
+    write_text_atomic(path, "".join(line + "\n" for line in lines))
 
 
 # --- the loop ------------------------------------------------------------------------------------
@@ -399,9 +398,11 @@ def train_in_process_group(
     cache_dir = run_dir / "caches"
     is_main = group.rank == 0
     notes: list[str] = []
+    if is_main:
+        sweep_run_temps(run_dir)  # half-written checkpoints and files of a killed earlier run
 
     vocabulary = make_vocabulary(config.data.num_classes)
-    source = source if source is not None else ShardSource(config.data.dataset, config.data.split)
+    source = source if source is not None else ShardSource(config.data.dataset, config.data.split, config.data.verify)
     scan = scan_scenes(source, vocabulary)
     if not scan.usable:
         raise ValueError(f"{config.data.dataset}: split {config.data.split!r} has no trainable scene "
@@ -485,7 +486,7 @@ def train_in_process_group(
             start_epoch, global_step, last_checkpoint = int(state["epoch"]), int(state["global_step"]), folder
     metrics_path = run_dir / METRICS_NAME
     if is_main:
-        run_dir.mkdir(parents=True, exist_ok=True)
+        make_dirs(run_dir)
         payload = run_config_payload(config, model_config, teacher_width, vocabulary, scan, group,
                                      text_embeddings.shape[1])
         payload["notes"] = notes

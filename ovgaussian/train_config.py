@@ -40,6 +40,8 @@ class DataConfig:
     """Range of the uniform random scale factor."""
     flip_probability: float = 0.5
     """Probability of mirroring x and, independently, y."""
+    verify: bool = False
+    """Check every shard read against the manifest's sha256 (sizes are always checked)."""
 
 
 @dataclass(frozen=True)

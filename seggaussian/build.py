@@ -21,6 +21,7 @@ does not exist, the default synthetic set is synthesized into it first (``BuildC
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -33,6 +34,7 @@ from typing import NamedTuple
 import numpy as np
 
 import seggaussian
+from seggaussian.atomic import sweep_temps
 from seggaussian.build_config import BuildConfig, OracleConfig, ViewConfig, config_dict
 from seggaussian.constants import IGNORE_LABEL, SH_C0, read_class_names
 from seggaussian.gaussians import Gaussians
@@ -115,6 +117,10 @@ class BuildReport(NamedTuple):
     assembled: bool
     synthesized: list
     seconds: float
+    #: Failed scenes whose last good copy stays in the shards (see ``_write_build_record``).
+    kept: tuple = ()
+    #: Temporaries of killed earlier runs removed from the dataset folder at the start.
+    swept: int = 0
 
     @property
     def counts(self) -> dict:
@@ -445,10 +451,10 @@ class _Stage:
 
 
 def _save_npz(path: Path, **arrays) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
+    from seggaussian.atomic import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
-    os.replace(tmp, path)
 
 
 def _load_gaussians_npz(path: Path) -> tuple[Gaussians, np.ndarray | None]:
@@ -775,7 +781,12 @@ def build_dataset(config: BuildConfig) -> BuildReport:
         synthesized = synthesize_default(config)
     if config.source == "ply" and config.ply_dir is None:
         raise ValueError("build: --source ply needs --ply-dir (trained PLYs)")
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "the output is not a folder", str(out))
+    swept = sweep_temps(out, recursive=True)  # leftovers of a killed earlier build
     tasks, failures = discover(config)
+    if not tasks and not failures:
+        raise ValueError(f"{config.root}: no scenes found in the raw tree (an empty source root is an error)")
     bars = _progress_bars(len(tasks), config.progress)
     outcomes = list(failures)
 
@@ -793,10 +804,10 @@ def build_dataset(config: BuildConfig) -> BuildReport:
             if bar is not None:
                 bar.close()
     outcomes.sort(key=lambda o: o.scene_id)
-    _write_build_record(cache_root, config, outcomes)
+    kept = _write_build_record(cache_root, config, outcomes)
     split_counts, files, nbytes, assembled = assemble(out, config)
     return BuildReport(out, outcomes, split_counts, files, nbytes, assembled, synthesized,
-                       time.perf_counter() - start)
+                       time.perf_counter() - start, tuple(kept), swept)
 
 
 def _progress_bars(total: int, enabled: bool) -> dict:
@@ -808,29 +819,54 @@ def _progress_bars(total: int, enabled: bool) -> dict:
             for i, name in enumerate(STAGES)}
 
 
-def _write_build_record(cache_root: Path, config: BuildConfig, outcomes: list[SceneOutcome]) -> None:
-    """``.build/build.json``: every successfully built scene (merged with earlier builds of other scenes)."""
-    from seggaussian.shards import write_json_atomic
+def _write_build_record(cache_root: Path, config: BuildConfig, outcomes: list[SceneOutcome]) -> list[str]:
+    """``.build/build.json``: every scene the shards publish (merged with earlier builds of other scenes).
 
+    Policy for a scene that fails now but was built before: its last good copy stays published (its
+    entry is kept) as long as its cached fragments are byte-identical to that copy (sha256 recorded per
+    fragment); the caller warns and exits non-zero unless ``--keep-going``. Returns those scene ids.
+    A failed scene with no intact earlier copy is left out.
+    """
+    from seggaussian.shards import sha256_file, write_json_atomic
+
+    root = cache_root.parent
     path = cache_root / "build.json"
     previous = json.loads(path.read_text()) if path.is_file() else {}
     scenes = dict(previous.get("scenes", {}))
     if config.scenes is None:  # a full build: scenes no longer in the raw tree leave the dataset
         listed = {o.scene_id for o in outcomes}
         scenes = {s: v for s, v in scenes.items() if s in listed}
+    kept = []
     for o in outcomes:
         if o.status == "failed":
-            scenes.pop(o.scene_id, None)
+            entry = scenes.get(o.scene_id)
+            if entry is not None and _fragments_intact(root, entry):
+                kept.append(o.scene_id)
+            else:
+                scenes.pop(o.scene_id, None)
             continue
+        fragments = {k: str(Path(v).relative_to(root)) for k, v in o.fragments.items()}
+        old = scenes.get(o.scene_id, {})
+        digests = {k: (old["fragment_sha256"][k] if not o.stages_run and old.get("fragments", {}).get(k) == f
+                       and k in old.get("fragment_sha256", {}) else sha256_file(root / f))
+                   for k, f in fragments.items()}
         scenes[o.scene_id] = {"domain": o.domain, "official_split": o.official_split, "info": o.info,
-                              "keys": o.keys, "fragments": {k: str(Path(v).relative_to(cache_root.parent))
-                                                            for k, v in o.fragments.items()}}
+                              "keys": o.keys, "fragments": fragments, "fragment_sha256": digests}
     # a scene whose cached fragments vanished is dropped rather than shipped broken
-    scenes = {s: v for s, v in scenes.items()
-              if all((cache_root.parent / f).is_file() for f in v["fragments"].values())}
+    scenes = {s: v for s, v in scenes.items() if all((root / f).is_file() for f in v["fragments"].values())}
     record = {"config_hash": content_config_hash(config), "config": _content_config(config),
               "scenes": dict(sorted(scenes.items()))}
     write_json_atomic(path, record)
+    return kept
+
+
+def _fragments_intact(root: Path, entry: dict) -> bool:
+    """True when every cached fragment of a build-record entry still holds the bytes it recorded."""
+    from seggaussian.shards import sha256_file
+
+    digests = entry.get("fragment_sha256", {})
+    return all(k in digests and (root / f).is_file() and sha256_file(root / f) == digests[k]
+               for k, f in entry["fragments"].items())
 
 
 def _content_config(config: BuildConfig) -> dict:

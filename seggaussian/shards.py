@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
 from pathlib import Path
 from typing import Iterable, Iterator, NamedTuple
@@ -27,6 +26,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from seggaussian import atomic
 from seggaussian.build_config import ShardConfig
 from seggaussian.cameras import Camera
 from seggaussian.constants import IGNORE_LABEL
@@ -236,24 +236,14 @@ def sha256_file(path: Path) -> str:
 
 
 def write_bytes_atomic(path: Path, data: bytes, *, only_if_changed: bool = True) -> bool:
-    """Write ``data`` to ``path`` via a temp file + rename; returns False (and leaves the file and its
-    mtime alone) when the file already holds exactly these bytes."""
-    path = Path(path)
-    if only_if_changed and path.is_file() and path.stat().st_size == len(data) and path.read_bytes() == data:
-        return False
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return True
+    """``atomic.write_bytes_atomic`` that by default leaves a file holding exactly ``data`` untouched
+    (mtime kept; returns False then)."""
+    return atomic.write_bytes_atomic(path, data, only_if_changed=only_if_changed)
 
 
 def write_json_atomic(path: Path, payload) -> bool:
-    text = json.dumps(payload, indent=2, sort_keys=True, allow_nan=False) + "\n"
-    return write_bytes_atomic(path, text.encode())
+    """Sorted, indented JSON through ``write_bytes_atomic`` (unchanged files left alone)."""
+    return atomic.write_json_atomic(path, payload, sort_keys=True, only_if_changed=True)
 
 
 def footer_metadata(table: str, split: str | None, class_names, config_hash: str) -> dict[bytes, bytes]:
@@ -288,10 +278,8 @@ def write_parquet_atomic(
     groups. Temp name + rename; byte-deterministic for the same inputs and pyarrow version. Returns False
     when an identical file was already there (left untouched)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     schema = SCHEMAS[table_name].with_metadata(metadata or {})
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
+    with atomic.atomic_path(path) as tmp:
         with pq.ParquetWriter(
             tmp, schema, compression=config.compression, compression_level=config.compression_level,
             use_dictionary=[c for c in DICTIONARY_COLUMNS if c in schema.names], write_statistics=True,
@@ -300,12 +288,9 @@ def write_parquet_atomic(
                 if table.num_rows:
                     writer.write_table(table.cast(schema), row_group_size=rows_per_row_group(table, config.row_group_bytes))
         if path.is_file() and path.stat().st_size == tmp.stat().st_size and sha256_file(path) == sha256_file(tmp):
-            return False  # same bytes: keep the existing file (and its mtime)
-        os.replace(tmp, path)
-        return True
-    finally:
-        if tmp.exists():
             tmp.unlink()
+            return False  # same bytes: keep the existing file (and its mtime)
+    return True
 
 
 def read_fragment(path: Path, table_name: str) -> pa.Table:
@@ -437,11 +422,7 @@ def write_dataset(
     """
     dataset = Path(dataset)
     for table_name in (GAUSSIANS_TABLE, VIEWS_TABLE):  # leftovers of a killed writer
-        folder = dataset / table_name
-        if folder.is_dir():
-            for f in folder.iterdir():
-                if f.name.startswith(".") and ".tmp-" in f.name:
-                    f.unlink()
+        atomic.sweep_temps(dataset / table_name)
     files: dict[str, dict] = {}
     scene_entries: dict[str, dict] = {}
     by_split = {split: sorted(s for s, sp in assignments.items() if sp == split and s in scenes) for split in SPLITS}
@@ -514,15 +495,72 @@ def _scene_row_groups(pf: pq.ParquetFile, scene_id: str, path: Path) -> list[int
     return groups
 
 
-def _read_scene_table(dataset: Path, table_name: str, rel: str, scene_id: str) -> pa.Table:
+#: Files already checked against the manifest in this process: (path, size, mtime_ns, with sha256).
+_VERIFIED: set[tuple[str, int, int, bool]] = set()
+
+
+def verify_file(dataset: Path, rel: str, *, sha256: bool = False, scene_id: str | None = None,
+                manifest: dict | None = None) -> None:
+    """Check one dataset file against the manifest: its size always, its sha256 with ``sha256``.
+
+    ``ShardError`` names the file (and the scene read from it). A file is hashed once per process while
+    its size and mtime stay the same.
+    """
+    manifest = manifest if manifest is not None else read_manifest(dataset)
     path = Path(dataset) / rel
-    if not path.is_file():
-        raise ShardError(f"{path}: shard listed in the manifest is missing")
-    pf = pq.ParquetFile(path)
-    groups = _scene_row_groups(pf, scene_id, path)
-    if not groups:
-        return SCHEMAS[table_name].empty_table()
-    return pf.read_row_groups(groups)
+    whose = f" (scene {scene_id})" if scene_id else ""
+    entry = manifest.get("files", {}).get(rel)
+    if entry is None:
+        raise ShardError(f"{path}: not listed in {Path(dataset) / MANIFEST_NAME}{whose}")
+    try:
+        stat = path.stat()
+    except FileNotFoundError:
+        raise ShardError(f"{path}: shard listed in the manifest is missing{whose}") from None
+    key = (str(path), stat.st_size, stat.st_mtime_ns, sha256)
+    if key in _VERIFIED or (str(path), stat.st_size, stat.st_mtime_ns, True) in _VERIFIED:
+        return
+    if stat.st_size != entry["bytes"]:
+        raise ShardError(f"{path}: {stat.st_size} bytes, the manifest says {entry['bytes']}{whose}: "
+                         f"truncated or replaced; rebuild the dataset")
+    if sha256:
+        digest = sha256_file(path)
+        if digest != entry["sha256"]:
+            raise ShardError(f"{path}: sha256 {digest[:12]}... differs from the manifest's "
+                             f"{entry['sha256'][:12]}...{whose}: corrupted; rebuild the dataset")
+    _VERIFIED.add(key)
+
+
+def _read_scene_table(dataset: Path, table_name: str, rel: str, scene_id: str, *, verify: bool = False,
+                      manifest: dict | None = None) -> pa.Table:
+    path = Path(dataset) / rel
+    verify_file(dataset, rel, sha256=verify, scene_id=scene_id, manifest=manifest)
+    try:
+        pf = pq.ParquetFile(path)
+        groups = _scene_row_groups(pf, scene_id, path)
+        if not groups:
+            return SCHEMAS[table_name].empty_table()
+        return pf.read_row_groups(groups)
+    except (OSError, pa.ArrowException, ValueError) as exc:
+        if isinstance(exc, ShardError):
+            raise
+        raise ShardError(f"{path}: unreadable {table_name} shard (scene {scene_id}): {exc}") from None
+
+
+#: Float columns of the gaussians table that must hold finite values.
+_FINITE_COLUMNS = ("means", "quats", "log_scales", "opacity_logit", "sh")
+
+
+def _check_finite(table: pa.Table, path: Path, scene_id: str) -> None:
+    """``ShardError`` naming the file, the scene and the column when a float column holds NaN or Inf
+    (our writer never stores one: a corrupted shard)."""
+    for column in _FINITE_COLUMNS:
+        arr = table.column(column).combine_chunks()
+        if isinstance(arr.type, (pa.ListType, pa.FixedSizeListType)):
+            arr = arr.flatten()
+        values = arr.to_numpy(zero_copy_only=False)
+        if not np.isfinite(values).all():
+            raise ShardError(f"{path}: column '{column}' of scene {scene_id} holds NaN or Inf: corrupted shard "
+                             f"(check with `seggaussian inspect DATASET --verify`)")
 
 
 def _flat(table: pa.Table, column: str, width: int, dtype) -> np.ndarray:
@@ -575,22 +613,38 @@ def table_to_views(table: pa.Table) -> list[ViewRecord]:
     return out
 
 
-def read_scene(dataset: Path, split: str, scene_id: str, *, views: bool = True) -> SceneRecord:
-    """One scene of ``split``: its Gaussians (with labels) and views, reading only its row groups."""
+def read_scene(dataset: Path, split: str, scene_id: str, *, views: bool = True, verify: bool = False) -> SceneRecord:
+    """One scene of ``split``: its Gaussians (with labels) and views, reading only its row groups.
+
+    Its shard files are checked against the manifest first: size always, sha256 with ``verify``.
+    Every problem is a ``ShardError`` naming the file and the scene.
+    """
     dataset = Path(dataset)
     manifest = read_manifest(dataset)
     info = manifest.get("scenes", {}).get(scene_id)
     if info is None or info.get("split") != split:
         raise ShardError(f"{dataset / MANIFEST_NAME}: no scene {scene_id!r} in split {split!r}")
-    g = table_to_gaussians(_read_scene_table(dataset, GAUSSIANS_TABLE, info["files"][GAUSSIANS_TABLE], scene_id))
-    v = table_to_views(_read_scene_table(dataset, VIEWS_TABLE, info["files"][VIEWS_TABLE], scene_id)) if views else []
+    rel = info["files"][GAUSSIANS_TABLE]
+    table = _read_scene_table(dataset, GAUSSIANS_TABLE, rel, scene_id, verify=verify, manifest=manifest)
+    _check_finite(table, dataset / rel, scene_id)
+    try:
+        g = table_to_gaussians(table)
+        v = []
+        if views:
+            rel = info["files"][VIEWS_TABLE]
+            v = table_to_views(_read_scene_table(dataset, VIEWS_TABLE, rel, scene_id, verify=verify,
+                                                 manifest=manifest))
+    except (ValueError, pa.ArrowException) as exc:
+        if isinstance(exc, ShardError) and str(exc).startswith(str(dataset)):
+            raise
+        raise ShardError(f"{dataset / rel}: scene {scene_id}: {exc}") from None
     return SceneRecord(scene_id, info.get("source", "unknown"), g, v)
 
 
-def iter_scenes(dataset: Path, split: str, *, views: bool = True) -> Iterator[SceneRecord]:
+def iter_scenes(dataset: Path, split: str, *, views: bool = True, verify: bool = False) -> Iterator[SceneRecord]:
     """Scenes of ``split`` one at a time (memory bounded by the largest scene)."""
     for scene_id in list_scenes(dataset, split):
-        yield read_scene(dataset, split, scene_id, views=views)
+        yield read_scene(dataset, split, scene_id, views=views, verify=verify)
 
 
 def find_split(dataset: Path, scene_id: str) -> str:
@@ -610,10 +664,12 @@ def read_footer(path: Path) -> dict:
     return out
 
 
-def inspect_dataset(path: Path) -> dict:
+def inspect_dataset(path: Path, *, verify: bool = False) -> dict:
     """Summary of a dataset folder: per-split scene counts, class histogram, transfer statistics, files.
 
-    Reads only the manifest and the files' sizes (no row data); flags files missing or changed in size.
+    Reads only the manifest and the files' sizes (no row data); flags files missing or changed in size,
+    and with ``verify`` files whose sha256 differs from the manifest's (each problem names the file and
+    its scenes).
     """
     dataset = Path(path)
     manifest = read_manifest(dataset)
@@ -655,10 +711,13 @@ def inspect_dataset(path: Path) -> dict:
     problems = []
     for rel, f in sorted(manifest.get("files", {}).items()):
         p = dataset / rel
+        whose = f" (scenes {', '.join(f.get('scenes', []))})" if f.get("scenes") else ""
         if not p.is_file():
-            problems.append(f"{rel}: missing")
+            problems.append(f"{rel}: missing{whose}")
         elif p.stat().st_size != f["bytes"]:
-            problems.append(f"{rel}: {p.stat().st_size} bytes, manifest says {f['bytes']}")
+            problems.append(f"{rel}: {p.stat().st_size} bytes, manifest says {f['bytes']}{whose}")
+        elif verify and sha256_file(p) != f["sha256"]:
+            problems.append(f"{rel}: sha256 differs from the manifest{whose}")
     counts = " / ".join(f"{per_split[s]['scenes']} {s}" for s in SPLITS)
     total_g = sum(v["gaussians"] for v in per_split.values())
     total_ignored = sum(v["ignored_share"] * v["gaussians"] for v in per_split.values())
@@ -677,4 +736,5 @@ def inspect_dataset(path: Path) -> dict:
         "files": len(manifest.get("files", {})),
         "bytes": sum(f["bytes"] for f in manifest.get("files", {}).values()),
         "problems": problems,
+        "verified": verify,
     }

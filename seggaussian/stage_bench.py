@@ -43,6 +43,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
+from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps, write_text_atomic
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.stage_bench_config import STAGES, StageBenchConfig
 
@@ -201,20 +202,16 @@ def prepare_data(config: StageBenchConfig, progress: Progress | None = None) -> 
     root = work_dir(config) / name
     if (root / SYNTH_DONE_MARKER).is_file():
         return root
-    staging = root.with_name(f".tmp-{name}-{os.getpid()}")
-    if staging.exists():
-        shutil.rmtree(staging)
+    sweep_temps(root.parent)  # staging folders of a killed earlier run
     synth = SynthConfig(width=config.synthetic_width, num_views=config.synthetic_views,
                         max_edge=config.synthetic_max_edge)
-    for layout, count in (("scannetpp", n_scannetpp), ("replica", n_replica)):
-        if count > 0:
-            if progress:
-                progress(f"synthesizing {count} {layout} scenes into {root}")
-            synthesize(staging / layout, count, config.seed, layout=layout, config=synth)
-    (staging / SYNTH_DONE_MARKER).write_text("ok\n")
-    if root.exists():
-        shutil.rmtree(root)
-    os.replace(staging, root)
+    with atomic_dir(root) as staging:
+        for layout, count in (("scannetpp", n_scannetpp), ("replica", n_replica)):
+            if count > 0:
+                if progress:
+                    progress(f"synthesizing {count} {layout} scenes into {root}")
+                synthesize(staging / layout, count, config.seed, layout=layout, config=synth)
+        write_text_atomic(staging / SYNTH_DONE_MARKER, "ok\n")
     return root
 
 
@@ -922,11 +919,9 @@ def plot_trials(results: Sequence[StageBenchResult], path: Path) -> Path:
         if any(t.is_default for t in result.trials):
             ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.png")
-    fig.savefig(tmp, dpi=120)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
-    os.replace(tmp, path)
     return path
 
 
@@ -967,8 +962,5 @@ def write_markdown(results: Sequence[StageBenchResult], path: Path, command_line
         lines += [f"- skipped: {s}" for s in r.skipped]
         if r.skipped:
             lines.append("")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, path)
+    write_text_atomic(path, "\n".join(lines))
     return path

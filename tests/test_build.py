@@ -169,14 +169,24 @@ def test_corrupt_scene_fails_alone(built, raw, tmp_path):
     victim = sorted((bad_raw / "scannetpp" / "data").iterdir())[0]
     mesh = victim / "scans" / "mesh_aligned_0.05.ply"
     mesh.write_bytes(mesh.read_bytes()[:200])
+    published = {p.relative_to(out): p.read_bytes() for p in out.rglob("*")
+                 if p.is_file() and ".build" not in p.parts}
     report = build_mod.build_dataset(_config(bad_raw, out))
     status = {o.scene_id: o.status for o in report.outcomes}
     assert status[victim.name] == "failed"
     assert sorted(v for s, v in status.items() if s != victim.name) == ["skipped", "skipped"]
     (failed,) = [o for o in report.outcomes if o.status == "failed"]
     assert "mesh_aligned_0.05.ply" in failed.reason
+    # policy: the newly failing scene keeps its last good copy; the published files do not change
+    assert report.kept == (victim.name,)
     manifest = json.loads((out / "manifest.json").read_text())
-    assert victim.name not in manifest["scenes"] and len(manifest["scenes"]) == 2
+    assert victim.name in manifest["scenes"] and len(manifest["scenes"]) == 3
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*")
+            if p.is_file() and ".build" not in p.parts} == published
+    # a scene that never built has no last good copy: it is left out
+    fresh = tmp_path / "fresh"
+    report = build_mod.build_dataset(_config(bad_raw, fresh))
+    assert report.kept == () and victim.name not in json.loads((fresh / "manifest.json").read_text())["scenes"]
 
 
 def test_cli_build_split_export(built, raw, tmp_path):

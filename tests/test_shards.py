@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -134,6 +135,13 @@ def test_shards_split_by_bytes_and_stale_files_removed(tmp_path):
     assert sorted(p.name for p in (ds / "gaussians").iterdir()) == ["val-00000-of-00001.parquet"]
 
 
+def _dead_pid() -> int:
+    """The pid of a process that has exited (what a killed writer leaves in its temp names)."""
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
 def test_deterministic_bytes_and_unchanged_files_keep_mtime(tmp_path):
     rng = np.random.default_rng(3)
     scenes, _, config = _write_fragments(tmp_path, rng, {"a": 100, "b": 50})
@@ -149,7 +157,8 @@ def test_deterministic_bytes_and_unchanged_files_keep_mtime(tmp_path):
     assert {rel: (a / rel).stat().st_mtime_ns for rel in files} == mtimes
     assert not [p for p in a.rglob(".*tmp*")]
     # a temp file left by a killed writer is cleaned up by the next write
-    (a / "gaussians" / ".train-00000-of-00001.parquet.tmp-123").write_bytes(b"partial")
+    dead = _dead_pid()
+    (a / "gaussians" / f".train-00000-of-00001.parquet.tmp-{dead}").write_bytes(b"partial")
     shards.write_dataset(a, {"a": "train", "b": "val"}, scenes, config, ["x"], "h")
     assert not [p for p in a.rglob(".*tmp*")]
 

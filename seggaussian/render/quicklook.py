@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,15 +98,12 @@ def write_png_atomic(path: Path, rgb: np.ndarray) -> None:
     """uint8 RGB ``[H, W, 3]`` -> PNG, via a temporary file in the same folder and ``os.replace``."""
     import cv2
 
+    from seggaussian.atomic import atomic_path
+
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.png")
-    try:
+    with atomic_path(path, suffix=".png") as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
-            raise OSError(f"{path}: could not write the PNG")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+            raise OSError(errno.EIO, "could not write the PNG", str(path))
 
 
 def render_ply_view(config: QuicklookConfig) -> dict:

@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from seggaussian.atomic import make_dirs, sweep_temps, temp_name
 from seggaussian.cameras import Camera
 from seggaussian.sources.camera_path import default_intrinsics, generate_camera_path
 from seggaussian.sources.synth_room import RoomConfig, RoomMesh, build_room
@@ -90,14 +91,13 @@ def synthesize(
         raise ValueError(f"invalid SynthConfig {config}")
     out = Path(out)
     scene_parent = out / "data" if layout == "scannetpp" else out
-    scene_parent.mkdir(parents=True, exist_ok=True)
+    make_dirs(scene_parent)
+    sweep_temps(scene_parent)  # staging folders of a killed earlier run
     ids = []
     for index in range(num_scenes):
         name = scene_name(seed, index, layout)
         room, cameras = build_scene(seed, index, layout, config)
-        staging = scene_parent / f".tmp-{name}"
-        if staging.exists():
-            shutil.rmtree(staging)
+        staging = temp_name(scene_parent / name)
         if layout == "scannetpp":
             from seggaussian.sources import synth_scannetpp
 
@@ -126,9 +126,7 @@ def synthesize(
 
 def _move_into_place(source: Path, target: Path) -> None:
     """Rename a finished scene folder onto ``target`` (replacing an older one)."""
-    old = target.with_name(f".old-{target.name}")
-    if old.exists():
-        shutil.rmtree(old)
+    old = temp_name(target)
     if target.exists():
         os.replace(target, old)
     os.replace(source, target)
