@@ -514,7 +514,7 @@ def test_cli_inspect_dataset_folder_delegates(tmp_path, monkeypatch):
 
     calls = []
     fake = types.ModuleType("seggaussian.shards")
-    fake.inspect_dataset = lambda path: calls.append(path) or {"summary": f"dataset {path}: 3 scenes", "scenes": 3}
+    fake.inspect_dataset = lambda path, verify=False: calls.append(path) or {"summary": f"dataset {path}: 3 scenes", "scenes": 3}
     monkeypatch.setitem(sys.modules, "seggaussian.shards", fake)
     (tmp_path / "manifest.json").write_text("{}")
     result = CliRunner().invoke(main, ["inspect", str(tmp_path), "--json"])

@@ -70,7 +70,9 @@ MAX_HEADER_BYTES = 1 << 20
 #: Extras always written as int32 PLY ``int`` properties so that viewers and our tools read them back.
 LABEL_EXTRAS = ("semantic", "instance")
 _NORMALS = ("nx", "ny", "nz")
-_F_REST = re.compile(r"f_rest_(\d+)$")
+#: ``f_rest_<i>`` spelled exactly as the layout writes it (no sign, no leading zero): ``f_rest_05`` is an
+#: extra column, not coefficient 5.
+_F_REST = re.compile(r"f_rest_(0|[1-9][0-9]*)$")
 _INDEXED = re.compile(r"(.+)_(\d+)$")
 
 
@@ -86,6 +88,8 @@ class PlyProperty(NamedTuple):
     dtype: str
     #: True for ``property list ...`` (unsupported in the vertex element of a 3DGS file).
     is_list: bool = False
+    #: numpy type code of a list's length prefix (``u1``, ...); empty for a scalar property.
+    count_dtype: str = ""
 
 
 class PlyElement(NamedTuple):
@@ -174,7 +178,9 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
                 for t in words[2:4]:
                     if t not in PLY_TYPES:
                         raise PlyFormatError(f"{where}: unknown PLY type {t!r}")
-                elements[-1][2].append(PlyProperty(words[4], PLY_TYPES[words[3]], True))
+                if PLY_TYPES[words[2]][0] not in "iu":
+                    raise PlyFormatError(f"{where}: the length of a list must have an integer type, not {words[2]!r}")
+                elements[-1][2].append(PlyProperty(words[4], PLY_TYPES[words[3]], True, PLY_TYPES[words[2]]))
             elif len(words) == 3:
                 if words[1] not in PLY_TYPES:
                     raise PlyFormatError(f"{where}: unknown PLY type {words[1]!r}")
@@ -201,11 +207,93 @@ def _record_dtype(element: PlyElement, byte_order: str) -> np.dtype:
 # --------------------------------------------------------------------------------------------
 # body -> structured table
 # --------------------------------------------------------------------------------------------
+def _list_element_bytes(header: PlyHeader, element: PlyElement, offset: int, data: memoryview) -> int:
+    """Bytes taken by ``element`` (which has list properties) in a binary body starting at ``offset``.
+
+    Walks the records (list counts are in the data); stops with a clear error as soon as a record would
+    run past the end of the file, so a huge declared count costs at most one pass over the file.
+    """
+    order = header.byte_order
+    position = offset
+    end = len(data)
+    for row in range(element.count):
+        for prop in element.properties:
+            if not prop.is_list:
+                position += np.dtype(prop.dtype).itemsize
+                continue
+            count_type, item_type = prop.count_dtype, prop.dtype
+            width = np.dtype(count_type).itemsize
+            if position + width > end:
+                position = end + 1
+                break
+            count = int(np.frombuffer(data, dtype=order + count_type, count=1, offset=position)[0])
+            if count < 0:
+                raise PlyFormatError(f"{header.path}: element '{element.name}' record {row}: list property "
+                                     f"'{prop.name}' has a negative length {count}")
+            position += width + count * np.dtype(item_type).itemsize
+        if position > end:
+            raise PlyFormatError(
+                f"{header.path}: truncated body: element '{element.name}' declares {element.count} records "
+                f"but the file ends inside record {row}"
+            )
+    return position - offset
+
+
+def element_extents(header: PlyHeader) -> list[tuple[PlyElement, int, int]]:
+    """``(element, first body byte, bytes)`` of every element of a binary PLY, in file order.
+
+    The body must be exactly as long as the header declares: missing records (a truncated file, a count
+    larger than the data, an element with no data at all) and bytes after the last element (trailing
+    garbage, a count smaller than the data, an ASCII body under a binary header) are both errors that
+    state the declared and the actual size.
+    """
+    path = header.path
+    extents = []
+    offset = header.body_offset
+    data = None
+    for element in header.elements:
+        if any(p.is_list for p in element.properties):
+            if data is None:
+                with open(path, "rb") as f:
+                    data = memoryview(f.read())
+            size = _list_element_bytes(header, element, offset, data)
+        else:
+            size = element.count * _record_dtype(element, header.byte_order).itemsize
+        extents.append((element, offset, size))
+        offset += size
+    declared = offset - header.body_offset
+    available = header.file_size - header.body_offset
+    if declared != available:
+        what = ", ".join(
+            f"{e.count} {'vertices' if e.name == 'vertex' else repr(e.name) + ' records'}"
+            + ("" if any(p.is_list for p in e.properties)
+               else f" of {_record_dtype(e, header.byte_order).itemsize} bytes")
+            for e in header.elements)
+        if declared > available:
+            vertex = [x for x in extents if x[0].name == "vertex"]
+            complete = ""
+            if vertex:
+                v, start, _ = vertex[0]
+                itemsize = _record_dtype(v, header.byte_order).itemsize
+                complete = f" ({max(0, header.file_size - start) // max(itemsize, 1)} complete vertices)"
+            raise PlyFormatError(
+                f"{path}: truncated body: the header declares {what} ({declared} bytes) but only {available} "
+                f"bytes follow the header{complete}"
+            )
+        raise PlyFormatError(
+            f"{path}: body size mismatch: the header declares {what} ({declared} bytes) but {available} bytes "
+            f"follow the header ({available - declared} bytes more than declared: trailing data, a wrong "
+            f"element count, or a body in another format than the header's {header.format!r})"
+        )
+    return extents
+
+
 def read_vertex_table(path: str | os.PathLike, header: PlyHeader | None = None) -> np.ndarray:
     """The ``vertex`` element as a structured array ``[N]`` with native byte order.
 
-    Binary files: one ``np.fromfile`` with the record dtype. ASCII files: tokens parsed as float64 and
-    cast per property (integers checked to be integral and in range).
+    Every element declared in the header must be complete and the body must hold nothing else
+    (``element_extents``). Binary files: one ``np.fromfile`` with the record dtype. ASCII files: tokens
+    parsed as float64 and cast per property (integers checked to be integral and in range).
     """
     header = header or read_ply_header(path)
     path = header.path
@@ -217,26 +305,12 @@ def read_vertex_table(path: str | os.PathLike, header: PlyHeader | None = None) 
         )
     if not vertex.properties:
         raise PlyFormatError(f"{path}: the vertex element has no properties")
-    before = header.elements[: header.elements.index(vertex)]
-    for element in before:
-        if any(p.is_list for p in element.properties):
-            raise PlyFormatError(
-                f"{path}: element '{element.name}' before 'vertex' has list properties; cannot locate the vertices"
-            )
     if header.format == "ascii":
-        return _read_ascii_vertices(header, vertex, before)
+        return _read_ascii_vertices(header, vertex)
 
     byte_order = header.byte_order
     dtype = _record_dtype(vertex, byte_order)
-    offset = header.body_offset + sum(e.count * _record_dtype(e, byte_order).itemsize for e in before)
-    expected = vertex.count * dtype.itemsize
-    available = max(0, header.file_size - offset)
-    if available < expected:
-        raise PlyFormatError(
-            f"{path}: truncated body: the header declares {vertex.count} vertices of {dtype.itemsize} bytes "
-            f"({expected} bytes) but only {available} bytes follow the header "
-            f"({available // dtype.itemsize} complete vertices)"
-        )
+    offset = next(start for element, start, _ in element_extents(header) if element is vertex)
     with open(path, "rb") as f:
         f.seek(offset)
         table = np.fromfile(f, dtype=dtype, count=vertex.count)
@@ -247,20 +321,65 @@ def read_vertex_table(path: str | os.PathLike, header: PlyHeader | None = None) 
     return table
 
 
-def _read_ascii_vertices(header: PlyHeader, vertex: PlyElement, before: tuple[PlyElement, ...]) -> np.ndarray:
+def _ascii_line_counts_ok(element: PlyElement, rows: list[bytes]) -> int | None:
+    """Index of the first line of ``element`` whose values do not fit its properties, or None."""
+    fixed = len(element.properties)
+    if not any(p.is_list for p in element.properties):
+        for i, row in enumerate(rows):
+            if len(row.split()) != fixed:
+                return i
+        return None
+    for i, row in enumerate(rows):
+        tokens = row.split()
+        position = 0
+        for prop in element.properties:
+            if not prop.is_list:
+                position += 1
+                continue
+            try:
+                count = int(tokens[position])
+            except (IndexError, ValueError):
+                return i
+            if count < 0:
+                return i
+            position += 1 + count
+        if position != len(tokens):
+            return i
+    return None
+
+
+def _read_ascii_vertices(header: PlyHeader, vertex: PlyElement) -> np.ndarray:
     path = header.path
     with open(path, "rb") as f:
         f.seek(header.body_offset)
         body = f.read()
     lines = [line for line in body.splitlines() if line.strip()]
-    start = sum(e.count for e in before)
-    rows = lines[start: start + vertex.count]
-    num_props = len(vertex.properties)
-    if len(rows) < vertex.count:
+    declared = sum(e.count for e in header.elements)
+    start = 0
+    rows = []
+    for element in header.elements:
+        element_rows = lines[start: start + element.count]
+        if len(element_rows) < element.count:
+            what = ("vertices", "vertex lines") if element is vertex else (f"'{element.name}' records", "lines for it")
+            raise PlyFormatError(
+                f"{path}: truncated body: the header declares {element.count} {what[0]} but the file has only "
+                f"{len(element_rows)} {what[1]} (body: {len(lines)} lines, the header declares {declared})"
+            )
+        if element is vertex:
+            rows = element_rows
+        else:
+            bad = _ascii_line_counts_ok(element, element_rows)
+            if bad is not None:
+                raise PlyFormatError(f"{path}: '{element.name}' line {bad} does not match the properties the "
+                                     f"header declares for that element")
+        start += element.count
+    if len(lines) != declared:
         raise PlyFormatError(
-            f"{path}: truncated body: the header declares {vertex.count} vertices but the file has only "
-            f"{len(rows)} vertex lines"
+            f"{path}: body size mismatch: the header declares {declared} lines "
+            f"({', '.join(f'{e.count} {e.name}' for e in header.elements)}) but the body has {len(lines)} "
+            f"non-empty lines ({len(lines) - declared} more: trailing data or a wrong element count)"
         )
+    num_props = len(vertex.properties)
     tokens = b" ".join(rows).split()
     if len(tokens) != vertex.count * num_props:
         counts = np.fromiter((len(r.split()) for r in rows), dtype=np.int64, count=len(rows))
