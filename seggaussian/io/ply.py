@@ -152,18 +152,24 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
     except UnicodeDecodeError:
         raise PlyFormatError(f"{path}: the header is not ASCII text") from None
 
+    if text.endswith("\n"):
+        raise PlyFormatError(f"{path}: blank line before 'end_header'")
     fmt = None
     comments: list[str] = []
     elements: list[list] = []  # [name, count, [properties]]
     for lineno, raw in enumerate(text.splitlines()[1:], start=2):
         words = raw.split()
-        if not words:
-            continue
-        keyword = words[0]
         where = f"{path}: header line {lineno} ({raw.strip()!r})"
+        if not words:
+            raise PlyFormatError(f"{where}: blank line in the header")
+        keyword = words[0]
+        if keyword in ("format", "obj_info") and elements:
+            raise PlyFormatError(f"{where}: '{keyword}' after the first element (it belongs before the elements)")
         if keyword in ("comment", "obj_info"):
             comments.append(raw.strip()[len(keyword):].strip())
         elif keyword == "format":
+            if fmt is not None:
+                raise PlyFormatError(f"{where}: a second 'format' line")
             if len(words) != 3 or words[1] not in _FORMATS:
                 raise PlyFormatError(f"{where}: unknown format, expected one of {', '.join(_FORMATS)}")
             fmt = words[1]
