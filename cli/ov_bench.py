@@ -42,7 +42,6 @@ def command(dataset, run, checkpoint, predictor, metric, num_classes, dim, min_a
             out, cache_dir, label, verify, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
     from ovgaussian.bench import run_bench, table1_header, table1_row, write_json_atomic
-    from ovgaussian.text import TextEncoderError
 
     metrics = METRICS if metric.lower() == "all" else (metric.upper(),)
     dims = ("3d", "2d") if dim == "both" else (dim,)
@@ -52,10 +51,7 @@ def command(dataset, run, checkpoint, predictor, metric, num_classes, dim, min_a
                          dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,
                          max_scenes=max_scenes, cache_dir=cache_dir, progress=progress and not as_json,
                          verify=verify)
-    try:
-        report = run_bench(config)
-    except (ValueError, FileNotFoundError, TextEncoderError) as error:
-        raise click.ClickException(str(error)) from None
+    report = run_bench(config)
     if out is None:
         out = (run / f"bench-K{num_classes}.json") if predictor == "model" else \
             (dataset / f"bench-{predictor}-K{num_classes}.json")

@@ -35,15 +35,11 @@ def command(scene, run, checkpoint, vocab, out, cameras, views_dir, colour_mode,
     """Open-vocabulary segmentation of SCENE (a 3DGS PLY) with a trained run."""
     from ovgaussian.bench_config import PredictConfig
     from ovgaussian.predict import parse_vocabulary, run_predict
-    from ovgaussian.text import TextEncoderError
 
-    try:
-        names = parse_vocabulary(vocab)
-        config = PredictConfig(run=run, checkpoint=checkpoint, vocabulary=names, colour_mode=colour_mode,
-                               min_alpha=min_alpha, on_invalid=on_invalid)
-        report = run_predict(scene, out, config, cameras_path=cameras, views_dir=views_dir)
-    except (ValueError, FileNotFoundError, TextEncoderError) as error:
-        raise click.ClickException(str(error)) from None
+    names = parse_vocabulary(vocab)
+    config = PredictConfig(run=run, checkpoint=checkpoint, vocabulary=names, colour_mode=colour_mode,
+                           min_alpha=min_alpha, on_invalid=on_invalid)
+    report = run_predict(scene, out, config, cameras_path=cameras, views_dir=views_dir)
     shares = sorted(report.summary["shares"].items(), key=lambda kv: -kv[1])
     details = "\n".join(f"{name:>24s}  {100 * share:6.2f}%  ({report.summary['counts'][name]})" for name, share in shares)
     top = ", ".join(f"{n} {100 * s:.1f}%" for n, s in shares[:3])

@@ -51,8 +51,6 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
     """
-    from ovgaussian.checkpoint import CheckpointError
-    from ovgaussian.text import TextEncoderError
 
     config = TrainConfig(
         out=out, epochs=epochs, batch_scenes=batch_scenes, seed=seed, device=device, resume=resume,
@@ -66,10 +64,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
     )
     from ovgaussian.train import train
 
-    try:
-        result = train(config)
-    except (ValueError, FileNotFoundError, TextEncoderError, CheckpointError) as error:
-        raise click.ClickException(str(error)) from None
+    result = train(config)
     m = result.last_epoch_metrics
     skipped = sum(result.skipped.values())
     summary = (f"trained {result.epochs} epochs ({result.steps} steps) on {result.num_scenes} scenes"

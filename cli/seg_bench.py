@@ -39,7 +39,7 @@ STAGE_CHOICES = ("fit", "transfer", "render", "build", "all")
 def command(stages, data, work_dir, scenes, seed, quick, plot, markdown, params, base, from_json, as_json) -> None:
     """Time against error for each setting of a stage's speed knobs, with ground truth from the synthetic
     meshes (or held-out views / meshes of real raw data). P marks Pareto-optimal rows, D the shipped default."""
-    from seggaussian.stage_bench import (PARETO_TIME_TOLERANCE, QUALITY_TOLERANCE, BenchDataError,
+    from seggaussian.stage_bench import (PARETO_TIME_TOLERANCE, QUALITY_TOLERANCE,
                                          StageBenchResult, default_verdict, format_table, mark_pareto, plot_trials,
                                          run_stage_bench, write_markdown)
     from seggaussian.stage_bench_config import STAGES, StageBenchConfig, quick_config, with_params
@@ -71,15 +71,9 @@ def command(stages, data, work_dir, scenes, seed, quick, plot, markdown, params,
         def say(message: str) -> None:  # stderr: never mixed into the JSON document on stdout
             click.echo(f"[bench] {message}", err=True)
 
-        try:
-            results.append(run_stage_bench(config, progress=say))
-        except (BenchDataError, FileNotFoundError) as exc:
-            raise click.ClickException(str(exc)) from None
+        results.append(run_stage_bench(config, progress=say))
     if plot is not None:
-        try:
-            plot_trials(results, plot)
-        except ImportError as exc:
-            raise click.ClickException(str(exc)) from None
+        plot_trials(results, plot)
     args = sys.argv[sys.argv.index("bench") + 1:] if "bench" in sys.argv else []
     command_line = shlex.join(["seggaussian", "bench", *args])
     if not from_json:

@@ -18,12 +18,8 @@ from cli._output import finish, guarded, json_option
 def command(dataset: Path, scene_id: str, out: Path, as_json: bool) -> None:
     """Write a scene's Gaussians with semantic, instance (int) and transfer_distance vertex properties."""
     from seggaussian.build import export_scene_ply
-    from seggaussian.shards import ShardError
 
-    try:
-        info = export_scene_ply(dataset, scene_id, out)
-    except ShardError as exc:
-        raise click.ClickException(str(exc)) from None
+    info = export_scene_ply(dataset, scene_id, out)
     summary = (f"{out}: scene {scene_id} ({info['split']}), {info['gaussians']} Gaussians, "
                f"{info['labelled']} labelled")
     finish(summary, info, as_json)

@@ -30,19 +30,16 @@ from cli._output import finish, guarded, json_option
 def command(source, root, scene_id, out, iterations, downscale, max_gaussians, sh_degree, time_budget, seed, progress,
             as_json) -> None:
     """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json."""
-    from seggaussian.fit import FitInputError, fit_to_ply, metrics_path
+    from seggaussian.fit import fit_to_ply, metrics_path
     from seggaussian.fit_config import FitConfig
 
     overrides = {"downscale": downscale, "max_gaussians": max_gaussians, "sh_degree": sh_degree,
                  "time_budget_seconds": time_budget}
-    try:
-        config = FitConfig()
-        if iterations is not None:  # the whole schedule scales with the number of iterations
-            config = config.with_iterations(iterations)
-        config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
-        result = fit_to_ply(source, root, scene_id, out, config, seed=seed, progress=progress and not as_json)
-    except (FitInputError, FileNotFoundError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+    config = FitConfig()
+    if iterations is not None:  # the whole schedule scales with the number of iterations
+        config = config.with_iterations(iterations)
+    config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
+    result = fit_to_ply(source, root, scene_id, out, config, seed=seed, progress=progress and not as_json)
     m = result.metrics
     psnr = "n/a" if m["novel_psnr"] is None else f"{m['novel_psnr']:.2f} dB"
     ssim = "n/a" if m["novel_ssim"] is None else f"{m['novel_ssim']:.3f}"

@@ -20,13 +20,9 @@ from cli._output import finish, guarded, json_option
 @guarded
 def command(scene: Path, out_dir: Path, on_invalid: str, as_json: bool) -> None:
     """Read a 3DGS PLY, validate it, write a standard PLY and a JSON report into OUT."""
-    from seggaussian.io.ply import PlyFormatError
     from seggaussian.io.ply_import import ImportConfig, import_ply
 
-    try:
-        result = import_ply(scene, out_dir, ImportConfig(on_invalid=on_invalid))
-    except (PlyFormatError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+    result = import_ply(scene, out_dir, ImportConfig(on_invalid=on_invalid))
     report = result.report
     summary = (f"imported {result.num_gaussians} Gaussians (SH degree {result.sh_degree}) from {scene} "
                f"-> {result.ply_path}; {report.describe_actions()}")

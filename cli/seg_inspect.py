@@ -65,14 +65,10 @@ def command(path: Path, verify: bool, as_json: bool) -> None:
             _inspect_dataset(path, as_json, verify)
             return
         raise click.ClickException(f"{path}: a folder without manifest.json is not a dataset")
-    from seggaussian.io.ply import PlyFormatError
     from seggaussian.io.ply_inspect import inspect_ply
     from seggaussian.io.validate import ValidationReport
 
-    try:
-        info = inspect_ply(path)
-    except PlyFormatError as exc:
-        raise click.ClickException(str(exc)) from None
+    info = inspect_ply(path)
     validation = info["validation"]
     report = ValidationReport(**{k: validation[k] for k in ValidationReport._fields})
     summary = (f"{path}: {info['num_gaussians']} Gaussians, SH degree {info['sh_degree']}, "

@@ -31,18 +31,14 @@ from cli._output import finish, guarded, json_option
 def command(ply, out, camera_json, look_at, width, height, azimuth, elevation, fov, sh_degree, background, backend,
             as_json) -> None:
     """Render one view of a 3DGS PLY to a PNG."""
-    from seggaussian.io.ply import PlyFormatError
-    from seggaussian.render.quicklook import CameraFileError, QuicklookConfig, render_ply_view
+    from seggaussian.render.quicklook import QuicklookConfig, render_ply_view
 
     if camera_json and look_at:
         raise click.UsageError("give either --camera or --look-at, not both")
     config = QuicklookConfig(ply=ply, out=out, camera_json=camera_json, width=width, height=height,
                              azimuth_deg=azimuth, elevation_deg=elevation, fov_deg=fov, sh_degree=sh_degree,
                              background=tuple(background), backend=backend)
-    try:
-        info = render_ply_view(config)
-    except (PlyFormatError, CameraFileError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+    info = render_ply_view(config)
     summary = (f"{out}: {info['num_gaussians']} Gaussians rendered at {info['width']}x{info['height']} "
                f"(SH degree {info['sh_degree']}, {100 * info['covered_fraction']:.1f}% covered) "
                f"in {info['seconds']:.2f} s")

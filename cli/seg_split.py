@@ -33,10 +33,7 @@ def command(data: Path, ratios, seed: int, reassign: bool, as_json: bool) -> Non
     from seggaussian.build import split_dataset
     from seggaussian.build_config import SplitConfig
 
-    try:
-        counts, reasons, rewritten = split_dataset(data, SplitConfig(ratios=ratios, seed=seed, reassign=reassign))
-    except (FileNotFoundError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+    counts, reasons, rewritten = split_dataset(data, SplitConfig(ratios=ratios, seed=seed, reassign=reassign))
     by_reason: dict[str, int] = {}
     for r in reasons.values():
         by_reason[r] = by_reason.get(r, 0) + 1

@@ -41,10 +41,7 @@ def command(out, scenes, replica_scenes, seed, layout, width, views, max_edge, p
     written: dict[str, list[str]] = {}
     for kind, root, count in jobs:
         report = (lambda i, name, kind=kind, count=count: click.echo(f"{kind} {i + 1}/{count}: {name}", err=True)) if show else None
-        try:
-            written[kind] = synthesize(root, count, seed, kind, config, progress=report)
-        except (OSError, ValueError) as exc:
-            raise click.ClickException(str(exc)) from None
+        written[kind] = synthesize(root, count, seed, kind, config, progress=report)
     seconds = time.perf_counter() - start
     total = sum(len(v) for v in written.values())
     parts = ", ".join(f"{len(v)} {k}" for k, v in written.items())

@@ -300,12 +300,14 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
     scene_path, out = Path(scene_path), Path(out)
     if scene_path.resolve() == out.resolve():
         raise ValueError(f"{out}: refusing to overwrite the input scene")
+    from seggaussian.atomic import ensure_writable_dir
+
+    ensure_writable_dir(out.parent)  # fail before the model runs, not after it
     cameras = read_cameras(cameras_path) if cameras_path is not None else []
     gaussians, report = read_gaussians_ply(scene_path, on_invalid=config.on_invalid)
     if predictor is None:
         predictor = load_model_predictor(config.run, config.checkpoint, device=config.device)
     result = label_gaussians(predictor, gaussians, config, cameras)
-    out.parent.mkdir(parents=True, exist_ok=True)
     # the vocabulary goes into the header so the file explains its own labels
     comments = tuple(f"ovgaussian semantic {i} = {name}" for i, name in enumerate(result.vocabulary))
     write_vertex_table(out, gaussians_to_vertex_table(result.gaussians, byte_order="="), comments=comments)

@@ -47,7 +47,7 @@ from ovgaussian.data import (
     sample_seed, scan_scenes,
 )
 from ovgaussian.train_config import TrainConfig, config_from_dict, config_to_dict
-from seggaussian.atomic import make_dirs, write_text_atomic
+from seggaussian.atomic import ensure_writable_dir, make_dirs, write_text_atomic
 from seggaussian.constants import IGNORE_LABEL
 
 if TYPE_CHECKING:
@@ -399,6 +399,7 @@ def train_in_process_group(
     is_main = group.rank == 0
     notes: list[str] = []
     if is_main:
+        ensure_writable_dir(run_dir)  # fail before reading data and models, not after
         sweep_run_temps(run_dir)  # half-written checkpoints and files of a killed earlier run
 
     vocabulary = make_vocabulary(config.data.num_classes)

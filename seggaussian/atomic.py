@@ -90,6 +90,20 @@ def make_dirs(path: str | os.PathLike) -> Path:
     return path
 
 
+def ensure_writable_dir(path: str | os.PathLike) -> Path:
+    """Create ``path`` (``make_dirs``) and prove it takes a new file, so a command fails on an unusable
+    output folder before its long work rather than after. Errors name ``path``."""
+    path = Path(path)
+    try:
+        make_dirs(path)
+        probe = temp_name(path / "probe")
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, FILE_MODE))
+        os.unlink(probe)
+    except OSError as exc:
+        raise _named(exc, path) from None
+    return path
+
+
 def _named(exc: OSError, path: Path) -> OSError:
     """``exc`` re-made to name ``path`` (the final file, never the temporary)."""
     if exc.errno is None:

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import numpy as np
 
 import seggaussian
-from seggaussian.atomic import sweep_temps
+from seggaussian.atomic import ensure_writable_dir, sweep_temps
 from seggaussian.build_config import BuildConfig, OracleConfig, ViewConfig, config_dict
 from seggaussian.constants import IGNORE_LABEL, SH_C0, read_class_names
 from seggaussian.gaussians import Gaussians
@@ -775,14 +775,15 @@ def build_dataset(config: BuildConfig) -> BuildReport:
     out = Path(config.out)
     cache_root = out / CACHE_DIR
     synthesized: list[str] = []
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "the output is not a folder", str(out))
+    ensure_writable_dir(out)  # fail before building scenes, not after
     if config.source == "synthetic" and not Path(config.root).exists():
         if not config.synthesize_missing:
             raise FileNotFoundError(f"{config.root}: no synthetic tree (write one with `seggaussian synth`)")
         synthesized = synthesize_default(config)
     if config.source == "ply" and config.ply_dir is None:
         raise ValueError("build: --source ply needs --ply-dir (trained PLYs)")
-    if out.exists() and not out.is_dir():
-        raise NotADirectoryError(errno.ENOTDIR, "the output is not a folder", str(out))
     swept = sweep_temps(out, recursive=True)  # leftovers of a killed earlier build
     tasks, failures = discover(config)
     if not tasks and not failures:

@@ -695,7 +695,6 @@ def write_fit_outputs(result: FitResult, config: FitConfig, ply_path: str | Path
     from seggaussian.atomic import write_json_atomic
 
     ply_path = Path(ply_path)
-    ply_path.parent.mkdir(parents=True, exist_ok=True)
     write_gaussians_ply(ply_path, result.gaussians)
     json_path = metrics_path(ply_path)
     payload = {"metrics": result.metrics, "config": config.to_dict(), "history": result.history,
@@ -708,6 +707,9 @@ def write_fit_outputs(result: FitResult, config: FitConfig, ply_path: str | Path
 def fit_to_ply(source: str, root: str | Path, scene_id: str, out: str | Path, config: FitConfig, *, seed: int,
                progress: bool = True) -> FitResult:
     """Read a scene, fit it and write ``out`` (PLY) plus ``out.fit.json``: what ``seggaussian fit`` does."""
+    from seggaussian.atomic import ensure_writable_dir
+
+    ensure_writable_dir(Path(out).parent)  # fail before the fit, not after it
     scene = read_source_scene(source, root, scene_id)
     result = fit_scene(scene, config, seed=seed, progress=progress)
     write_fit_outputs(result, config, out)

@@ -24,6 +24,7 @@ Binary bodies are decoded with one ``np.fromfile`` into a structured dtype (no p
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 from pathlib import Path
@@ -672,13 +673,17 @@ def write_atomic(path: str | os.PathLike, chunks) -> None:
     from seggaussian.atomic import atomic_path
 
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        expected = 0
         for chunk in chunks:
-            if isinstance(chunk, np.ndarray):
-                chunk.tofile(f)
-            else:
-                f.write(chunk)
+            if isinstance(chunk, np.ndarray):  # bytes of the array without a copy; f.write raises on a short write
+                chunk = np.ascontiguousarray(chunk).reshape(-1).view(np.uint8)
+            expected += len(chunk)
+            f.write(chunk)
         f.flush()
         os.fsync(f.fileno())
+        written = os.fstat(f.fileno()).st_size
+        if written != expected:  # ndarray.tofile and some file systems do not report a short write
+            raise OSError(errno.EFBIG, f"short write ({written} of {expected} bytes)", str(path))
 
 
 def write_vertex_table(path: str | os.PathLike, table: np.ndarray, *, fmt: PlyFormat = "binary_little_endian",
