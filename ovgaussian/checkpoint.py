@@ -20,7 +20,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
-from seggaussian.atomic import atomic_dir, sweep_temps, write_bytes_atomic
+from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps, write_bytes_atomic
 
 if TYPE_CHECKING:
     import torch
@@ -78,14 +78,16 @@ def save_checkpoint(run_dir: Path, epoch: int, net, optimizer, state: dict) -> P
     folder = run_dir / CHECKPOINTS_DIR / f"epoch-{epoch:04d}"
     with atomic_dir(folder) as tmp:
         weights = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
-        save_file(weights, str(tmp / "model.safetensors"))
+        with atomic_path(tmp / "model.safetensors") as path:
+            save_file(weights, str(path))
         opt_state = optimizer.state_dict()
         buffers = {}
         for index, entry in opt_state["state"].items():
             for name, value in entry.items():
                 if hasattr(value, "detach"):
                     buffers[f"{index}.{name}"] = value.detach().cpu().contiguous()
-        save_file(buffers, str(tmp / "optimizer.safetensors"))
+        with atomic_path(tmp / "optimizer.safetensors") as path:
+            save_file(buffers, str(path))
         groups = [{k: v for k, v in g.items()} for g in opt_state["param_groups"]]
         write_json_atomic(tmp / "state.json", dict(state, epoch=epoch, param_groups=groups))
     write_json_atomic(run_dir / CHECKPOINTS_DIR / LATEST_NAME,

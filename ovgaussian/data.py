@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections import OrderedDict
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol, Sequence
@@ -506,11 +505,10 @@ class TrainingData:
         self.blend_computations += 1
         ids, weights = blend.ids.long().contiguous(), blend.weights.float().contiguous()
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-            # ids < N <= 2^31: int32 halves the cache
-            save_file({"ids": ids.to(torch.int32), "weights": weights}, str(tmp))
-            os.replace(tmp, path)
+            from seggaussian.atomic import atomic_path
+
+            with atomic_path(path) as tmp:  # ids < N <= 2^31: int32 halves the cache
+                save_file({"ids": ids.to(torch.int32), "weights": weights}, str(tmp))
         return ids, weights
 
     def prepared_view(self, scene_id: str, view_name: str) -> PreparedView:

@@ -83,6 +83,20 @@ def sweep_temps(folder: str | os.PathLike, *, recursive: bool = False) -> int:
     return removed
 
 
+def current_umask() -> int:
+    """The process umask, read without changing it where the kernel reports it (Linux), else set-and-restore."""
+    try:
+        with open("/proc/self/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def make_dirs(path: str | os.PathLike) -> Path:
     """``mkdir -p`` with the umask-derived mode; an existing non-folder gives ``NotADirectoryError``."""
     path = Path(path)
@@ -131,6 +145,7 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     try:
         yield tmp
         if os.path.lexists(tmp):
+            os.chmod(tmp, FILE_MODE & ~current_umask())  # writers that re-create the file (safetensors: 0600)
             os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)

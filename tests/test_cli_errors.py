@@ -10,38 +10,17 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from cli.ovgaussian_cli import main as ov_main
 from cli.seggaussian_cli import main as seg_main
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import write_gaussians_ply
+from cli_inputs import make_cli_inputs
 
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
-    """Small valid inputs: a PLY, a raw synthetic tree, a dataset, a run folder, a bench JSON."""
-    from test_bench import _write_tiny_dataset
-    from test_predict import _tiny_run
-
-    from seggaussian.sources.synthetic import SynthConfig, synthesize
-
-    root = tmp_path_factory.mktemp("inputs")
-    rng = np.random.default_rng(0)
-    n = 50
-    g = Gaussians(rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
-                  np.full((n, 3), -3, np.float32), rng.normal(size=n).astype(np.float32),
-                  rng.normal(size=(n, 1, 3)).astype(np.float32))
-    write_gaussians_ply(root / "scene.ply", g)
-    synthesize(root / "raw" / "scannetpp", 1, 0, "scannetpp", SynthConfig(width=32, num_views=3))
-    dataset = _write_tiny_dataset(root / "tiny")
-    run = _tiny_run(root / "run")
-    (root / "bench.json").write_text(json.dumps({"results": []}))
-    (root / "a_file").write_text("not a folder\n")
-    return {"ply": root / "scene.ply", "raw": root / "raw", "dataset": dataset, "run": run,
-            "bench_json": root / "bench.json", "file": root / "a_file"}
+    return make_cli_inputs(tmp_path_factory.mktemp("inputs"))
 
 
 class _ReadOnly:
@@ -94,7 +73,7 @@ def _cases(i, where):
         "import": (seg_main, ["import", str(i["ply"]), "--out", str(where)]),
         "render": (seg_main, ["render", str(i["ply"]), "--out", str(where / "x.png"), "--width", "16",
                               "--height", "16"]),
-        "fit": (seg_main, ["fit", "--root", str(i["raw"]), "--scene", "sc0_s0", "--out", str(where / "f.ply"),
+        "fit": (seg_main, ["fit", "--root", str(i["raw"]), "--scene", i["scene_id"], "--out", str(where / "f.ply"),
                            "--iterations", "2"]),
         "build": (seg_main, ["build", "--root", str(i["raw"]), "--out", str(where), "--gaussians", "oracle",
                              "--oracle-gaussians", "200"]),
