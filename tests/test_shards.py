@@ -216,3 +216,68 @@ def test_inspect_dataset(tmp_path):
     assert info["problems"] == []
     (ds / "views" / "val-00000-of-00001.parquet").unlink()
     assert any("missing" in p for p in shards.inspect_dataset(ds)["problems"])
+
+
+# --- corrupted shards: named by inspect --verify, by training and by the benchmark -----------------------
+def _corrupt(dataset, how: str):
+    """Truncate, or flip bytes in place (same size), of the gaussians shard of the train split."""
+    manifest = json.loads((dataset / shards.MANIFEST_NAME).read_text())
+    rel = next(r for r in manifest["files"] if r.startswith("gaussians/train"))
+    path = dataset / rel
+    data = bytearray(path.read_bytes())
+    if how == "truncated":
+        data = data[: len(data) // 2]
+    else:  # flip bytes in the middle of the data pages: same size, the footer still parses
+        for i in range(len(data) // 3, len(data) // 3 + 64):
+            data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    return rel, manifest["files"][rel]["scenes"]
+
+
+@pytest.fixture
+def corrupted_dataset(tmp_path, request):
+    from test_bench import _write_tiny_dataset
+
+    dataset = _write_tiny_dataset(tmp_path / "tiny")
+    rel, scenes = _corrupt(dataset, request.param)
+    shards._VERIFIED.clear()
+    return dataset, rel, scenes, request.param
+
+
+@pytest.mark.parametrize("corrupted_dataset", ["truncated", "flipped"], indirect=True)
+def test_corrupted_shard_is_named_by_inspect_train_and_bench(corrupted_dataset, tmp_path):
+    from click.testing import CliRunner
+
+    from cli.ovgaussian_cli import main as ov_main
+    from cli.seggaussian_cli import main as seg_main
+
+    dataset, rel, scenes, how = corrupted_dataset
+    # inspect: sizes always, sha256 with --verify
+    plain = CliRunner().invoke(seg_main, ["inspect", str(dataset), "--json"])
+    if how == "truncated":
+        assert plain.exit_code == 1 and rel in plain.output
+    else:
+        assert plain.exit_code == 0, plain.output  # same size: only the checksum can tell
+    verified = CliRunner().invoke(seg_main, ["inspect", str(dataset), "--verify", "--json"])
+    assert verified.exit_code == 1
+    problems = json.loads(verified.stdout)["problems"]
+    assert len(problems) == 1 and rel in problems[0] and scenes[0] in problems[0]
+    # the read API: the file and the scene are named, with and without --verify
+    # (a flip that still decodes to finite values is only caught by the checksum)
+    for verify in (False, True):
+        shards._VERIFIED.clear()
+        try:
+            shards.read_scene(dataset, "train", scenes[0], verify=verify)
+        except shards.ShardError as exc:
+            assert str(dataset / rel) in str(exc) and scenes[0] in str(exc), str(exc)
+        else:
+            assert how == "flipped" and not verify
+    # training and the benchmark, through their CLIs, with --verify
+    for cli, argv in ((ov_main, ["train", "--data", str(dataset), "--out", str(tmp_path / "run"), "--epochs", "1",
+                                 "--model-preset", "slim", "--verify", "--no-progress"]),
+                      (ov_main, ["bench", "--data", str(dataset), "--predictor", "majority", "--verify",
+                                 "--out", str(tmp_path / "b.json"), "--no-progress"])):
+        shards._VERIFIED.clear()
+        result = CliRunner().invoke(cli, argv)
+        assert result.exit_code == 1 and "Traceback" not in result.output, result.output
+        assert str(dataset / rel) in result.output and scenes[0] in result.output, result.output
