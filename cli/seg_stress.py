@@ -19,13 +19,15 @@ from cli._output import finish, guarded, json_option
 def command(cases: int, seed: int, backend: str, as_json: bool) -> None:
     """Malformed and extreme PLYs, degenerate cameras, label-transfer ties, extreme losses: counts clean
     errors, repairs and NaN/Inf outputs (which must be 0). Exit status 1 when anything failed."""
-    from seggaussian.stress import StressConfig, run_stress
-
     from tqdm import tqdm
 
+    from ovgaussian.stress_losses import LOSS_FAMILY
+    from seggaussian.tools.stress import DATASET_FAMILIES, StressConfig, run_stress
+
     config = StressConfig(cases=cases, seed=seed, backend=backend)
-    with tqdm(total=cases * 5, desc="stress", disable=as_json, file=sys.stderr) as bar:
-        report = run_stress(config, progress=lambda r: bar.update(1))
+    families = (*DATASET_FAMILIES, LOSS_FAMILY)  # the dataset package's cases, then the model package's
+    with tqdm(total=cases * len(families), desc="stress", disable=as_json, file=sys.stderr) as bar:
+        report = run_stress(config, progress=lambda r: bar.update(1), families=families)
     lines = [f"{family:12s} " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
              for family, counts in report.by_family.items()]
     lines += [f"FAILED {c.family} {c.name}: {c.outcome}: {c.detail}" for c in report.failures]

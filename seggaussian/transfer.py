@@ -23,7 +23,7 @@ Conventions (documented again in ``data_specs/SHARDS.md``):
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -41,6 +41,11 @@ REFERENCE_BLOCK = 256
 #: its nearest *distinct* point. A point with this many exact copies of itself (never seen in meshes,
 #: which repeat a vertex at most a few times at seams) is left out of the median and counted.
 SPACING_NEIGHBOURS = 8
+#: Nearest-neighbour backends of ``nearest_neighbours`` (``TransferConfig.backend``).
+KNN_BACKENDS = ("scipy", "open3d")
+
+#: ``query(x [Q, 3], k) -> (distances [Q, k] ascending, indices [Q, k])`` over a fixed set of candidates.
+KnnQuery = Callable[[np.ndarray, int], "tuple[np.ndarray, np.ndarray]"]
 
 
 class TransferStats(NamedTuple):
@@ -131,23 +136,23 @@ def transfer_labels(
     config = config or TransferConfig()
     prep = _prepare(gaussian_means, points, semantic, instance, multilabel, config)
     cand_points = prep.points if prep.all_candidates else prep.points[prep.candidate_index]
-    tree = _build_index(cand_points, config.backend)
-    spacing = median_spacing(lambda x, k: _query(tree, x, config.backend, k), cand_points, config)
+    query = nearest_neighbours(cand_points, config.backend)
+    spacing = median_spacing(query, cand_points, config)
     gate = _gate(spacing, config)
     query_mask, outside_box, nonfinite = _prefilter(prep.means, cand_points, max(config.box_margin, gate))
     n = len(prep.means)
     if len(cand_points) and n and query_mask.all():  # common case: no row copies
-        d, i = _query(tree, prep.means, config.backend)
-        nearest = i if prep.all_candidates else prep.candidate_index[i]
-        distances = d.astype(np.float32)
+        d, i = query(prep.means, 1)
+        nearest = i[:, 0] if prep.all_candidates else prep.candidate_index[i[:, 0]]
+        distances = d[:, 0].astype(np.float32)
     else:
         query_rows = np.flatnonzero(query_mask)
         nearest = np.full(n, -1, np.int64)
         distances = np.full(n, DISTANCE_NOT_MEASURED, np.float32)
         if len(query_rows) and len(cand_points):
-            d, i = _query(tree, prep.means[query_rows], config.backend)
-            nearest[query_rows] = prep.candidate_index[i]
-            distances[query_rows] = d.astype(np.float32)
+            d, i = query(prep.means[query_rows], 1)
+            nearest[query_rows] = prep.candidate_index[i[:, 0]]
+            distances[query_rows] = d[:, 0].astype(np.float32)
     return _finish(prep, nearest, distances, spacing, gate, max(config.box_margin, gate), outside_box, nonfinite)
 
 
@@ -195,6 +200,62 @@ def transfer_labels_reference(
     return _finish(prep, nearest, distances, spacing, gate, margin, int(outside.sum()), int((~finite).sum()))
 
 
+# --- k-nearest vote (a second transfer rule, compared with the shipped one by the transfer sweep) ---------
+def transfer_labels_vote(
+    gaussian_means: np.ndarray,  # [N, 3]
+    points: np.ndarray,  # [P, 3]
+    semantic: np.ndarray,  # [P]
+    k: int,
+    config: TransferConfig | None = None,
+) -> tuple[np.ndarray, float]:  # ([N] int32 labels, gate)
+    """Majority vote of the ``k`` nearest candidates within the distance gate (ties: the label of the
+    nearest voter). Same candidates (with ``candidates="all"`` unlabelled points vote for ignore), kNN
+    backend, spacing estimate and gate as ``transfer_labels``; with ``k = 1`` the labels equal its labels."""
+    config = config or TransferConfig()
+    prep = _prepare(gaussian_means, points, semantic, np.zeros(len(np.asarray(semantic)), np.int32), None, config)
+    cand_points, cand_semantic = prep.points[prep.candidate_index], prep.semantic[prep.candidate_index]
+    labels = np.full(len(prep.means), IGNORE_LABEL, np.int32)
+    if not len(cand_points) or not len(prep.means):
+        return labels, float(config.max_distance or config.gate_min)
+    query = nearest_neighbours(cand_points, config.backend)
+    gate = _gate(median_spacing(query, cand_points, config), config)
+    finite = np.flatnonzero(np.isfinite(prep.means).all(axis=1))
+    d, i = query(prep.means[finite], int(min(k, len(cand_points))))  # [Q, k], ascending distance
+    labels[finite] = vote(cand_semantic[i], d <= gate)
+    return labels, gate
+
+
+def vote(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``[Q]`` majority label of each row of ``labels`` ``[Q, k]`` over its ``valid`` slots (slots ordered
+    nearest first; ties go to the earliest slot; IGNORE_LABEL votes like any label); IGNORE_LABEL for rows
+    without a valid slot."""
+    counts = np.zeros(labels.shape, np.int64)
+    for j in range(labels.shape[1]):
+        counts += valid[:, j : j + 1] & (labels == labels[:, j : j + 1])
+    counts = np.where(valid, counts, -1)
+    best = np.argmax(counts, axis=1)  # first maximum = nearest voter among the tied labels
+    out = labels[np.arange(len(labels)), best].astype(np.int32)
+    return np.where(valid.any(axis=1), out, IGNORE_LABEL).astype(np.int32)
+
+
+def transfer_labels_vote_reference(means, points, semantic, k: int, gate: float, candidates: str = "all") -> np.ndarray:
+    """Brute-force reference of ``transfer_labels_vote`` for a given gate (tiny inputs only)."""
+    means, points = np.asarray(means, np.float64), np.asarray(points, np.float64)
+    semantic = np.asarray(semantic).astype(np.int32)
+    cand = np.ones(len(points), bool) if candidates == "all" else semantic != IGNORE_LABEL
+    cand_points, cand_semantic = points[cand], semantic[cand]
+    out = np.full(len(means), IGNORE_LABEL, np.int32)
+    for r, x in enumerate(means):
+        if not np.isfinite(x).all() or not len(cand_points):
+            continue
+        d = np.sqrt(((cand_points - x) ** 2).sum(axis=1))
+        voters = [int(cand_semantic[j]) for j in np.argsort(d, kind="stable")[:k] if d[j] <= gate]
+        if voters:
+            top = max(voters.count(v) for v in voters)
+            out[r] = next(v for v in voters if voters.count(v) == top)
+    return out
+
+
 # --- steps --------------------------------------------------------------------------------------
 def _prepare(means, points, semantic, instance, multilabel, config: TransferConfig) -> _Prepared:
     means = np.asarray(means, dtype=np.float64)
@@ -235,33 +296,40 @@ def _prepare(means, points, semantic, instance, multilabel, config: TransferConf
     return _Prepared(means, points, semantic, instance, multilabel, candidate_index, len(candidate_index) == p)
 
 
-def _build_index(cand_points: np.ndarray, backend: str):
+def nearest_neighbours(cand_points: np.ndarray, backend: str) -> KnnQuery:
+    """The one k-nearest-neighbour search of the toolkit over ``cand_points`` ``[C, 3]``:
+    ``query(x [Q, 3], k) -> (distances [Q, k] float64 ascending, indices [Q, k] int64)``.
+
+    ``backend`` (``TransferConfig.backend``): ``scipy`` (cKDTree, all cores) or ``open3d`` (its NNS index;
+    it returns squared distances, square-rooted here). With no candidate every distance is inf and every
+    index -1."""
+    cand_points = np.ascontiguousarray(cand_points, dtype=np.float64)
+    if backend not in KNN_BACKENDS:
+        raise ValueError(f"transfer: backend must be 'scipy' or 'open3d', got {backend!r}")
+    if not len(cand_points):
+        return lambda x, k: (np.full((len(x), k), np.inf), np.full((len(x), k), -1, np.int64))
     if backend == "scipy":
         from scipy.spatial import cKDTree
 
-        return cKDTree(cand_points) if len(cand_points) else None
-    if backend == "open3d":
-        import open3d as o3d
+        tree = cKDTree(cand_points)
 
-        if not len(cand_points):
-            return None
-        nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(cand_points))
-        nns.knn_index()
-        return nns
-    raise ValueError(f"transfer: backend must be 'scipy' or 'open3d', got {backend!r}")
+        def query(x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+            d, i = tree.query(x, k=k, workers=-1)
+            return np.asarray(d, np.float64).reshape(len(x), k), np.asarray(i, np.int64).reshape(len(x), k)
 
-
-def _query(tree, queries: np.ndarray, backend: str, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """(distances, indices) of the k nearest candidates; shapes [Q] for k=1 else [Q, k]."""
-    if backend == "scipy":
-        d, i = tree.query(queries, k=k, workers=-1)
-        return np.asarray(d, np.float64), np.asarray(i, np.int64)
+        return query
     import open3d as o3d
 
-    i, d2 = tree.knn_search(o3d.core.Tensor(np.ascontiguousarray(queries)), k)
-    i, d2 = i.numpy().astype(np.int64), d2.numpy().astype(np.float64)
-    d = np.sqrt(np.maximum(d2, 0.0))  # open3d returns squared distances
-    return (d[:, 0], i[:, 0]) if k == 1 else (d, i)
+    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(cand_points))
+    nns.knn_index()
+
+    def query(x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        if not len(x):
+            return np.zeros((0, k)), np.zeros((0, k), np.int64)
+        i, d2 = nns.knn_search(o3d.core.Tensor(np.ascontiguousarray(x, dtype=np.float64)), k)
+        return np.sqrt(np.maximum(d2.numpy().astype(np.float64), 0.0)), i.numpy().astype(np.int64)
+
+    return query
 
 
 def median_spacing(query, cand_points: np.ndarray, config: TransferConfig) -> float:
@@ -450,10 +518,8 @@ def surface_labels(
     if not len(query_points):
         return np.zeros(0, np.int32)
     if faces is None or not len(faces):
-        from scipy.spatial import cKDTree
-
-        _, i = cKDTree(vertices).query(query_points, workers=-1)
-        return np.asarray(semantic, np.int32)[i]
+        _, i = nearest_neighbours(vertices, "scipy")(query_points, 1)
+        return np.asarray(semantic, np.int32)[i[:, 0]]
     import open3d as o3d
 
     mesh = o3d.t.geometry.TriangleMesh()

@@ -1,4 +1,5 @@
-"""Configuration of the per-stage speed/accuracy benchmark (``seggaussian.stage_bench``), kept apart from code.
+"""Configuration of the stage sweeps (``seggaussian.tools.stage_sweep``; CLI ``seggaussian bench --stage``), kept
+apart from code.
 
 Each stage's sweep is one-knob-at-a-time around a base setting: the base row (every knob at its base
 value) plus one row per other value of each knob. In a full run the base is the shipped default of the
@@ -12,6 +13,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
+from seggaussian.fit_config import FitConfig
+
 STAGES = ("fit", "transfer", "render", "build")
 
 Stage = Literal["fit", "transfer", "render", "build"]
@@ -19,7 +22,7 @@ Stage = Literal["fit", "transfer", "render", "build"]
 
 @dataclass(frozen=True)
 class FitSweep:
-    """Knobs of ``fit_scene`` swept by the fit bench (each tuple lists the values tried)."""
+    """Knobs of ``fit_scene`` swept by the fit sweep (each tuple lists the values tried)."""
 
     iterations: tuple[int, ...] = (300, 1000, 3000)
     """``FitConfig.iterations`` values."""
@@ -37,7 +40,7 @@ class FitSweep:
 
 @dataclass(frozen=True)
 class TransferSweep:
-    """Knobs of the label transfer swept by the transfer bench."""
+    """Knobs of the label transfer swept by the transfer sweep."""
 
     candidates: tuple[str, ...] = ("all", "labelled")
     """``TransferConfig.candidates`` values (``all`` = unlabelled points keep ignore; ``labelled`` = the rule
@@ -46,7 +49,7 @@ class TransferSweep:
     """Nearest-neighbour backends (``TransferConfig.backend``)."""
     vote_k: tuple[int, ...] = (1, 3, 5)
     """1 = the shipped nearest-point transfer; k > 1 = majority vote of the k nearest candidates
-    within the gate (ties go to the nearest), implemented in the bench on the same tree."""
+    within the gate (ties go to the nearest), ``transfer.transfer_labels_vote``, on the same KD-tree."""
     point_fraction: tuple[float, ...] = (1.0, 0.5, 0.25)
     """Share of the labelled points kept (seeded random subsample after mesh densification)."""
     mesh_sample_spacing: tuple[float, ...] = (0.0, 0.015, 0.03)
@@ -68,7 +71,7 @@ class TransferSweep:
 
 @dataclass(frozen=True)
 class RenderSweep:
-    """Knobs of blend weights and label maps swept by the render bench."""
+    """Knobs of blend weights and label maps swept by the render sweep."""
 
     scale: tuple[float, ...] = (0.25, 0.5, 1.0)
     """Image size as a share of the view's stored size (``ViewConfig.image_scale``)."""
@@ -94,7 +97,7 @@ class RenderSweep:
 
 @dataclass(frozen=True)
 class BuildSweep:
-    """Settings of ``build_dataset`` swept by the build bench (oracle Gaussians: fitting is benched apart)."""
+    """Settings of ``build_dataset`` swept by the build sweep (oracle Gaussians: fitting is swept apart)."""
 
     jobs: tuple[int, ...] = (1, 2)
     """``BuildConfig.jobs`` values."""
@@ -103,13 +106,13 @@ class BuildSweep:
     cache: tuple[bool, ...] = (False, True)
     """False = a fresh dataset folder; True = an unchanged rerun on the folder the first build wrote."""
     num_gaussians: int = 40_000
-    """``OracleConfig.num_gaussians`` of the benched builds."""
+    """``OracleConfig.num_gaussians`` of the swept builds."""
     max_image_side: int = 640
-    """``ViewConfig.max_image_side`` of the benched builds (shipped default 640)."""
+    """``ViewConfig.max_image_side`` of the swept builds (shipped default 640)."""
 
 
 @dataclass(frozen=True)
-class StageBenchConfig:
+class StageSweepConfig:
     """One ``seggaussian bench --stage ...`` run."""
 
     stage: Stage
@@ -118,7 +121,7 @@ class StageBenchConfig:
     """Raw tree (ScanNet++ or Replica layout, or a synthetic root holding ``scannetpp/`` and
     ``replica/``); None = the default synthetic set, synthesized into ``work_dir`` on first use."""
     work_dir: Path = Path("~/.cache/seggaussian-bench")
-    """Scratch folder (``~`` expanded): synthesized scenes, Replica view renders, benched build datasets."""
+    """Scratch folder (``~`` expanded): synthesized scenes, Replica view renders, swept build datasets."""
     scenes: int = 0
     """Use at most this many scenes (0 = all; the first ones in discovery order)."""
     synthetic_counts: tuple[int, int] = (9, 3)
@@ -140,9 +143,9 @@ class StageBenchConfig:
 
     def __post_init__(self) -> None:
         if self.stage not in STAGES:
-            raise ValueError(f"stage bench: stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
+            raise ValueError(f"stage sweep: stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
         if self.scenes < 0:
-            raise ValueError(f"stage bench: scenes must be >= 0, got {self.scenes}")
+            raise ValueError(f"stage sweep: scenes must be >= 0, got {self.scenes}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -164,12 +167,10 @@ def _coerce(text: str, like):
     return text
 
 
-def with_params(config: StageBenchConfig, params: tuple[str, ...] = (), base: tuple[str, ...] = ()) -> StageBenchConfig:
+def with_params(config: StageSweepConfig, params: tuple[str, ...] = (), base: tuple[str, ...] = ()) -> StageSweepConfig:
     """Override fields of the stage's sweep: ``params`` as ``NAME=V1,V2`` (tuple fields) or ``NAME=V`` (scalars);
     ``base`` as ``NAME=V`` entries of the sweep's ``base`` dict (fit: any ``FitConfig`` field; transfer: a
     swept knob). ValueError naming the option for unknown names or unparsable values."""
-    from seggaussian.fit_config import FitConfig
-
     sweep = getattr(config, config.stage)
     changes: dict = {}
     for item in params:
@@ -220,9 +221,9 @@ QUICK_FIT_BASE = {
 }
 
 
-def quick_config(stage: Stage, **overrides) -> StageBenchConfig:
+def quick_config(stage: Stage, **overrides) -> StageSweepConfig:
     """A sweep that runs in seconds on one tiny synthetic scene (used by the tests and ``--quick``)."""
-    config = StageBenchConfig(
+    config = StageSweepConfig(
         stage=stage, scenes=1, synthetic_counts=(1, 0), synthetic_width=48, synthetic_views=8,
         synthetic_max_edge=0.25, quick=True,
         fit=FitSweep(iterations=(8, 16), downscale=(1.0, 2.0), max_gaussians=(500, 2000), patience=(0, 1),

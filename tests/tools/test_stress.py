@@ -4,12 +4,13 @@ or a counted repair."""
 import numpy as np
 import pytest
 
-from seggaussian import stress
+from ovgaussian.stress_losses import LOSS_FAMILY
+from seggaussian.tools import stress
 
 
 @pytest.fixture(scope="module")
 def report():
-    return stress.run_stress(stress.StressConfig(cases=12, seed=3))
+    return stress.run_stress(stress.StressConfig(cases=12, seed=3), families=(*stress.DATASET_FAMILIES, LOSS_FAMILY))
 
 
 def test_no_nan_inf_and_no_crash(report):

@@ -1,4 +1,4 @@
-"""Stage benchmark: Pareto marking, the k-NN vote against its reference and the shipped transfer, quick
+"""Stage sweeps: Pareto marking, the k-NN vote against its reference and the shipped transfer, quick
 sweeps of every stage on one tiny synthetic scene, JSON round trip, table, plot and CLI."""
 
 from __future__ import annotations
@@ -16,27 +16,21 @@ from seggaussian.build_config import TransferConfig
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.render import render_label_maps
 from seggaussian.render.blend import BlendWeights
-from seggaussian.stage_bench import (
+from seggaussian.tools.pareto import (
     PARETO_TIME_TOLERANCE,
     QUALITY_TOLERANCE,
-    BenchDataError,
-    StageBenchResult,
+    StageSweepResult,
     Trial,
-    default_verdict,
-    format_table,
-    labelled_only_blend,
     mark_pareto,
     one_at_a_time,
     pareto_mask,
-    prepare_data,
-    run_stage_bench,
-    transfer_labels_vote,
-    transfer_labels_vote_reference,
-    vote,
-    write_markdown,
 )
-from seggaussian.stage_bench_config import StageBenchConfig, quick_config, with_params
-from seggaussian.transfer import transfer_labels
+from seggaussian.tools.stage_sweep import run_stage_sweep
+from seggaussian.tools.sweep_config import StageSweepConfig, quick_config, with_params
+from seggaussian.tools.sweep_data import SweepDataError, prepare_data
+from seggaussian.tools.sweep_render import labelled_only_blend
+from seggaussian.tools.sweep_report import default_verdict, format_table, write_markdown
+from seggaussian.transfer import transfer_labels, transfer_labels_vote, transfer_labels_vote_reference, vote
 
 I = IGNORE_LABEL
 
@@ -80,10 +74,10 @@ def test_one_at_a_time_rows():
 
 def test_default_verdict_names_dominating_row():
     trials = mark_pareto([_trial(2.0, 0.5, "base", default=True), _trial(1.0, 0.6, "fast")])
-    result = StageBenchResult("transfer", "label_accuracy", trials, ["s"], [], {}, {})
+    result = StageSweepResult("transfer", "label_accuracy", trials, ["s"], [], {}, {})
     verdict = default_verdict(result)
     assert "NOT on the Pareto front" in verdict and "fast" in verdict
-    ok = StageBenchResult("transfer", "label_accuracy", mark_pareto([_trial(1.0, 0.6, "base", True)]), [], [], {}, {})
+    ok = StageSweepResult("transfer", "label_accuracy", mark_pareto([_trial(1.0, 0.6, "base", True)]), [], [], {}, {})
     assert "is Pareto-optimal" in default_verdict(ok)
 
 
@@ -140,12 +134,12 @@ def test_vote_empty_inputs():
 # --- quick sweeps on one tiny synthetic scene ---------------------------------------------------------
 @pytest.fixture(scope="module")
 def work(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("stage_bench")
+    path = tmp_path_factory.mktemp("stage_sweep")
     prepare_data(quick_config("transfer", work_dir=path))  # synthesized once for every stage
     return path
 
 
-def _check_result(result: StageBenchResult, lo: float, hi: float) -> None:
+def _check_result(result: StageSweepResult, lo: float, hi: float) -> None:
     assert result.trials, "the table has no rows"
     assert any(t.pareto for t in result.trials)
     for t in result.trials:
@@ -156,14 +150,14 @@ def _check_result(result: StageBenchResult, lo: float, hi: float) -> None:
     assert [t.pareto for t in result.trials] == [t.pareto for t in again]
     # JSON round trip
     text = json.dumps(result.to_dict())
-    back = StageBenchResult.from_dict(json.loads(text))
+    back = StageSweepResult.from_dict(json.loads(text))
     assert back.trials == result.trials and back.stage == result.stage and back.scenes == result.scenes
     table = format_table(result)
     assert table.count("\n") == len(result.trials) + 1
 
 
 def test_quick_transfer(work):
-    result = run_stage_bench(quick_config("transfer", work_dir=work))
+    result = run_stage_sweep(quick_config("transfer", work_dir=work))
     _check_result(result, 0.0, 1.0)
     by = {(t.knob, str(t.settings[t.knob] if t.knob != "base" else "")): t for t in result.trials}
     base = by[("base", "")]
@@ -184,7 +178,7 @@ def test_quick_transfer(work):
 
 
 def test_quick_render(work):
-    result = run_stage_bench(quick_config("render", work_dir=work))
+    result = run_stage_sweep(quick_config("render", work_dir=work))
     _check_result(result, 0.0, 1.0)
     rows = {t.knob + str(t.settings.get(t.knob)): t for t in result.trials}
     base = rows["base" + "None"]
@@ -211,7 +205,7 @@ def test_quick_fit(work):
                 max_gaussians=300)
     config = replace(config, fit=replace(config.fit, base=base, iterations=(2,), downscale=(), max_gaussians=(),
                                          patience=()))
-    result = run_stage_bench(config)
+    result = run_stage_sweep(config)
     _check_result(result, 5.0, 60.0)  # novel-view PSNR in dB
     assert [t.knob for t in result.trials] == ["base", "iterations"]
     assert [t.metrics["iterations_run"] for t in result.trials] == [4, 2]
@@ -221,14 +215,14 @@ def test_quick_fit(work):
 
 
 def test_quick_build(work):
-    result = run_stage_bench(quick_config("build", work_dir=work))
+    result = run_stage_sweep(quick_config("build", work_dir=work))
     _check_result(result, 0.0, 1.0)
     fresh, rerun = result.trials
     assert fresh.settings["cache"] == "off" and rerun.settings["cache"] == "on"
     assert fresh.metrics["stages_run"] == 3 and fresh.metrics["stages_cached"] == 0
     assert rerun.metrics["stages_run"] == 0 and rerun.metrics["stages_cached"] == 3
     assert rerun.quality == 1.0 and rerun.is_default and rerun.pareto
-    from seggaussian.stage_bench import format_build_scenes
+    from seggaussian.tools.sweep_report import format_build_scenes
 
     per_scene = format_build_scenes(result).splitlines()
     assert len(per_scene) == 2 + 2 * len(result.scenes)
@@ -238,13 +232,13 @@ def test_quick_build(work):
 
 def test_markdown_and_plot(work, tmp_path):
     trials = mark_pareto([_trial(1.0, 0.5, "base", True), _trial(0.5, 0.4, "fast"), _trial(2.0, 0.7, "slow")])
-    result = StageBenchResult("transfer", "label_accuracy", trials, ["s"], ["executor ray: missing"],
+    result = StageSweepResult("transfer", "label_accuracy", trials, ["s"], ["executor ray: missing"],
                               {"cpus": 2, "load_average_1min": 9.0, "under_load": True}, {})
     md = write_markdown([result], tmp_path / "stages.md", "seggaussian bench --stage transfer")
     text = md.read_text()
     assert "seggaussian bench --stage transfer" in text and "measured under load" in text and "| PD |" in text
     pytest.importorskip("matplotlib")
-    from seggaussian.stage_bench import plot_trials
+    from seggaussian.tools.sweep_report import plot_trials
 
     png = plot_trials([result], tmp_path / "plot.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -252,14 +246,14 @@ def test_markdown_and_plot(work, tmp_path):
 
 # --- errors and CLI -------------------------------------------------------------------------------------
 def test_bad_data_errors(tmp_path):
-    with pytest.raises(BenchDataError, match="does not exist"):
-        prepare_data(StageBenchConfig(stage="transfer", data=tmp_path / "missing"))
+    with pytest.raises(SweepDataError, match="does not exist"):
+        prepare_data(StageSweepConfig(stage="transfer", data=tmp_path / "missing"))
     (tmp_path / "ds").mkdir()
     (tmp_path / "ds" / "manifest.json").write_text("{}")
-    with pytest.raises(BenchDataError, match="built DATASET"):
-        prepare_data(StageBenchConfig(stage="transfer", data=tmp_path / "ds"))
+    with pytest.raises(SweepDataError, match="built DATASET"):
+        prepare_data(StageSweepConfig(stage="transfer", data=tmp_path / "ds"))
     with pytest.raises(ValueError, match="stage must be one of"):
-        StageBenchConfig(stage="nope")
+        StageSweepConfig(stage="nope")
 
 
 def test_cli_quick_json(work, tmp_path):
@@ -271,7 +265,7 @@ def test_cli_quick_json(work, tmp_path):
     assert out.exit_code == 0, out.output
     payload = json.loads(out.stdout)  # progress goes to stderr, the JSON document alone to stdout
     assert "[bench] transfer base" in out.stderr
-    result = StageBenchResult.from_dict(payload["results"][0])
+    result = StageSweepResult.from_dict(payload["results"][0])
     assert result.stage == "transfer" and result.trials
     assert payload["summary"].startswith("bench transfer:")
     # re-render the saved JSON without re-running
@@ -283,18 +277,18 @@ def test_cli_quick_json(work, tmp_path):
 
 
 def test_with_params_overrides_and_errors():
-    config = with_params(StageBenchConfig(stage="fit"), ("iterations=100,200", "patience=", "eval_scale=0.5"),
+    config = with_params(StageSweepConfig(stage="fit"), ("iterations=100,200", "patience=", "eval_scale=0.5"),
                          ("downscale=4", "iterations=200"))
     assert config.fit.iterations == (100, 200) and config.fit.patience == () and config.fit.eval_scale == 0.5
     assert config.fit.base == {"downscale": 4.0, "iterations": 200}
-    config = with_params(StageBenchConfig(stage="build"), ("cache=off,on", "executors=local"))
+    config = with_params(StageSweepConfig(stage="build"), ("cache=off,on", "executors=local"))
     assert config.build.cache == (False, True) and config.build.executors == ("local",)
     with pytest.raises(ValueError, match="--param 'nope=1'"):
-        with_params(StageBenchConfig(stage="render"), ("nope=1",))
+        with_params(StageSweepConfig(stage="render"), ("nope=1",))
     with pytest.raises(ValueError, match="--param 'top_k=x'"):
-        with_params(StageBenchConfig(stage="render"), ("top_k=x",))
+        with_params(StageSweepConfig(stage="render"), ("top_k=x",))
     with pytest.raises(ValueError, match="FitConfig field"):
-        with_params(StageBenchConfig(stage="fit"), (), ("nope=1",))
+        with_params(StageSweepConfig(stage="fit"), (), ("nope=1",))
 
 
 def test_labelled_only_replay_is_the_former_vote():
