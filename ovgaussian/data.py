@@ -9,11 +9,13 @@ Flow, one scene at a time (memory bounded):
    recentred on the bounding-box centre (float64 subtraction, then float32), unit quaternions,
    colours, labels mapped from top-100 class ids to the *seen-class index* (0..C_seen-1) with
    unseen and out-of-vocabulary classes set to ``IGNORE_LABEL``, in 3D and in the 2D label maps.
-3. For a view it computes the blend weights W once (top ``blend_top_k`` contributors per pixel, on
-   the stored, un-augmented geometry) and the MaskCLIP patch features once, both cached on disk in
-   the run's cache folder (safetensors, atomic) and in a view LRU of ``view_cache_size``.
+3. For a view it keeps the label map and the MaskCLIP patch features (computed once, cached on
+   disk at patch resolution in the run's cache folder) in a view LRU of ``view_cache_size``.
 4. :meth:`TrainingData.sample` draws, from a generator seeded by (seed, epoch, step, scene), one
-   train view, an augmentation and the pixels of the 2D losses.
+   train view, an augmentation and the pixels of the 2D losses, and computes the blend weights W
+   (top ``blend_top_k`` contributors, on the stored, un-augmented geometry, float64 camera) at those
+   pixels only (``seggaussian.render.pixel_blend``): bit-identical to the whole view's weights at
+   those pixels, and nothing per pixel is stored on disk.
 
 Augmentation (random uniform scale, rotation about the up axis z, mirror of x and/or y) is a
 similarity ``A`` applied to the network input only: means ``A x``, covariances ``A Sigma A^T``
@@ -351,19 +353,17 @@ class PreparedScene(NamedTuple):
 
 
 class PreparedView(NamedTuple):
-    """A view ready for the 2D losses.
+    """A view ready for the 2D losses (its blend weights are computed per step at the sampled pixels).
 
     Fields:
         name: view name.
-        ids: ``[H, W, K]`` int64 Gaussian ids of the blend weights (-1 unused).
-        weights: ``[H, W, K]`` float32 blend weights.
+        camera: the view's ``seggaussian.cameras.Camera``.
         labels: ``[H, W]`` int64 seen-class index or IGNORE_LABEL.
         teacher: ``[h, w, D]`` float32 MaskCLIP patch features, or None (no teacher).
     """
 
     name: str
-    ids: "torch.Tensor"
-    weights: "torch.Tensor"
+    camera: object
     labels: np.ndarray
     teacher: "torch.Tensor | None"
 
@@ -419,11 +419,32 @@ def prepare_scene(record, vocabulary: Vocabulary) -> PreparedScene:
     )
 
 
-def default_blend_function():
-    """``seggaussian.render.compute_blend_weights``."""
-    from seggaussian.render import compute_blend_weights
+def default_pixel_blend_function():
+    """``seggaussian.render.pixel_blend.compute_pixel_blend_weights``."""
+    from seggaussian.render.pixel_blend import compute_pixel_blend_weights
 
-    return compute_blend_weights
+    return compute_pixel_blend_weights
+
+
+class GeometryTensors(NamedTuple):
+    """The stored (un-augmented) geometry of a scene as float32 CPU tensors, for the blend weights.
+
+    Fields:
+        means: ``[N, 3]``; quats: ``[N, 4]``; log_scales: ``[N, 3]``; opacity_logits: ``[N]``.
+    """
+
+    means: "torch.Tensor"
+    quats: "torch.Tensor"
+    log_scales: "torch.Tensor"
+    opacity_logits: "torch.Tensor"
+
+
+def geometry_tensors(gaussians) -> GeometryTensors:
+    """Copies of a Gaussians' geometry columns (shard arrays may be read-only numpy views)."""
+    import torch
+
+    return GeometryTensors(*(torch.tensor(getattr(gaussians, name))
+                             for name in ("means", "quats", "log_scales", "opacity_logits")))
 
 
 def sample_seed(seed: int, epoch: int, step: int, scene_id: str) -> list[int]:
@@ -439,22 +460,22 @@ class TrainingData:
         source: where SceneRecords come from.
         config: data options.
         vocabulary: the training vocabulary.
-        cache_dir: folder for blend-weight and teacher caches (None: memory only).
+        cache_dir: folder for the teacher cache (None: memory only).
         teacher: the dense teacher, or None (no visual-semantic loss).
-        blend_function: ``compute_blend_weights``-compatible callable (default: seggaussian.render).
+        pixel_blend_function: ``compute_pixel_blend_weights``-compatible callable (default: seggaussian.render).
     """
 
     def __init__(self, source: SceneSource, config: DataConfig, vocabulary: Vocabulary, *,
                  cache_dir: Path | None = None, teacher: "DenseTeacher | None" = None,
-                 blend_function: Callable | None = None, scan: ScanResult | None = None):
+                 pixel_blend_function: Callable | None = None, scan: ScanResult | None = None):
         self.source, self.config, self.vocabulary = source, config, vocabulary
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.teacher = teacher
-        self.blend_function = blend_function
+        self.pixel_blend_function = pixel_blend_function or default_pixel_blend_function()
         self.scan = scan if scan is not None else scan_scenes(source, vocabulary)
-        self._scenes: OrderedDict[str, tuple[PreparedScene, object]] = OrderedDict()
+        self._scenes: OrderedDict[str, tuple[PreparedScene, object, GeometryTensors]] = OrderedDict()
         self._views: OrderedDict[tuple[str, str], PreparedView] = OrderedDict()
-        self.blend_computations = 0  # counted: tests check that weights are computed once per view
+        self.blend_computations = 0  # calls of the pixel blend function (one per sample)
 
     @property
     def scene_ids(self) -> tuple[str, ...]:
@@ -468,7 +489,7 @@ class TrainingData:
         record = self.source.read_scene(scene_id)
         if hasattr(record, "_replace"):  # keep only what later steps need: the train views, no instance maps
             record = record._replace(views=[v._replace(instance=None) for v in record.views if v.role == "train"])
-        entry = (prepare_scene(record, self.vocabulary), record)
+        entry = (prepare_scene(record, self.vocabulary), record, geometry_tensors(record.gaussians))
         self._scenes[scene_id] = entry
         while len(self._scenes) > max(1, self.config.scene_cache_size):
             self._scenes.popitem(last=False)
@@ -478,53 +499,29 @@ class TrainingData:
         return self._record_and_scene(scene_id)[0]
 
     # views ----------------------------------------------------------------------------------
-    def _blend_cache_path(self, scene_id: str, view_name: str) -> Path | None:
-        if self.cache_dir is None:
-            return None
-        key = f"blend_k{self.config.blend_top_k}_{self.scan.fingerprint[:12]}"
-        return self.cache_dir / key / safe_name(scene_id) / f"{safe_name(view_name)}.safetensors"
-
-    def _blend_weights(self, record, view) -> tuple["torch.Tensor", "torch.Tensor"]:
+    def pixel_blend_weights(self, scene_id: str, view: PreparedView, pixels: "torch.Tensor"):
+        """``(ids [P, K], weights [P, K])`` of the view at ``pixels [P, 2]`` (u, v), on the stored geometry."""
         import torch
-        from safetensors.torch import load_file, save_file
 
-        path = self._blend_cache_path(record.scene_id, view.name)
-        if path is not None and path.is_file():
-            loaded = load_file(str(path))
-            return loaded["ids"].long(), loaded["weights"]
-        blend_function = self.blend_function or default_blend_function()
-        g = record.gaussians  # shard arrays may be read-only: copy into tensors
-        tensors = {name: torch.tensor(getattr(g, name)) for name in ("means", "quats", "log_scales", "opacity_logits")}
+        geometry = self._record_and_scene(scene_id)[2]
         cam = view.camera
-        with torch.no_grad():
-            blend = blend_function(
-                tensors["means"], tensors["quats"], tensors["log_scales"], tensors["opacity_logits"],
-                torch.from_numpy(cam.viewmat).float(), torch.from_numpy(cam.K).float(), cam.width, cam.height,
-                top_k=self.config.blend_top_k,
-            )
+        blend = self.pixel_blend_function(
+            *geometry, torch.as_tensor(cam.viewmat, dtype=torch.float64), torch.as_tensor(cam.K, dtype=torch.float64),
+            cam.width, cam.height, pixels, top_k=self.config.blend_top_k,
+        )
         self.blend_computations += 1
-        ids, weights = blend.ids.long().contiguous(), blend.weights.float().contiguous()
-        if path is not None:
-            from seggaussian.atomic import atomic_path
-
-            with atomic_path(path) as tmp:  # ids < N <= 2^31: int32 halves the cache
-                save_file({"ids": ids.to(torch.int32), "weights": weights}, str(tmp))
-        return ids, weights
+        return blend.ids.long(), blend.weights.float()
 
     def prepared_view(self, scene_id: str, view_name: str) -> PreparedView:
         key = (scene_id, view_name)
         if key in self._views:
             self._views.move_to_end(key)
             return self._views[key]
-        _, record = self._record_and_scene(scene_id)
+        record = self._record_and_scene(scene_id)[1]
         view = next((v for v in record.views if v.name == view_name), None)
         if view is None:
             raise KeyError(f"scene {scene_id}: no view named {view_name!r}")
-        ids, weights = self._blend_weights(record, view)
         h, w = view.camera.height, view.camera.width
-        if ids.shape[:2] != (h, w):
-            raise ValueError(f"scene {scene_id} view {view_name}: blend weights {tuple(ids.shape[:2])} "
-                             f"do not match the camera size {(h, w)}")
         if view.semantic is None:
             labels = np.full((h, w), IGNORE_LABEL, np.int64)
         else:
@@ -538,7 +535,7 @@ class TrainingData:
                 raise ValueError(f"scene {scene_id} view {view_name}: no RGB image for the teacher")
             teacher = self.teacher.cached_patch_features(
                 view.rgb, self.cache_dir, f"{safe_name(scene_id)}__{safe_name(view_name)}").patch_features
-        prepared = PreparedView(view_name, ids, weights, labels, teacher)
+        prepared = PreparedView(view_name, view.camera, labels, teacher)
         self._views[key] = prepared
         while len(self._views) > max(1, self.config.view_cache_size):
             self._views.popitem(last=False)
@@ -562,12 +559,9 @@ class TrainingData:
             flat = np.arange(num_pixels)
         else:
             flat = np.sort(rng.choice(num_pixels, size=self.config.pixels_per_view, replace=False))
-        flat_t = torch.from_numpy(flat)
         rows, cols = flat // w, flat % w
         pixels = torch.from_numpy(np.stack([cols, rows], axis=1)).long()
-        k = view.ids.shape[-1]
-        pixel_ids = view.ids.reshape(-1, k)[flat_t]
-        pixel_weights = view.weights.reshape(-1, k)[flat_t]
+        pixel_ids, pixel_weights = self.pixel_blend_weights(scene_id, view, pixels)
         teacher = None
         if view.teacher is not None:
             teacher = sample_patch_features(view.teacher, pixels, (h, w))

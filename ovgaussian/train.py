@@ -373,7 +373,7 @@ def train_in_process_group(
     model_config=None,
     text_embeddings: "torch.Tensor | None" = None,
     teacher=None,
-    blend_function: Callable | None = None,
+    pixel_blend_function: Callable | None = None,
 ) -> TrainResult:
     """Train (or resume) a run. Library entry point of ``ovgaussian train``.
 
@@ -383,7 +383,7 @@ def train_in_process_group(
         model_config: network config overriding the preset (tests: tiny networks).
         text_embeddings: ``[C_seen, D]`` overriding the text encoder (tests).
         teacher: a ``DenseTeacher`` overriding the one built from ``config.teacher`` (tests).
-        blend_function: ``compute_blend_weights`` replacement (tests).
+        pixel_blend_function: ``compute_pixel_blend_weights`` replacement (tests).
     """
     import torch
 
@@ -477,7 +477,7 @@ def train_in_process_group(
     steps_per_epoch = len(scan.usable) // batch_scenes
     total_steps = steps_per_epoch * config.epochs
     data = TrainingData(source, config.data, vocabulary, cache_dir=cache_dir, teacher=teacher,
-                        blend_function=blend_function, scan=scan)
+                        pixel_blend_function=pixel_blend_function, scan=scan)
 
     start_epoch, global_step, last_checkpoint = 0, 0, None
     if saved is not None:

@@ -27,13 +27,13 @@ class DataConfig:
     num_classes: int = 20
     """Benchmark vocabulary size K (20, 50 or 100); the seen classes are the K minus the unseen ones."""
     blend_top_k: int = 16
-    """Contributors kept per pixel in the cached blend weights W (M = W S)."""
+    """Contributors kept per pixel in the blend weights W (M = W S), computed per step at the sampled pixels."""
     pixels_per_view: Optional[int] = None
     """Pixels sampled per view for the 2D losses (uniformly, seeded); None uses every pixel."""
     scene_cache_size: int = 4
     """Preprocessed scenes kept in memory (LRU); older ones are re-read from the shards."""
     view_cache_size: int = 16
-    """Views (blend weights, label map, teacher features) kept in memory (LRU) on top of the disk cache."""
+    """Views (label map, teacher patch features) kept in memory (LRU) on top of the teacher's disk cache."""
     augment: bool = True
     """Apply random scale, rotation about z and flips to the network input (see ovgaussian.data)."""
     scale_range: tuple[float, float] = (0.9, 1.1)

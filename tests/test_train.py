@@ -179,21 +179,31 @@ def test_prepared_scene_is_recentred_and_unseen_ignored(scenes):
     assert (prepared.labels[~sofa] != IGNORE_LABEL).all()
 
 
-def test_training_data_caches_blend_weights_once_per_view(scenes, tmp_path):
+def test_training_data_computes_pixel_weights_on_the_fly_and_stores_none(scenes, tmp_path):
+    from seggaussian.render.pixel_blend import pixel_blend_weights_reference
+    from seggaussian.render.rasterize import camera_tensors
+
     voc = D.make_vocabulary(20)
     cfg = DataConfig(blend_top_k=8, pixels_per_view=100, view_cache_size=1)
     data = D.TrainingData(D.InMemorySource(scenes), cfg, voc, cache_dir=tmp_path)
     first = [data.sample("scene00", np.random.default_rng(i)) for i in range(6)]
-    assert data.blend_computations == 2  # two train views, whatever the view LRU evicts: disk cache
+    assert data.blend_computations == 6  # once per sample, at its pixels only
     assert {s.view_name for s in first} <= {"frame000.jpg", "frame001.jpg"}
+    assert not any(tmp_path.rglob("*")), "no per-view blend weights may be written to the run folder"
     again = D.TrainingData(D.InMemorySource(scenes), cfg, voc, cache_dir=tmp_path)
     s1, s2 = again.sample("scene00", np.random.default_rng(3)), first[3]
-    assert again.blend_computations == 0
-    for a, b in zip(s1, s2):
+    for a, b in zip(s1, s2):  # same generator state -> the same sample, bit for bit
         if isinstance(a, torch.Tensor):
             assert torch.equal(a, b)
-    # labels of the sampled pixels agree with the view's label map; unseen classes ignored in 2D too
+    # the weights are those of the whole view (float64 camera, stored geometry) at the sampled pixels
     view = next(v for v in scenes[0].views if v.name == s1.view_name)
+    g = scenes[0].gaussians
+    viewmat, K = camera_tensors(view.camera)
+    ref = pixel_blend_weights_reference(*(torch.tensor(getattr(g, n)) for n in ("means", "quats", "log_scales",
+                                        "opacity_logits")), viewmat, K, WIDTH, HEIGHT, s1.pixels, 8)
+    assert torch.equal(s1.pixel_ids, ref.ids) and torch.equal(s1.pixel_weights, ref.weights)
+    assert (s1.pixel_ids >= 0).any()
+    # labels of the sampled pixels agree with the view's label map; unseen classes ignored in 2D too
     raw = view.semantic[s1.pixels[:, 1].numpy(), s1.pixels[:, 0].numpy()]
     np.testing.assert_array_equal(s1.pixel_labels.numpy(), D.map_labels(raw, voc))
     assert s1.pixels.shape == (100, 2) and s1.pixel_ids.shape == (100, 8)
