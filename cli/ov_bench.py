@@ -31,15 +31,13 @@ from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
 @click.option("--max-scenes", type=int, default=None, help="Score at most this many scenes per split (first by id).")
 @click.option("--out", "out", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="JSON report path (default: RUN/bench-K<classes>.json, or DATA/bench-<predictor>-K<classes>.json).")
-@click.option("--cache-dir", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Cache the blend weights of the scored views here (reused by later runs on the same dataset).")
 @click.option("--label", default=None, help="Row label of the printed table (default: the run folder or predictor).")
 @click.option("--verify", is_flag=True, help="Check every shard's sha256 against the manifest (sizes always).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Progress bar over scenes.")
 @json_option
 @guarded
 def command(dataset, run, checkpoint, predictor, metric, num_classes, dim, min_alpha, max_views, max_scenes,
-            out, cache_dir, label, verify, progress, as_json):
+            out, label, verify, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
     from ovgaussian.bench import run_bench, table1_header, table1_row, write_json_atomic
 
@@ -49,8 +47,7 @@ def command(dataset, run, checkpoint, predictor, metric, num_classes, dim, min_a
         raise click.UsageError("--run is required with --predictor model")
     config = BenchConfig(dataset=dataset, run=run, checkpoint=checkpoint, predictor=predictor, metrics=metrics,
                          dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,
-                         max_scenes=max_scenes, cache_dir=cache_dir, progress=progress and not as_json,
-                         verify=verify)
+                         max_scenes=max_scenes, progress=progress and not as_json, verify=verify)
     report = run_bench(config)
     if out is None:
         out = (run / f"bench-K{num_classes}.json") if predictor == "model" else \

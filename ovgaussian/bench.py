@@ -7,7 +7,7 @@ Protocol (``data_specs/BENCHMARK.md`` is the prose version):
 - Ground truth: a top-100 id that is not in the vocabulary, and IGNORE_LABEL, become IGNORE (not scored).
 - 3D: one label per Gaussian from its per-Gaussian vector; scored against ``extras['semantic']``.
 - 2D: per view, the per-Gaussian vectors are blended with the view's blend weights (M = W S), then
-  classified per pixel; pixels with accumulated alpha < ``min_alpha`` have no prediction (a miss where
+  classified per pixel, one band of rows at a time (bounded memory; nothing per pixel is stored); pixels with accumulated alpha < ``min_alpha`` have no prediction (a miss where
   the ground truth has a label). Scored against the stored label map of the view.
 - One confusion matrix per (split, dim) accumulated over all scenes/views of the set:
   CSA = mIoU over the K classes, OVA = mIoU over the unseen classes (same matrix as CSA: val scenes,
@@ -28,6 +28,7 @@ from typing import Callable, Iterable, NamedTuple, Protocol, Sequence
 import numpy as np
 
 from ovgaussian.bench_config import (
+    DEFAULT_BAND_ROWS,
     DEFAULT_MIN_ALPHA,
     METRIC_DIMS,
     METRIC_SPLITS,
@@ -161,8 +162,10 @@ class BlendFunctions(NamedTuple):
     """How per-Gaussian vectors become a view's rendered map (injectable for tests).
 
     Fields:
-        blend: ``(gaussians, camera, top_k) -> BlendWeights`` (ids [H,W,K], weights [H,W,K], residual_alpha [H,W]).
-        render: ``(blend, vectors [N, F]) -> [H, W, F]`` = W S.
+        blend: ``(gaussians, camera, top_k) -> blender`` with ``blender.height`` and
+            ``blender.rows(r0, r1) -> BlendWeights`` of the rows ``r0:r1`` (ids ``[R, W, K]``, weights
+            ``[R, W, K]``, residual_alpha ``[R, W]``); the view is scored one band of rows at a time.
+        render: ``(blend, vectors [N, F]) -> [R, W, F]`` = W S.
     """
 
     blend: Callable
@@ -170,20 +173,19 @@ class BlendFunctions(NamedTuple):
 
 
 def default_blend_functions() -> BlendFunctions:
-    """``seggaussian.render``'s blend weights and M = W S, wrapped for numpy in and out."""
+    """``seggaussian.render``'s blend weights (``ViewBlender``, float64 camera) and M = W S, numpy out."""
     import torch
 
     from seggaussian import render
+    from seggaussian.render.pixel_blend import ViewBlender
     from seggaussian.render.rasterize import camera_tensors
 
     def blend(gaussians, camera, top_k):
         # copies: shard columns are read-only numpy views, which torch.from_numpy warns about
         t = {name: torch.tensor(getattr(gaussians, name)) for name in ("means", "quats", "log_scales", "opacity_logits")}
         viewmat, K = camera_tensors(camera)
-        return render.compute_blend_weights(
-            t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
-            camera.width, camera.height, top_k=top_k,
-        )
+        return ViewBlender(t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
+                           camera.width, camera.height, top_k)
 
     def render_vectors(blend_weights, vectors):
         with torch.no_grad():
@@ -191,32 +193,6 @@ def default_blend_functions() -> BlendFunctions:
         return out.detach().cpu().numpy()
 
     return BlendFunctions(blend, render_vectors)
-
-
-def _safe_name(text: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)
-
-
-def view_blend_weights(functions: BlendFunctions, scene, view, top_k: int, cache_dir: Path | None = None):
-    """The blend weights of one view, read from / written to ``cache_dir/<scene>/<view>.safetensors`` when a
-    cache folder is given (the caller keys the folder by dataset fingerprint and top_k)."""
-    if cache_dir is None:
-        return functions.blend(scene.gaussians, view.camera, top_k)
-    import torch
-    from safetensors.torch import load_file, save_file
-
-    from seggaussian.render import BlendWeights
-
-    path = Path(cache_dir) / _safe_name(scene.scene_id) / f"{_safe_name(view.name)}.safetensors"
-    if path.is_file():
-        t = load_file(str(path))
-        return BlendWeights(t["ids"].long(), t["weights"], t["residual_alpha"])
-    blend = functions.blend(scene.gaussians, view.camera, top_k)
-    with atomic_path(path) as tmp:
-        save_file({"ids": torch.as_tensor(blend.ids).to(torch.int32).contiguous(),
-                   "weights": torch.as_tensor(blend.weights).float().contiguous(),
-                   "residual_alpha": torch.as_tensor(blend.residual_alpha).float().contiguous()}, str(tmp))
-    return blend
 
 
 def accumulated_alpha(blend_weights) -> np.ndarray:
@@ -233,16 +209,33 @@ def _to_numpy(x) -> np.ndarray:
     return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
 
 
-def predict_view_labels(predictor: Predictor, vectors: np.ndarray, blend_weights, vocabulary: Vocabulary,
-                        functions: BlendFunctions, min_alpha: float, chunk_rows: int = 65536) -> np.ndarray:
+def stream_view_labels(classify: Callable[[np.ndarray], np.ndarray], vectors: np.ndarray, blender,
+                       functions: BlendFunctions, min_alpha: float, band_rows: int = DEFAULT_BAND_ROWS) -> np.ndarray:
+    """``[H, W]`` labels of one view, ``classify(rendered [M, F]) -> [M]`` where the accumulated alpha reaches
+    ``min_alpha``, IGNORE_LABEL elsewhere. Rendered ``band_rows`` rows at a time: the view's blend weights and
+    rendered map never exist whole (memory ~ band_rows x W x K)."""
+    if band_rows < 1:
+        raise ValueError(f"band_rows must be >= 1, got {band_rows}")
+    height = int(blender.height)
+    bands = []
+    for r0 in range(0, height, band_rows):
+        band = blender.rows(r0, min(height, r0 + band_rows))
+        rendered = np.asarray(functions.render(band, vectors))  # [R, W, F]
+        h, w = rendered.shape[:2]
+        covered = accumulated_alpha(band).reshape(h, w) >= min_alpha
+        labels = np.full((h, w), IGNORE_LABEL, dtype=np.int64)
+        if covered.any():
+            labels[covered] = classify(rendered[covered])
+        bands.append(labels)
+    return np.concatenate(bands, axis=0)
+
+
+def predict_view_labels(predictor: Predictor, vectors: np.ndarray, blender, vocabulary: Vocabulary,
+                        functions: BlendFunctions, min_alpha: float, chunk_rows: int = 65536,
+                        band_rows: int = DEFAULT_BAND_ROWS) -> np.ndarray:
     """``[H, W]`` vocabulary indices of one view, IGNORE_LABEL where the accumulated alpha < ``min_alpha``."""
-    rendered = np.asarray(functions.render(blend_weights, vectors))  # [H, W, F]
-    h, w = rendered.shape[:2]
-    covered = accumulated_alpha(blend_weights).reshape(h, w) >= min_alpha
-    labels = np.full((h, w), IGNORE_LABEL, dtype=np.int64)
-    if covered.any():
-        labels[covered] = classify_vectors(predictor, rendered[covered], vocabulary, chunk_rows)
-    return labels
+    return stream_view_labels(lambda rendered: classify_vectors(predictor, rendered, vocabulary, chunk_rows),
+                              vectors, blender, functions, min_alpha, band_rows)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -280,12 +273,12 @@ def evaluate(
     chunk_rows: int = 65536,
     functions: BlendFunctions | None = None,
     progress: Callable[[str, str], None] | None = None,
-    blend_cache: Path | None = None,
+    band_rows: int = DEFAULT_BAND_ROWS,
 ) -> BenchResult:
     """Score ``predictor`` on the scenes of each split (``{split: iterable of SceneRecord}``).
 
     Each split is iterated once; a scene's per-Gaussian vectors are computed once and reused for its
-    3D labels and every view. ``blend_cache``: folder of cached blend weights (see view_blend_weights).
+    3D labels and every view. Views are streamed: one view's blend weights at a time, ``band_rows`` rows at once.
     Returns per-(dim, metric) results and the confusion matrices.
     """
     unknown = set(metrics) - set(METRICS)
@@ -339,9 +332,9 @@ def evaluate(
                     if view.semantic is None:
                         raise ValueError(f"scene {scene.scene_id} view {view.name}: no stored semantic label map")
                     gt = to_vocabulary_labels(view.semantic, vocabulary, f"scene {scene.scene_id} view {view.name}")
-                    blend_weights = view_blend_weights(functions, scene, view, blend_top_k, blend_cache)
-                    pred = predict_view_labels(predictor, vectors, blend_weights, vocabulary, functions,
-                                               min_alpha, chunk_rows)
+                    blender = functions.blend(scene.gaussians, view.camera, blend_top_k)
+                    pred = predict_view_labels(predictor, vectors, blender, vocabulary, functions,
+                                               min_alpha, chunk_rows, band_rows)
                     if pred.shape != gt.shape:
                         raise ValueError(f"scene {scene.scene_id} view {view.name}: rendered {pred.shape} but "
                                          f"the stored label map is {gt.shape}")
@@ -520,13 +513,10 @@ def run_bench(config: BenchConfig, predictor: Predictor | None = None, *,
     scenes_by_split = {split: read_split(split, ids) for split, ids in available.items()}
     try:
         fingerprint = dataset_fingerprint(config.dataset)
-        blend_cache = None
-        if config.cache_dir is not None:
-            blend_cache = Path(config.cache_dir) / f"blend_k{config.blend_top_k}_{fingerprint['manifest_sha256'][:12]}"
         result = evaluate(predictor, scenes_by_split, vocabulary, metrics=config.metrics, dims=config.dims,
                           min_alpha=config.min_alpha, blend_top_k=config.blend_top_k,
                           max_views_per_scene=config.max_views_per_scene, chunk_rows=config.chunk_rows,
-                          functions=functions, progress=progress, blend_cache=blend_cache)
+                          functions=functions, progress=progress, band_rows=config.band_rows)
     finally:
         if bar is not None:
             bar.close()

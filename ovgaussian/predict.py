@@ -230,7 +230,7 @@ def paint_gaussians(gaussians, labels: np.ndarray, colours: np.ndarray, mode: st
 def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig, cameras=(),
                     functions=None) -> PredictResult:
     """Label every Gaussian against ``config.vocabulary``; render label maps for ``cameras``."""
-    from ovgaussian.bench import accumulated_alpha, default_blend_functions
+    from ovgaussian.bench import default_blend_functions, stream_view_labels
 
     names = tuple(config.vocabulary)
     if not names:
@@ -243,16 +243,11 @@ def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig,
     label_maps = {}
     if cameras:
         functions = functions or default_blend_functions()
-        for name, camera in cameras:
-            blend = functions.blend(gaussians, camera, config.blend_top_k)
-            rendered = np.asarray(functions.render(blend, vectors))
-            h, w = rendered.shape[:2]
-            covered = accumulated_alpha(blend).reshape(h, w) >= config.min_alpha
-            label_map = np.full((h, w), IGNORE_LABEL, np.int64)
-            if covered.any():
-                label_map[covered] = argmax_labels(lambda v: predictor.score_names(v, names), rendered[covered],
-                                                   config.chunk_rows)
-            label_maps[name] = label_map
+        for name, camera in cameras:  # streamed: band_rows rows of a view's blend weights at a time
+            blender = functions.blend(gaussians, camera, config.blend_top_k)
+            label_maps[name] = stream_view_labels(
+                lambda rendered: argmax_labels(lambda v: predictor.score_names(v, names), rendered, config.chunk_rows),
+                vectors, blender, functions, config.min_alpha, config.band_rows)
     return PredictResult(names, labels.astype(np.int32), painted,
                          {n: counts[i] / total for i, n in enumerate(names)},
                          {n: int(counts[i]) for i, n in enumerate(names)}, label_maps)

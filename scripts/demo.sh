@@ -43,10 +43,10 @@ $BIN/ovgaussian train --data "$OUT/dataset" --out "$OUT/run" --epochs "$EPOCHS" 
 step "bench: two baselines and the trained run (K = $CLASSES)"
 for P in majority nearest-colour; do
   $BIN/ovgaussian bench --data "$OUT/dataset" --predictor "$P" --classes "$CLASSES" --max-views 4 \
-      --out "$OUT/bench-$P.json" --cache-dir "$OUT/blend-cache" --no-progress | tail -n 1
+      --out "$OUT/bench-$P.json" --no-progress | tail -n 1
 done
 $BIN/ovgaussian bench --data "$OUT/dataset" --run "$OUT/run" --classes "$CLASSES" --max-views 4 \
-    --out "$OUT/bench-run.json" --cache-dir "$OUT/blend-cache" --no-progress | tail -n 1
+    --out "$OUT/bench-run.json" --no-progress | tail -n 1
 
 step "Table 1 (mIoU %, K = $CLASSES; 2D on at most 4 views per scene)"
 $BIN/python scripts/table1.py "$OUT/bench-majority.json" "$OUT/bench-nearest-colour.json" "$OUT/bench-run.json"

@@ -32,7 +32,12 @@ def fake_blend(gaussians, camera, top_k):
     """``camera`` is a stand-in: an [H, W] map of the Gaussian seen at each pixel (-1 = nothing)."""
     ids = np.asarray(camera)[..., None].astype(np.int64)
     weights = (ids >= 0).astype(np.float32)
-    return SimpleNamespace(ids=ids, weights=weights, residual_alpha=np.zeros(ids.shape[:2], np.float32))
+
+    def rows(r0, r1):
+        return SimpleNamespace(ids=ids[r0:r1], weights=weights[r0:r1],
+                               residual_alpha=np.zeros((r1 - r0, ids.shape[1]), np.float32))
+
+    return SimpleNamespace(height=ids.shape[0], rows=rows)
 
 
 def fake_render(blend, vectors):
@@ -308,11 +313,14 @@ def test_real_renderer_oracle_matches_rendered_label_maps():
                               extras={"semantic": labels})
     cam = Camera(intrinsics(20, 20, 16, 12), look_at([0, 0, 3], [0, 0, 0], up=(0, 1, 0)), 32, 24)
     funcs = default_blend_functions()
-    blend = funcs.blend(g, cam, 16)
+    blender = funcs.blend(g, cam, 16)
     scene = SimpleNamespace(gaussians=g)
-    pred = predict_view_labels(Oracle(), Oracle().encode(scene), blend, VOCAB, funcs, 0.5)
-    stored = render_label_maps(blend, torch.as_tensor(labels.astype(np.int64)), torch.zeros(n, dtype=torch.int64),
-                               len(NAMES)).semantic.numpy()
+    pred = predict_view_labels(Oracle(), Oracle().encode(scene), blender, VOCAB, funcs, 0.5)
+    for band_rows in (1, 5, 24):  # streamed in bands of rows: the same labels as one band
+        np.testing.assert_array_equal(
+            predict_view_labels(Oracle(), Oracle().encode(scene), blender, VOCAB, funcs, 0.5, band_rows=band_rows), pred)
+    stored = render_label_maps(blender.rows(0, 24), torch.as_tensor(labels.astype(np.int64)),
+                               torch.zeros(n, dtype=torch.int64), len(NAMES)).semantic.numpy()
     gt = to_vocabulary_labels(stored, VOCAB)
     covered = gt != I
     assert covered.sum() > 50
@@ -348,7 +356,7 @@ def _write_tiny_dataset(root):
         rows = []
         for i, role in enumerate(("train", "train", "novel")):
             cam = Camera(intrinsics(18, 18, 16, 12), look_at([0.3 * i, 0.2, 3.0], [0, 0, 0], up=(0, 1, 0)), 32, 24)
-            blend = funcs.blend(g, cam, 16)
+            blend = funcs.blend(g, cam, 16).rows(0, 24)
             maps = render_label_maps(blend, torch.as_tensor(labels.astype(np.int64)),
                                      torch.zeros(n, dtype=torch.int64), len(NAMES))
             sem = maps.semantic.numpy().astype(np.int32)
@@ -406,21 +414,29 @@ def test_bench_cli_baseline_writes_json(tiny_dataset, tmp_path):
     assert result.exit_code != 0 and "--run is required" in result.output
 
 
-def test_blend_cache_gives_the_same_result_without_the_rasterizer(tiny_dataset, tmp_path):
+def test_views_are_streamed_in_bands_and_nothing_is_cached(tiny_dataset, tmp_path):
     from ovgaussian.bench import BlendFunctions, default_blend_functions, run_bench
     from ovgaussian.bench_config import BenchConfig
 
-    config = BenchConfig(dataset=tiny_dataset, num_classes=20, progress=False, cache_dir=tmp_path / "cache")
-    first = run_bench(config, predictor=Constant(ID["chair"]))
-    cached = list((tmp_path / "cache").rglob("*.safetensors"))
-    assert len(cached) == 7  # val 3 views, xval 3 views, train 1 novel view
+    real = default_blend_functions()
+    bands = []
 
-    def no_rasterizer(*args):
-        raise AssertionError("blend weights should come from the cache")
+    def recording_blend(gaussians, camera, top_k):
+        blender = real.blend(gaussians, camera, top_k)
+        full_rows = blender.rows
 
-    second = run_bench(config, predictor=Constant(ID["chair"]),
-                       functions=BlendFunctions(no_rasterizer, default_blend_functions().render))
-    assert second.payload["row"] == first.payload["row"]
-    assert second.payload["confusion"] == first.payload["confusion"]
-    plain = run_bench(BenchConfig(dataset=tiny_dataset, num_classes=20, progress=False), predictor=Constant(ID["chair"]))
-    assert plain.payload["confusion"] == first.payload["confusion"]
+        def rows(r0, r1):
+            bands.append(r1 - r0)
+            return full_rows(r0, r1)
+
+        return SimpleNamespace(height=blender.height, rows=rows)
+
+    before = sorted(p for p in tiny_dataset.rglob("*"))
+    whole = run_bench(BenchConfig(dataset=tiny_dataset, num_classes=20, progress=False, band_rows=1000),
+                      predictor=Constant(ID["chair"]))
+    banded = run_bench(BenchConfig(dataset=tiny_dataset, num_classes=20, progress=False, band_rows=5),
+                       predictor=Constant(ID["chair"]), functions=BlendFunctions(recording_blend, real.render))
+    assert banded.payload["confusion"] == whole.payload["confusion"]
+    assert banded.payload["row"] == whole.payload["row"]
+    assert bands and max(bands) == 5 and sum(bands) == 7 * 24  # 7 views of 24 rows, never more than 5 at once
+    assert sorted(p for p in tiny_dataset.rglob("*")) == before  # no per-view blend cache written anywhere

@@ -28,7 +28,7 @@ from numba import prange
 from torch import Tensor
 
 from seggaussian.constants import TILE_SIZE
-from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights
+from seggaussian.render.blend import DEFAULT_TOP_K, BlendWeights, compute_blend_weights
 from seggaussian.render.fast import (
     _ALPHA_MAX, _ALPHA_MIN, _CUTOFF, _DONE_CHECK_EVERY, _HALF, _JIT, _ONE, _T_MIN, _TWO, _ZERO, _exp_neg, _f32,
     run_parallel,
@@ -161,6 +161,59 @@ def blend_weights_at_pixels_fast(
     return PixelBlendWeights(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(residual))
 
 
+class ViewBlender:
+    """One view's projection and tile bins, computed once; blend weights of any pixels or rows on demand.
+
+    ``at_pixels(pixels)`` serves a training step's sampled pixels; ``rows(r0, r1)`` serves a band of whole
+    rows (the 2D benchmark streams a view band by band, so memory is bounded by the band, not the view).
+    Both equal ``compute_blend_weights`` of the whole view at those pixels, bit for bit. Inputs may live
+    on any device; the work and the results are on the CPU.
+    """
+
+    def __init__(
+        self,
+        means: Tensor,  # [N, 3]
+        quats: Tensor,  # [N, 4]
+        log_scales: Tensor,  # [N, 3]
+        opacity_logits: Tensor,  # [N]
+        viewmat: Tensor,  # [4, 4] (float64, as the build renders its label maps)
+        K: Tensor,  # [3, 3]
+        width: int,
+        height: int,
+        top_k: int = DEFAULT_TOP_K,
+    ) -> None:
+        from seggaussian.render.fast_projection import project_gaussians_fast
+        from seggaussian.render.rasterize import check_inputs
+        from seggaussian.render.tiles import bin_gaussians
+
+        if int(top_k) < 1:
+            raise ValueError(f"blend weights: top_k must be >= 1, got {top_k}")
+        self.width, self.height, self.top_k = int(width), int(height), int(top_k)
+        with torch.no_grad():
+            means, quats, log_scales, opacity_logits, viewmat, K = (
+                t.detach().cpu() for t in (means, quats, log_scales, opacity_logits, viewmat, K))
+            check_inputs(means, quats, log_scales, opacity_logits, viewmat, K, self.width, self.height)
+            self.opacities = torch.sigmoid(opacity_logits.to(torch.float32))
+            projection = project_gaussians_fast(means, quats, log_scales, viewmat, K, self.width, self.height)
+            self.means2d, self.conics = projection.means2d.float(), projection.conics.float()
+            self.bins = bin_gaussians(projection, self.width, self.height, self.opacities)
+
+    def at_pixels(self, pixels: Tensor) -> PixelBlendWeights:  # pixels: [P, 2] int (u, v)
+        """Blend weights of the requested pixels (``[P, K]``)."""
+        pixels = check_pixels(pixels.detach().cpu(), self.width, self.height)
+        return blend_weights_at_pixels_fast(self.means2d, self.conics, self.opacities, self.bins, pixels, self.top_k)
+
+    def rows(self, row_start: int, row_stop: int) -> BlendWeights:
+        """Blend weights of the rows ``row_start:row_stop`` as an image ``[rows, W, K]``."""
+        if not 0 <= row_start < row_stop <= self.height:
+            raise ValueError(f"rows {row_start}:{row_stop} are not a non-empty band of the {self.height} rows")
+        v, u = torch.meshgrid(torch.arange(row_start, row_stop), torch.arange(self.width), indexing="ij")
+        found = self.at_pixels(torch.stack([u.reshape(-1), v.reshape(-1)], dim=1))
+        shape = (row_stop - row_start, self.width)
+        return BlendWeights(found.ids.reshape(*shape, self.top_k), found.weights.reshape(*shape, self.top_k),
+                            found.residual_alpha.reshape(shape))
+
+
 def compute_pixel_blend_weights(
     means: Tensor,  # [N, 3]
     quats: Tensor,  # [N, 4]
@@ -173,27 +226,8 @@ def compute_pixel_blend_weights(
     pixels: Tensor,  # [P, 2] int (u, v)
     top_k: int = DEFAULT_TOP_K,
 ) -> PixelBlendWeights:
-    """``compute_blend_weights(...)`` at ``pixels`` only (bit-identical to gathering the full view's weights).
-
-    Tensors may live on any device; the work runs on the CPU and the result is on the CPU.
-    """
-    from seggaussian.render.fast_projection import project_gaussians_fast
-    from seggaussian.render.rasterize import check_inputs
-    from seggaussian.render.tiles import bin_gaussians
-
-    if int(top_k) < 1:
-        raise ValueError(f"compute_pixel_blend_weights: top_k must be >= 1, got {top_k}")
-    width, height, top_k = int(width), int(height), int(top_k)
-    with torch.no_grad():
-        means, quats, log_scales, opacity_logits, viewmat, K = (
-            t.detach().cpu() for t in (means, quats, log_scales, opacity_logits, viewmat, K))
-        check_inputs(means, quats, log_scales, opacity_logits, viewmat, K, width, height)
-        pixels = check_pixels(pixels.detach().cpu(), width, height)
-        opacities = torch.sigmoid(opacity_logits.to(torch.float32))
-        projection = project_gaussians_fast(means, quats, log_scales, viewmat, K, width, height)
-        bins = bin_gaussians(projection, width, height, opacities)
-        return blend_weights_at_pixels_fast(projection.means2d.float(), projection.conics.float(), opacities,
-                                            bins, pixels, top_k)
+    """``compute_blend_weights(...)`` at ``pixels`` only (bit-identical to gathering the full view's weights)."""
+    return ViewBlender(means, quats, log_scales, opacity_logits, viewmat, K, width, height, top_k).at_pixels(pixels)
 
 
 def pixel_blend_weights_reference(
