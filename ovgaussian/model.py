@@ -41,6 +41,25 @@ ATTRIBUTE_GROUPS = (("colour", 3), ("opacity", 1), ("scales", 3), ("quats", 4))
 #: A scene whose half-extent is below this (metres; e.g. one Gaussian) is not rescaled when its
 #: coordinates are normalized (avoids dividing by zero).
 COORD_NORMALIZATION_MIN_EXTENT = 1e-6
+#: Per-Gaussian stages (adapter, decoders) run in chunks of this many rows under activation
+#: checkpointing when gradients are recorded: a chunk's activations are recomputed in backward instead
+#: of kept (about 2.7 KB per Gaussian for the adapter, 4 KB for phi + its 384-d output: 20 GB at
+#: 3 x 1,000,000 Gaussians otherwise).
+CHECKPOINT_ROWS = 1 << 18
+
+
+def checkpointed_rows(fn, *tensors: Tensor, chunk_rows: int | None = None) -> list:
+    """``fn`` applied to row chunks of ``tensors`` (same rows of each), each chunk under activation
+    checkpointing when gradients are recorded and there is more than one chunk; returns the per-chunk
+    outputs. ``fn`` must treat rows independently (no batch statistics)."""
+    from torch.utils.checkpoint import checkpoint
+
+    rows = tensors[0].shape[0]
+    chunk_rows = CHECKPOINT_ROWS if chunk_rows is None else int(chunk_rows)
+    if rows <= chunk_rows or not torch.is_grad_enabled():
+        return [fn(*tensors)]
+    return [checkpoint(fn, *(t[start:start + chunk_rows] for t in tensors), use_reentrant=False)
+            for start in range(0, rows, chunk_rows)]
 
 
 def gaussian_attributes(gaussians: "Mapping[str, Tensor] | object") -> Tensor:
@@ -265,7 +284,7 @@ class OVGaussianNet(nn.Module):
         voxel_features = self.backbone(vox.voxels)  # [M, S]
         per_gaussian = voxel_features[vox.point_to_voxel]  # [N, S]
         if self.config.use_adapter:
-            return self.adapter(per_gaussian, attributes)
+            return torch.cat(checkpointed_rows(self.adapter, per_gaussian, attributes), dim=0)
         return self.point_head(per_gaussian)
 
 

@@ -175,6 +175,29 @@ def render_pixels_reference(pixel_ids, pixel_weights, semantic):
     return out
 
 
+def text_cross_entropy_3d(
+    phi,
+    semantic: "torch.Tensor",  # [N, S] semantic vectors of the labelled Gaussians
+    labels: "torch.Tensor",  # [N] seen-class index
+    text_embeddings: "torch.Tensor",  # [C, D]
+    temperature: float,
+) -> tuple["torch.Tensor", int]:
+    """3D-to-text cross-entropy (mean over the rows, count): ``masked_cross_entropy`` of
+    ``compute_text_logits(phi(semantic))``, over row chunks under activation checkpointing
+    (``ovgaussian.model.checkpointed_rows``): phi's ``[N, D]`` output is never held whole."""
+    from ovgaussian.losses import compute_text_logits, masked_cross_entropy
+    from ovgaussian.model import checkpointed_rows
+
+    def chunk_sum(rows, rows_labels):
+        mean, count = masked_cross_entropy(compute_text_logits(phi(rows), text_embeddings, temperature), rows_labels)
+        return mean * count
+
+    count = int((labels != IGNORE_LABEL).sum())
+    sums = checkpointed_rows(chunk_sum, semantic, labels)
+    total = sum(sums)
+    return (total * 0.0, 0) if count == 0 else (total / count, count)
+
+
 def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embeddings: "torch.Tensor",
                  config: TrainConfig, use_teacher: bool):
     """:class:`ovgaussian.losses.LossTerms` of one scene from its semantic vectors ``[N, S]``."""
@@ -191,8 +214,7 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
     if config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     else:
-        logits = compute_text_logits(net.phi(semantic[valid3]), text_embeddings, temperature)
-        text_3d = masked_cross_entropy(logits, labels[valid3])
+        text_3d = text_cross_entropy_3d(net.phi, semantic[valid3], labels[valid3], text_embeddings, temperature)
     pixel_ids, pixel_weights = sample.pixel_ids.to(device), sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)

@@ -489,3 +489,40 @@ def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
     loaded = load_trained_model(tmp_path / "run")
     assert loaded.run_config["teacher_width"] == 20 and loaded.net.psi[-1].out_features == 20
     assert loaded.checkpoint == result.checkpoint and len(loaded.seen_class_ids) == 16 and not loaded.net.training
+
+
+def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkeypatch):
+    """Adapter and 3D text loss in row chunks under activation checkpointing (the paper-scale memory
+    bound) give the values and gradients of the one-piece computation."""
+    import ovgaussian.model as model_module
+    from ovgaussian.checkpoint import build_network
+    from ovgaussian.train import batch_losses
+
+    voc = D.make_vocabulary(20)
+    data = D.TrainingData(D.InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
+    samples = [data.sample(s, np.random.default_rng(i)) for i, s in enumerate(("scene00", "scene01"))]
+    config = tiny_config(Path("unused"), 1)
+
+    def loss_and_grads():
+        net = build_network(tiny_model_config(12)).train()
+        terms = batch_losses(net, samples, text_stub(), config, False, "cpu")
+        loss = sum(t.total for t in terms)
+        loss.backward()
+        return loss.detach(), {n: p.grad.clone() for n, p in net.named_parameters() if p.grad is not None}
+
+    whole_loss, whole_grads = loss_and_grads()
+    calls = []
+    real = model_module.checkpointed_rows
+
+    def counting(fn, *tensors, chunk_rows=None):
+        out = real(fn, *tensors, chunk_rows=37)  # several chunks, the last one short
+        calls.append(len(out))
+        return out
+
+    monkeypatch.setattr(model_module, "checkpointed_rows", counting)
+    chunk_loss, chunk_grads = loss_and_grads()
+    assert calls and min(calls) > 1
+    torch.testing.assert_close(chunk_loss, whole_loss, rtol=1e-5, atol=1e-6)
+    assert chunk_grads.keys() == whole_grads.keys()
+    for name, grad in whole_grads.items():
+        torch.testing.assert_close(chunk_grads[name], grad, rtol=1e-4, atol=1e-6, msg=name)

@@ -1,0 +1,249 @@
+"""Budget benchmark: one OVGaussian training step at the paper's scale, split by phase.
+
+Workload (issue 17): 3 scenes x 1,000,000 Gaussians (synthetic rooms generated in-process), one 584x876
+train view each, 16,384 sampled pixels per view, the default MinkUNet34C network, text width 384 (MiniLM),
+random teacher features of width 384 standing in for the MaskCLIP patch features (cached per view, so
+not part of a step). A step = sampling (view, augmentation, pixels), blend weights W at the sampled pixels
+(computed on the fly, nothing cached), network forward, M = W S, the three losses, backward, SGD step.
+
+Phases (wall seconds, timed by wrapping the library functions in this process only):
+    sample      view, augmentation of the Gaussians, pixel draw (ovgaussian.data, without the next line)
+    blend       blend weights at the sampled pixels (projection, tile binning, pixel kernel)
+    voxelize    ovgaussian.sparse.voxelize_points
+    kernel_maps submanifold / downsample maps and their gather plans (built once per step: new voxels)
+    network     the rest of the network forward (sparse U-Net, adapter)
+    render      M = W S at the sampled pixels
+    losses      decoders phi / psi and the three losses
+    backward    loss.backward()
+    optimizer   SGD step
+
+Budgets (exit status 1 when one is missed, with the figure printed): peak resident memory of the process
+<= --max-peak-gb (16), median step wall time <= --max-step-s (60 s, the issue's goal on 2 cores).
+
+    .venv/bin/python benchmarks/bench_paper_step.py                          # paper scale, JSON + table
+    .venv/bin/python benchmarks/bench_paper_step.py --gaussians 100000       # reduced scale (development)
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+WIDTH, HEIGHT = 876, 584
+FOCAL = 450.0
+PHASES = ("sample", "blend", "voxelize", "kernel_maps", "network", "render", "losses", "backward", "optimizer")
+
+
+def make_room(seed: int, num_gaussians: int, width: int = WIDTH, height: int = HEIGHT, views: int = 1):
+    """A 6 x 5 x 3 m room: Gaussians on the floor, walls and ceiling plus furniture boxes, labelled, with
+    ``views`` cameras looking into it (label maps: the stand-in classes, the weights do not depend on them)."""
+    import numpy as np
+
+    from seggaussian.cameras import Camera, intrinsics, look_at
+    from seggaussian.gaussians import Gaussians
+    from seggaussian.shards import SceneRecord, ViewRecord
+
+    rng = np.random.default_rng(seed)
+    n = num_gaussians
+    surface = rng.integers(0, 6, n)  # 0 floor, 1 ceiling, 2-5 walls
+    p = rng.uniform([0, 0, 0], [6, 5, 3], size=(n, 3))
+    p[surface == 0, 2] = 0.0
+    p[surface == 1, 2] = 3.0
+    p[surface == 2, 0] = 0.0
+    p[surface == 3, 0] = 6.0
+    p[surface == 4, 1] = 0.0
+    p[surface == 5, 1] = 5.0
+    # 30 % on the surfaces of four furniture boxes (a 3DGS scene's Gaussians lie on surfaces, not in volumes)
+    boxes = np.array([[1.0, 1.0, 0.0, 2.2, 2.0, 0.75], [3.0, 1.2, 0.0, 3.6, 1.8, 0.9],
+                      [1.5, 3.0, 0.0, 3.5, 4.2, 0.6], [4.2, 2.8, 0.0, 5.2, 3.4, 1.2]])
+    furniture = rng.random(n) < 0.3
+    count = int(furniture.sum())
+    box = boxes[rng.integers(0, len(boxes), count)]
+    q = rng.uniform(box[:, :3], box[:, 3:])
+    face = rng.integers(0, 6, count)  # snap one coordinate to a face of the box
+    axis, upper = face % 3, face >= 3
+    q[np.arange(count), axis] = np.where(upper, box[np.arange(count), 3 + axis], box[np.arange(count), axis])
+    p[furniture] = q
+    labels = np.where(furniture, np.array([3, 9, 23, 6])[rng.integers(0, 4, n)],
+                      np.choose(np.minimum(surface, 2), [2, 1, 0]))
+    # log-uniform 3 mm .. 3 cm: a 3DGS scene of this density has mostly centimetre-sized Gaussians
+    log_scales = np.log(rng.uniform(0.003, 0.03, (n, 3))).astype(np.float32)
+    g = Gaussians.from_arrays(p, rng.normal(size=(n, 4)), log_scales, rng.normal(2.0, 1.0, n),
+                              rng.normal(0, 0.5, (n, 1, 3)), extras={"semantic": labels.astype(np.int32)})
+    records = []
+    for v in range(views):
+        angle = 2 * np.pi * v / max(views, 1)
+        eye = [3.0 + 2.2 * np.cos(angle), 2.5 + 1.8 * np.sin(angle), 1.6]
+        target = [3.0 - 2.0 * np.cos(angle), 2.5 - 1.5 * np.sin(angle), 1.0]
+        cam = Camera(intrinsics(FOCAL, FOCAL, width / 2, height / 2), look_at(eye, target), width, height)
+        semantic = rng.choice([0, 1, 2, 3], size=(height, width)).astype(np.int32)
+        records.append(ViewRecord(f"view{v:03d}", "train", cam, np.zeros((height, width, 3), np.uint8), semantic, None))
+    return SceneRecord(f"paper{seed}", "synthetic", g, records)
+
+
+class PhaseTimer:
+    """Accumulates wall seconds per phase; nested phases are subtracted from the enclosing one."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+        self._stack: list[list] = []
+
+    def wrap(self, phase: str, fn):
+        @functools.wraps(fn)
+        def timed(*args, **kwargs):
+            self._stack.append([phase, 0.0])
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                elapsed = time.perf_counter() - t0
+                _, nested = self._stack.pop()
+                self.seconds[phase] += elapsed - nested
+                if self._stack:
+                    self._stack[-1][1] += elapsed
+        return timed
+
+    def measure(self, phase: str):
+        timer = self
+
+        class _Block:
+            def __enter__(self):
+                timer._stack.append([phase, 0.0])
+                self.t0 = time.perf_counter()
+
+            def __exit__(self, *exc):
+                elapsed = time.perf_counter() - self.t0
+                _, nested = timer._stack.pop()
+                timer.seconds[phase] += elapsed - nested
+                if timer._stack:
+                    timer._stack[-1][1] += elapsed
+
+        return _Block()
+
+
+def instrument(timer: PhaseTimer, data, net) -> None:
+    """Wrap the library functions of each phase (this process only)."""
+    import ovgaussian.model as model_module
+    import ovgaussian.sparse.gather_gemm as gather_gemm
+    import ovgaussian.sparse.kernel_map as kernel_map
+    import ovgaussian.train as train_module
+
+    voxelize = model_module.voxelize_points
+
+    def counting_voxelize(*args, **kwargs):
+        result = voxelize(*args, **kwargs)
+        timer.voxels = len(result.voxels.sites)
+        return result
+
+    model_module.voxelize_points = timer.wrap("voxelize", counting_voxelize)
+    kernel_map.build_submanifold_map = timer.wrap("kernel_maps", kernel_map.build_submanifold_map)
+    kernel_map.build_downsample_map = timer.wrap("kernel_maps", kernel_map.build_downsample_map)
+    gather_gemm.gather_plans = timer.wrap("kernel_maps", gather_gemm.gather_plans)
+    train_module.render_pixels = timer.wrap("render", train_module.render_pixels)
+    data.pixel_blend_weights = timer.wrap("blend", data.pixel_blend_weights)
+    data.sample = timer.wrap("sample", data.sample)
+    net.forward = timer.wrap("network", net.forward)
+
+
+def run(args) -> dict:
+    import numpy as np
+    import torch
+
+    from ovgaussian.checkpoint import build_network
+    from ovgaussian.data import InMemorySource, TrainingData, make_vocabulary
+    from ovgaussian.train import batch_losses, make_model_config
+    from ovgaussian.train_config import DataConfig, TrainConfig
+
+    t_setup = time.perf_counter()
+    config = TrainConfig(model_preset=args.preset, data=DataConfig(pixels_per_view=args.pixels))
+    vocabulary = make_vocabulary(20)
+    records = [make_room(s, args.gaussians) for s in range(args.scenes)]
+    data = TrainingData(InMemorySource(records), config.data, vocabulary)
+    text = torch.nn.functional.normalize(torch.randn(len(vocabulary.class_ids), 384), dim=1)
+    net = build_network(make_model_config(config, 384)).train()
+    optimizer = torch.optim.SGD(net.parameters(), lr=0.02, momentum=0.9)
+    setup_s = time.perf_counter() - t_setup
+    timer = PhaseTimer()
+    instrument(timer, data, net)
+    steps = []
+    voxels = None
+    for step in range(args.steps + 1):
+        timer.seconds.clear()
+        t0, c0 = time.perf_counter(), time.process_time()
+        samples = [data.sample(r.scene_id, np.random.default_rng([step, i])) for i, r in enumerate(records)]
+        samples = [s._replace(teacher=torch.randn(len(s.pixels), 384)) for s in samples]
+        optimizer.zero_grad(set_to_none=True)
+        with timer.measure("losses"):
+            terms = batch_losses(net, samples, text, config, True, "cpu")
+            loss = sum(t.total for t in terms) / len(terms)
+        with timer.measure("backward"):
+            loss.backward()
+        with timer.measure("optimizer"):
+            optimizer.step()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        if step > 0 or args.steps == 0:
+            steps.append({"wall_s": wall, "cpu_s": cpu, "voxels": getattr(timer, "voxels", None), "phases_s": {p: timer.seconds.get(p, 0.0) for p in PHASES},
+                          "loss": float(loss.detach())})
+        print(f"step {step}{' (warm-up)' if step == 0 and args.steps else ''}: {getattr(timer, 'voxels', 0):,} voxels, "
+              f"{wall:.1f} s wall, {cpu:.1f} s CPU, "
+              + ", ".join(f"{p} {timer.seconds.get(p, 0.0):.2f}" for p in PHASES), file=sys.stderr, flush=True)
+        del samples, terms, loss
+    peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    median = statistics.median(s["wall_s"] for s in steps)
+    phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
+    return {
+        "workload": {"scenes": args.scenes, "gaussians_per_scene": args.gaussians, "image": f"{HEIGHT}x{WIDTH}",
+                     "pixels_per_view": args.pixels, "preset": args.preset,
+                     "parameters": sum(p.numel() for p in net.parameters())},
+        "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "platform": platform.platform(),
+                    "loadavg_at_end": os.getloadavg()},
+        "setup_s": setup_s, "steps": steps, "step_wall_s_median": median,
+        "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
+        "phases_s_median": phases, "peak_rss_gb": peak_gb,
+        "budgets": {"peak_rss_gb": args.max_peak_gb, "step_wall_s": args.max_step_s},
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--gaussians", type=int, default=1_000_000, help="Gaussians per scene")
+    parser.add_argument("--scenes", type=int, default=3)
+    parser.add_argument("--pixels", type=int, default=16384, help="sampled pixels per view")
+    parser.add_argument("--preset", default="default", choices=("default", "slim"))
+    parser.add_argument("--steps", type=int, default=2, help="measured steps after one warm-up step")
+    parser.add_argument("--max-peak-gb", type=float, default=16.0)
+    parser.add_argument("--max-step-s", type=float, default=60.0)
+    args = parser.parse_args()
+    result = run(args)
+    print(json.dumps(result))
+    phases = result["phases_s_median"]
+    print("| phase | " + " | ".join(PHASES) + " | step wall | step CPU | peak RSS |")
+    print("|---|" + "---:|" * (len(PHASES) + 3))
+    print("| seconds | " + " | ".join(f"{phases[p]:.2f}" for p in PHASES)
+          + f" | {result['step_wall_s_median']:.1f} | {result['step_cpu_s_median']:.1f} | {result['peak_rss_gb']:.2f} GB |")
+    failed = []
+    if result["peak_rss_gb"] > args.max_peak_gb:
+        failed.append(f"peak memory {result['peak_rss_gb']:.2f} GB > {args.max_peak_gb} GB")
+    if result["step_wall_s_median"] > args.max_step_s:
+        failed.append(f"step {result['step_wall_s_median']:.1f} s > {args.max_step_s} s")
+    status = "FAILED: " + "; ".join(failed) if failed else "within budget"
+    print(f"paper step ({args.scenes} x {args.gaussians:,} Gaussians, {args.pixels:,} px, {args.preset}): "
+          f"{result['step_wall_s_median']:.1f} s wall, {result['step_cpu_s_median']:.1f} s CPU, "
+          f"peak {result['peak_rss_gb']:.2f} GB -> {status}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
