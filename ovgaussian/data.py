@@ -46,6 +46,9 @@ if TYPE_CHECKING:
 
 #: Label values of int32 maps are looked up in a table of this size (IGNORE_LABEL = 65535 fits).
 LABEL_TABLE_SIZE = 65536
+#: Bytes a safetensors file takes beyond its tensor data (JSON header with names, shapes, offsets); an
+#: upper bound used when checking the cache budget before writing.
+SAFETENSORS_HEADER_ALLOWANCE = 512
 #: Quaternions recovered from rotation matrices: the largest of the four candidates is at least 1/2, so
 #: this floor only protects against a non-orthonormal input.
 QUAT_FROM_MATRIX_EPS = 1e-12
@@ -463,11 +466,14 @@ class TrainingData:
         cache_dir: folder for the teacher cache (None: memory only).
         teacher: the dense teacher, or None (no visual-semantic loss).
         pixel_blend_function: ``compute_pixel_blend_weights``-compatible callable (default: seggaussian.render).
+        cache_budget_bytes: most bytes the files under ``cache_dir`` may take (teacher features beyond it
+            are computed per use, not cached); None: no limit.
     """
 
     def __init__(self, source: SceneSource, config: DataConfig, vocabulary: Vocabulary, *,
                  cache_dir: Path | None = None, teacher: "DenseTeacher | None" = None,
-                 pixel_blend_function: Callable | None = None, scan: ScanResult | None = None):
+                 pixel_blend_function: Callable | None = None, scan: ScanResult | None = None,
+                 cache_budget_bytes: int | None = None):
         self.source, self.config, self.vocabulary = source, config, vocabulary
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.teacher = teacher
@@ -476,6 +482,9 @@ class TrainingData:
         self._scenes: OrderedDict[str, tuple[PreparedScene, object, GeometryTensors]] = OrderedDict()
         self._views: OrderedDict[tuple[str, str], PreparedView] = OrderedDict()
         self.blend_computations = 0  # calls of the pixel blend function (one per sample)
+        self.cache_budget_bytes = cache_budget_bytes
+        self._cache_bytes: int | None = None  # bytes under cache_dir, counted on first use
+        self.teacher_uncached = 0  # teacher features computed without caching (budget reached)
 
     @property
     def scene_ids(self) -> tuple[str, ...]:
@@ -533,13 +542,34 @@ class TrainingData:
         if self.teacher is not None:
             if view.rgb is None:
                 raise ValueError(f"scene {scene_id} view {view_name}: no RGB image for the teacher")
-            teacher = self.teacher.cached_patch_features(
-                view.rgb, self.cache_dir, f"{safe_name(scene_id)}__{safe_name(view_name)}").patch_features
+            teacher = self._teacher_features(view.rgb, f"{safe_name(scene_id)}__{safe_name(view_name)}")
         prepared = PreparedView(view_name, view.camera, labels, teacher)
         self._views[key] = prepared
         while len(self._views) > max(1, self.config.view_cache_size):
             self._views.popitem(last=False)
         return prepared
+
+    def _teacher_features(self, rgb: np.ndarray, name: str) -> "torch.Tensor":
+        """Patch features of a view: from the disk cache, or computed and cached while the run folder's
+        caches stay within ``cache_budget_bytes``; past it computed per use (counted in ``teacher_uncached``)."""
+        if self.cache_dir is None or self.cache_budget_bytes is None:
+            return self.teacher.cached_patch_features(rgb, self.cache_dir, name).patch_features
+        if self._cache_bytes is None:
+            from ovgaussian.cache_budget import folder_bytes
+
+            self._cache_bytes = folder_bytes(self.cache_dir)
+        path = self.teacher.cache_path(self.cache_dir, name)
+        existed = path.is_file()
+
+        def may_write(nbytes: int) -> bool:
+            room = self._cache_bytes + nbytes + SAFETENSORS_HEADER_ALLOWANCE <= self.cache_budget_bytes
+            self.teacher_uncached += 0 if room else 1
+            return room
+
+        features = self.teacher.cached_patch_features(rgb, self.cache_dir, name, may_write).patch_features
+        if not existed and path.is_file():
+            self._cache_bytes += path.stat().st_size
+        return features
 
     # samples --------------------------------------------------------------------------------
     def sample(self, scene_id: str, rng: np.random.Generator) -> SceneSample:

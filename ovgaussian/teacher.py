@@ -24,7 +24,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
 
@@ -135,19 +135,28 @@ class DenseTeacher:
         grid = tokens[0, 1:].reshape(in_h // self.patch_size, in_w // self.patch_size, -1).float().contiguous()
         return TeacherFeatures(grid, (height, width))
 
-    def cached_patch_features(self, rgb: np.ndarray, cache_dir: Path | None, name: str) -> TeacherFeatures:
-        """:meth:`compute_patch_features`, cached as ``cache_dir/teacher_<key>/<name>.safetensors``."""
+    def cache_path(self, cache_dir: Path, name: str) -> Path:
+        """Where :meth:`cached_patch_features` keeps the features of view ``name``."""
+        return Path(cache_dir) / f"teacher_{self.cache_key}" / f"{name}.safetensors"
+
+    def cached_patch_features(self, rgb: np.ndarray, cache_dir: Path | None, name: str,
+                              may_write: "Callable[[int], bool] | None" = None) -> TeacherFeatures:
+        """:meth:`compute_patch_features`, cached as ``cache_dir/teacher_<key>/<name>.safetensors`` (patch
+        resolution, float32). ``may_write(nbytes)``: asked before a new file is written (a disk budget);
+        when it says no, the features are returned without being cached."""
         from safetensors.torch import load_file, save_file
 
         if cache_dir is None:
             return self.compute_patch_features(rgb)
-        path = Path(cache_dir) / f"teacher_{self.cache_key}" / f"{name}.safetensors"
+        path = self.cache_path(cache_dir, name)
         if path.is_file():
             loaded = load_file(str(path))
             size = tuple(int(x) for x in loaded["image_size"].tolist())
             if size == tuple(rgb.shape[:2]):
                 return TeacherFeatures(loaded["patch_features"], size)
         features = self.compute_patch_features(rgb)
+        if may_write is not None and not may_write(features.patch_features.numel() * 4):
+            return features
         import torch
 
         from seggaussian.atomic import atomic_path

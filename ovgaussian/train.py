@@ -46,6 +46,7 @@ from ovgaussian.data import (
     InMemorySource, SceneSample, ShardSource, TrainingData, epoch_batches, make_vocabulary, rank_slice,
     sample_seed, scan_scenes,
 )
+from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, DATASET_INTERNAL_FOLDERS, folder_bytes
 from ovgaussian.train_config import TrainConfig, config_from_dict, config_to_dict
 from seggaussian.atomic import ensure_writable_dir, make_dirs, write_text_atomic
 from seggaussian.constants import IGNORE_LABEL
@@ -498,8 +499,11 @@ def train_in_process_group(
         raise ValueError(f"a global batch of {batch_scenes} scenes cannot be split over {group.world_size} processes")
     steps_per_epoch = len(scan.usable) // batch_scenes
     total_steps = steps_per_epoch * config.epochs
+    cache_budget = None
+    if isinstance(getattr(source, "dataset", None), Path):  # shards on disk: caches within the budget
+        cache_budget = int(CACHE_BUDGET_FRACTION * folder_bytes(source.dataset, DATASET_INTERNAL_FOLDERS))
     data = TrainingData(source, config.data, vocabulary, cache_dir=cache_dir, teacher=teacher,
-                        pixel_blend_function=pixel_blend_function, scan=scan)
+                        pixel_blend_function=pixel_blend_function, scan=scan, cache_budget_bytes=cache_budget)
 
     start_epoch, global_step, last_checkpoint = 0, 0, None
     if saved is not None:
@@ -577,6 +581,11 @@ def train_in_process_group(
             import torch.distributed as dist
 
             dist.barrier()
+    if data.teacher_uncached:
+        notes.append(f"teacher features computed {data.teacher_uncached} times without caching: the run folder's "
+                     f"caches reached {100 * CACHE_BUDGET_FRACTION:.0f} % of the dataset's size")
+        if is_main:
+            LOG.warning(notes[-1])
     return TrainResult(run_dir, max(end_epoch, start_epoch), global_step, last_epoch_metrics, dict(scan.skipped),
                        len(scan.usable), last_checkpoint, tuple(notes))
 
