@@ -176,8 +176,7 @@ def default_blend_functions() -> BlendFunctions:
     """``seggaussian.render``'s blend weights (``ViewBlender``, float64 camera) and M = W S, numpy out."""
     import torch
 
-    from seggaussian import render
-    from seggaussian.render.pixel_blend import ViewBlender
+    from seggaussian.render.pixel_blend import ViewBlender, render_features_no_grad
     from seggaussian.render.rasterize import camera_tensors
 
     def blend(gaussians, camera, top_k):
@@ -187,10 +186,9 @@ def default_blend_functions() -> BlendFunctions:
         return ViewBlender(t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
                            camera.width, camera.height, top_k)
 
-    def render_vectors(blend_weights, vectors):
-        with torch.no_grad():
-            out = render.render_features(blend_weights, torch.as_tensor(vectors, dtype=torch.float32))
-        return out.detach().cpu().numpy()
+    def render_vectors(blend_weights, vectors):  # render.render_features' sum, compiled (no autograd needed)
+        return render_features_no_grad(_to_numpy(blend_weights.ids), _to_numpy(blend_weights.weights),
+                                       np.asarray(vectors, dtype=np.float32))
 
     return BlendFunctions(blend, render_vectors)
 

@@ -122,3 +122,18 @@ def test_semantic_map_forward_and_backward_equal_the_cached_w_definition(tmp_pat
     (g_fly,) = torch.autograd.grad((m_fly * upstream).sum(), semantic)
     assert torch.equal(m_fly, m_cached) and torch.equal(g_fly, g_cached)
     assert m_fly.abs().sum() > 0 and (g_fly != 0).any(dim=1).sum() > 100
+
+
+def test_compiled_evaluation_render_equals_render_features():
+    from seggaussian.render import render_features
+    from seggaussian.render.pixel_blend import ViewBlender, render_features_no_grad
+
+    geometry, (viewmat, K) = make_scene(7, 1500, 50, 40)
+    band = ViewBlender(*geometry, viewmat, K, 50, 40, 16).rows(3, 29)
+    features = torch.randn(1500, 16)
+    expected = render_features(band, features).numpy()
+    got = render_features_no_grad(band.ids.numpy(), band.weights.numpy(), features.numpy())
+    assert got.shape == (26, 50, 16) and np.abs(expected).sum() > 0
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="refer to Gaussian"):
+        render_features_no_grad(band.ids.numpy(), band.weights.numpy(), features[:10].numpy())

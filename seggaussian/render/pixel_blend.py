@@ -241,3 +241,36 @@ def pixel_blend_weights_reference(
     u, v = pixels[:, 0], pixels[:, 1]
     return PixelBlendWeights(full.ids[v, u].clone(), full.weights[v, u].clone(), full.residual_alpha[v, u].clone())
 
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _render_kernel(ids, weights, features, out):
+    """out[p] = sum_k weights[p, k] * features[ids[p, k]] over used slots, slot by slot (render_features' order)."""
+    dim = features.shape[1]
+    for p in prange(ids.shape[0]):
+        for k in range(ids.shape[1]):
+            g = ids[p, k]
+            if g >= 0:
+                w = weights[p, k]
+                for d in range(dim):
+                    out[p, d] = out[p, d] + w * features[g, d]
+
+
+def render_features_no_grad(
+    ids: np.ndarray,  # [..., K] int Gaussian ids (-1 unused)
+    weights: np.ndarray,  # [..., K] float32 blend weights
+    features: np.ndarray,  # [N, D] float32
+) -> np.ndarray:  # [..., D] float32
+    """``M = W S`` without autograd (evaluation): ``blend.render_features``' sum, compiled and parallel."""
+    ids = np.asarray(ids)
+    shape = ids.shape[:-1]
+    flat_ids = np.ascontiguousarray(ids.reshape(-1, ids.shape[-1]), dtype=np.int64)
+    flat_w = np.ascontiguousarray(np.asarray(weights).reshape(flat_ids.shape), dtype=np.float32)
+    features = np.ascontiguousarray(features, dtype=np.float32)
+    if flat_ids.size and int(flat_ids.max()) >= features.shape[0]:
+        raise ValueError(f"render_features_no_grad: weights refer to Gaussian {int(flat_ids.max())} "
+                         f"but features has {features.shape[0]} rows")
+    out = np.zeros((flat_ids.shape[0], features.shape[1]), np.float32)
+    if out.size:
+        run_parallel(_render_kernel, flat_ids, flat_w, features, out, chunk=1024)
+    return out.reshape(*shape, features.shape[1])
