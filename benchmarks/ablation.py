@@ -108,8 +108,7 @@ def score(args, run: Path, k: int) -> dict:
     from ovgaussian.bench_config import BenchConfig
 
     config = BenchConfig(dataset=args.data, run=run, metrics=("CSA", "NVA"), dims=("3d", "2d"), num_classes=k,
-                         max_views_per_scene=args.max_views, max_scenes=args.max_scenes, progress=False,
-                         cache_dir=args.out / "bench-cache")
+                         max_views_per_scene=args.max_views, max_scenes=args.max_scenes, progress=False)
     report = run_bench(config)
     write_json_atomic(args.out / "reports" / f"{run.name}-K{k}.json", report.payload)
     return report.payload["row"]

@@ -216,6 +216,33 @@ def run(args) -> dict:
     }
 
 
+def compare_text_loss(rows: int, repeats: int) -> dict:
+    """3D-to-text loss of ``rows`` Gaussians, forward + backward: phi then compute_text_logits (the direct
+    expression, what a step used before) vs decoded_text_logits (Gram form), interleaved; default widths."""
+    import torch
+
+    from ovgaussian.losses import compute_text_logits, masked_cross_entropy
+    from ovgaussian.model import OVGaussianNet
+    from ovgaussian.train import decoded_text_logits
+
+    torch.manual_seed(0)
+    phi = OVGaussianNet().phi  # 16 -> 128 -> 512 (CLIP width); the MiniLM run uses 384
+    text = torch.randn(16, phi[-1].out_features)
+    labels = torch.randint(0, 16, (rows,))
+    totals = {"direct": [0.0, 0.0], "gram": [0.0, 0.0]}
+    for _ in range(repeats):
+        for name in totals:
+            semantic = torch.randn(rows, 16, requires_grad=True)
+            t, c = time.perf_counter(), time.process_time()
+            logits = (compute_text_logits(phi(semantic), text, 0.07) if name == "direct"
+                      else decoded_text_logits(phi, semantic, text, 0.07))
+            masked_cross_entropy(logits, labels)[0].backward()
+            totals[name][0] += (time.perf_counter() - t) / repeats
+            totals[name][1] += (time.process_time() - c) / repeats
+    return {"rows": rows, "width": phi[-1].out_features, **{f"{k}_wall_s": v[0] for k, v in totals.items()},
+            **{f"{k}_cpu_s": v[1] for k, v in totals.items()}}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gaussians", type=int, default=1_000_000, help="Gaussians per scene")
@@ -225,7 +252,15 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=2, help="measured steps after one warm-up step")
     parser.add_argument("--max-peak-gb", type=float, default=16.0)
     parser.add_argument("--max-step-s", type=float, default=60.0)
+    parser.add_argument("--compare-text-loss", type=int, metavar="ROWS", default=None,
+                        help="only time the 3D text loss of ROWS Gaussians, direct vs Gram form (interleaved)")
     args = parser.parse_args()
+    if args.compare_text_loss:
+        r = compare_text_loss(args.compare_text_loss, max(args.steps, 1))
+        print(json.dumps(r))
+        print(f"3D text loss fwd+bwd, {r['rows']:,} rows, D = {r['width']}: direct {r['direct_wall_s']:.2f} s wall / "
+              f"{r['direct_cpu_s']:.2f} s CPU, Gram form {r['gram_wall_s']:.2f} s wall / {r['gram_cpu_s']:.2f} s CPU")
+        return 0
     result = run(args)
     print(json.dumps(result))
     phases = result["phases_s_median"]

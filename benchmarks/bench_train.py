@@ -1,7 +1,8 @@
 """Benchmark of one OVGaussian training step: 3 scenes x 50,000 Gaussians, one 292x438 view each.
 
 Measures, per configuration (each in a fresh subprocess so that peak RSS is its own):
-- blend weights of one view (computed once per view and cached, not part of a step),
+- preparing one view (label map; since issue 17 the blend weights are computed in each step at the
+  sampled pixels, so they are part of the step),
 - a full optimizer step (sampling + augmentation, network forward, M = W S, the three losses,
   backward, SGD step), median of ``--steps`` after one warm-up step,
 - the CPU time of the process during a step (all threads; less sensitive to other load than wall time),
@@ -127,7 +128,7 @@ def main() -> None:
             print(done.stderr[-2000:], file=sys.stderr)
             continue
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    print("| preset | pixels/view | params | blend weights / view | step wall (median) | step CPU (median) | peak RSS |"
+    print("| preset | pixels/view | params | prepare view | step wall (median) | step CPU (median) | peak RSS |"
           " growth in steps |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:

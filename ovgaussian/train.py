@@ -176,6 +176,38 @@ def render_pixels_reference(pixel_ids, pixel_weights, semantic):
     return out
 
 
+def decoded_text_logits(
+    phi,
+    semantic: "torch.Tensor",  # [N, S]
+    text_embeddings: "torch.Tensor",  # [C, D]
+    temperature: float,
+) -> "torch.Tensor":  # [N, C]
+    """``compute_text_logits(phi(semantic), text_embeddings, temperature)`` without phi's ``[N, D]`` output.
+
+    For ``phi = Linear(W2, b2) o ReLU o Linear``, with ``h`` the ``[N, H]`` hidden rows and ``t`` the unit text
+    rows: ``phi(s) . t = h (W2^T t^T) + b2 . t`` and ``|phi(s)|^2 = h G h^T + 2 h (W2^T b2) + |b2|^2`` with
+    ``G = W2^T W2 [H, H]``: ``H (H + C)`` multiply-adds per row instead of ``H D`` (128 x 144 vs 128 x 384),
+    and no ``[N, D]`` activation. Any other ``phi`` takes the direct expression (the reference).
+    """
+    import torch
+
+    from ovgaussian.losses import COSINE_NORM_EPS, compute_text_logits, normalize_rows
+
+    layers = list(phi) if isinstance(phi, torch.nn.Sequential) else []
+    if not (len(layers) == 3 and isinstance(layers[0], torch.nn.Linear) and isinstance(layers[1], torch.nn.ReLU)
+            and isinstance(layers[2], torch.nn.Linear) and layers[2].bias is not None):
+        return compute_text_logits(phi(semantic), text_embeddings, temperature)
+    if temperature <= 0:
+        raise ValueError(f"temperature must be positive, got {temperature}")
+    hidden = layers[1](layers[0](semantic))  # [N, H]
+    w2, b2 = layers[2].weight, layers[2].bias  # [D, H], [D]
+    text = normalize_rows(text_embeddings)  # [C, D]
+    dots = hidden @ (w2.T @ text.T) + (text @ b2)[None, :]  # [N, C]
+    squared = ((hidden @ (w2.T @ w2)) * hidden).sum(1) + 2.0 * (hidden @ (w2.T @ b2)) + b2.square().sum()
+    norms = squared.clamp_min(0.0).sqrt().clamp_min(COSINE_NORM_EPS)
+    return dots / norms[:, None] / temperature
+
+
 def text_cross_entropy_3d(
     phi,
     semantic: "torch.Tensor",  # [N, S] semantic vectors of the labelled Gaussians
@@ -186,11 +218,11 @@ def text_cross_entropy_3d(
     """3D-to-text cross-entropy (mean over the rows, count): ``masked_cross_entropy`` of
     ``compute_text_logits(phi(semantic))``, over row chunks under activation checkpointing
     (``ovgaussian.model.checkpointed_rows``): phi's ``[N, D]`` output is never held whole."""
-    from ovgaussian.losses import compute_text_logits, masked_cross_entropy
+    from ovgaussian.losses import masked_cross_entropy
     from ovgaussian.model import checkpointed_rows
 
     def chunk_sum(rows, rows_labels):
-        mean, count = masked_cross_entropy(compute_text_logits(phi(rows), text_embeddings, temperature), rows_labels)
+        mean, count = masked_cross_entropy(decoded_text_logits(phi, rows, text_embeddings, temperature), rows_labels)
         return mean * count
 
     count = int((labels != IGNORE_LABEL).sum())

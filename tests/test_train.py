@@ -526,3 +526,31 @@ def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkey
     assert chunk_grads.keys() == whole_grads.keys()
     for name, grad in whole_grads.items():
         torch.testing.assert_close(chunk_grads[name], grad, rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_decoded_text_logits_equal_the_direct_expression_forward_and_backward():
+    """The Gram-matrix form of cos(phi(s), t) / T equals compute_text_logits(phi(s)) (the reference)."""
+    from ovgaussian.losses import compute_text_logits
+    from ovgaussian.model import OVGaussianNet, OVGaussianNetConfig
+    from ovgaussian.train import decoded_text_logits
+
+    torch.manual_seed(0)
+    phi = OVGaussianNet(OVGaussianNetConfig(embedding_width=384, **{k: v for k, v in vars(
+        tiny_model_config(384)).items() if k in ("widths", "blocks", "stem_width", "stem_kernel_size")})).phi.double()
+    semantic = torch.randn(500, 16, dtype=torch.float64, requires_grad=True)
+    semantic.data[:3] = 0.0  # rows whose hidden layer is just the bias
+    text = torch.randn(16, 384, dtype=torch.float64)
+    upstream = torch.randn(500, 16, dtype=torch.float64)
+    fast = decoded_text_logits(phi, semantic, text, 0.07)
+    slow = compute_text_logits(phi(semantic), text, 0.07)
+    torch.testing.assert_close(fast, slow, rtol=1e-9, atol=1e-9)
+    grads_fast = torch.autograd.grad((fast * upstream).sum(), [semantic, *phi.parameters()])
+    grads_slow = torch.autograd.grad((slow * upstream).sum(), [semantic, *phi.parameters()])
+    for a, b in zip(grads_fast, grads_slow):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9)
+    # float32, as in training: close to the direct expression at the loss's scale
+    phi32, s32, t32 = phi.float(), semantic.detach().float(), text.float()
+    torch.testing.assert_close(decoded_text_logits(phi32, s32, t32, 0.07),
+                               compute_text_logits(phi32(s32), t32, 0.07), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="temperature"):
+        decoded_text_logits(phi32, s32, t32, 0.0)
