@@ -137,3 +137,28 @@ def test_compiled_evaluation_render_equals_render_features():
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)
     with pytest.raises(ValueError, match="refer to Gaussian"):
         render_features_no_grad(band.ids.numpy(), band.weights.numpy(), features[:10].numpy())
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (no GPU on this machine)")
+def test_cuda_inputs_give_the_cpu_weights_and_the_same_semantic_map():
+    """Geometry and semantic vectors on the GPU: W (computed on the CPU) is identical, and M = W S on the
+    GPU matches the CPU within float tolerance, forward and backward."""
+    from ovgaussian.train import render_pixels
+
+    width, height = 60, 44
+    geometry, (viewmat, K) = make_scene(8, 1500, width, height)
+    pixels = random_pixels(np.random.default_rng(8), 500, width, height)
+    cpu = compute_pixel_blend_weights(*geometry, viewmat, K, width, height, pixels, 16)
+    gpu = compute_pixel_blend_weights(*(t.cuda() for t in geometry), viewmat.cuda(), K.cuda(), width, height,
+                                      pixels.cuda(), 16)
+    assert_identical(gpu, cpu)
+    semantic = torch.randn(1500, 16, requires_grad=True)
+    semantic_gpu = semantic.detach().cuda().requires_grad_(True)
+    m_cpu = render_pixels(cpu.ids, cpu.weights, semantic)
+    m_gpu = render_pixels(gpu.ids.cuda(), gpu.weights.cuda(), semantic_gpu)
+    torch.testing.assert_close(m_gpu.cpu(), m_cpu, rtol=1e-5, atol=1e-6)
+    upstream = torch.randn_like(m_cpu)
+    (g_cpu,) = torch.autograd.grad((m_cpu * upstream).sum(), semantic)
+    (g_gpu,) = torch.autograd.grad((m_gpu * upstream.cuda()).sum(), semantic_gpu)
+    torch.testing.assert_close(g_gpu.cpu(), g_cpu, rtol=1e-5, atol=1e-6)
