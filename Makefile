@@ -3,10 +3,15 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# The reference splat converter (tests compare our splat readers/writers with it); installed into the
+# checkout when node and npm exist, skipped (tests then skip with a reason) when they do not.
+SPLAT_TRANSFORM_VERSION := 3.7.0
+NODE_DIR := .node
+NODE_STAMP := $(NODE_DIR)/.installed-$(SPLAT_TRANSFORM_VERSION)
 
 .PHONY: setup demo test bench clean
 
-setup: $(STAMP)
+setup: $(STAMP) $(NODE_STAMP)
 
 # open3d's wheels link libusb-1.0; install it (Debian package) when the loader cannot find it.
 $(STAMP): pyproject.toml
@@ -21,11 +26,21 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[all]'
 	@touch $(STAMP)
 
+$(NODE_STAMP):
+	@if command -v node >/dev/null 2>&1 && command -v npm >/dev/null 2>&1; then \
+	  echo "installing @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) into $(NODE_DIR)/"; \
+	  npm install --silent --no-audit --no-fund --prefix $(NODE_DIR) @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) \
+	    && touch $(NODE_STAMP) \
+	    || echo "npm install failed: the splat-transform comparison tests will be skipped"; \
+	else \
+	  echo "node/npm not found: the splat-transform comparison tests will be skipped"; \
+	fi
+
 # The main job, end to end on the embedded synthetic data.
-demo: $(STAMP)
+demo: $(STAMP) $(NODE_STAMP)
 	bash scripts/demo.sh
 
-test: $(STAMP)
+test: $(STAMP) $(NODE_STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

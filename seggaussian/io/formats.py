@@ -1,0 +1,155 @@
+"""One entry point for every splat file: detect the format from the content, read, validate, write.
+
+Detection looks at the bytes, never at the file name:
+
+=================  ===============================================================================
+format             how it is recognised
+=================  ===============================================================================
+``ply``            starts with ``ply`` and the header has no ``chunk`` element (the Inria layout)
+``compressed_ply`` starts with ``ply``; a ``chunk`` element and a ``packed_position`` vertex property
+``spz``            starts with ``NGSP``, or is a gzip stream whose payload starts with ``NGSP``
+``splat``          none of the above; size a multiple of 32 and the first records plausible
+=================  ===============================================================================
+
+Anything else is a :class:`~seggaussian.io.splat_common.SplatFormatError` naming the file and listing
+what was looked for. Every reader's Gaussians then go through the same validation as a PLY
+(:func:`seggaussian.io.validate.validate_gaussians`, policy ``on_invalid``).
+
+Writing picks the format from ``fmt`` or, when not given, from the output name (``.compressed.ply``,
+``.splat``, ``.spz``, else ``.ply``): there are no bytes to look at yet.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal, NamedTuple
+
+from seggaussian.gaussians import Gaussians
+from seggaussian.io.compressed_ply import is_compressed_ply_header, read_compressed_ply, write_compressed_ply
+from seggaussian.io.ply import (gaussians_to_vertex_table, read_gaussians_ply, read_ply_header, read_vertex_table,
+                                vertex_table_to_gaussians, write_vertex_table)
+from seggaussian.io.splat import looks_like_splat, read_splat, write_splat
+from seggaussian.io.splat_common import FORMAT_TITLES, SplatFormatError
+from seggaussian.io.spz import GZIP_MAGIC, SPZ_MAGIC_BYTES, read_spz, spz_payload_head, write_spz
+from seggaussian.io.validate import InvalidGaussiansError, validate_gaussians
+
+__all__ = ["FORMATS", "SplatFormat", "LoadedSplat", "detect_format", "read_gaussians", "read_gaussians_raw",
+           "write_gaussians", "format_for_output"]
+
+SplatFormat = Literal["ply", "compressed_ply", "splat", "spz"]
+#: Every format read and written.
+FORMATS: tuple[str, ...] = ("ply", "compressed_ply", "splat", "spz")
+#: Bytes read to detect the format (a PLY header is parsed separately, up to its own limit).
+SNIFF_BYTES = 4096
+
+
+class LoadedSplat(NamedTuple):
+    """A read and validated splat file.
+
+    Fields:
+        gaussians: the Gaussians after validation.
+        report: the ``ValidationReport``.
+        format: the detected format (one of ``FORMATS``).
+    """
+
+    gaussians: Gaussians
+    report: object
+    format: str
+
+
+def detect_format(path: str | os.PathLike) -> str:
+    """The format of ``path`` from its content; ``SplatFormatError`` when it is none of ``FORMATS``."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(SNIFF_BYTES)
+    except OSError as exc:
+        raise SplatFormatError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
+    if size == 0:
+        raise SplatFormatError(f"{path}: empty file (0 bytes), not a splat file")
+    if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
+        return "compressed_ply" if is_compressed_ply_header(read_ply_header(path)) else "ply"
+    if head.startswith(SPZ_MAGIC_BYTES):
+        return "spz"
+    if head.startswith(GZIP_MAGIC):
+        with open(path, "rb") as f:
+            payload = spz_payload_head(f.read(1 << 16))
+        if payload.startswith(SPZ_MAGIC_BYTES):
+            return "spz"
+        raise SplatFormatError(f"{path}: a gzip file whose content is not SPZ (no 'NGSP' magic); "
+                               "gunzip it first if it holds a PLY")
+    if looks_like_splat(head, size):
+        return "splat"
+    first = head[:8]
+    raise SplatFormatError(
+        f"{path}: unknown splat format (starts with {first!r}, {size} bytes): not a PLY ('ply' header), "
+        f"not SPZ ('NGSP' or gzip), not an antimatter15 .splat (32-byte records"
+        f"{'' if size % 32 == 0 else f'; {size} is not a multiple of 32'})"
+    )
+
+
+def read_gaussians_raw(path: str | os.PathLike, fmt: str | None = None) -> tuple[Gaussians, str]:
+    """Decode ``path`` (format detected unless ``fmt`` is given) -> ``(Gaussians, format)``, not validated."""
+    path = Path(path)
+    fmt = fmt or detect_format(path)
+    if fmt == "ply":
+        header = read_ply_header(path)
+        return vertex_table_to_gaussians(read_vertex_table(path, header), source=header.path), fmt
+    if fmt == "compressed_ply":
+        return read_compressed_ply(path), fmt
+    if fmt == "splat":
+        return read_splat(path), fmt
+    if fmt == "spz":
+        return read_spz(path), fmt
+    raise ValueError(f"unknown splat format {fmt!r}, expected one of {FORMATS}")
+
+
+def read_gaussians(path: str | os.PathLike, on_invalid: str = "error") -> LoadedSplat:
+    """Detect, decode and validate (``on_invalid`` as in ``read_gaussians_ply``) any supported splat file."""
+    path = Path(path)
+    if (fmt := detect_format(path)) == "ply":
+        gaussians, report = read_gaussians_ply(path, on_invalid=on_invalid)
+        return LoadedSplat(gaussians, report, fmt)
+    gaussians, fmt = read_gaussians_raw(path, fmt)
+    try:
+        gaussians, report = validate_gaussians(gaussians, on_invalid=on_invalid,
+                                               source=f"{path} ({FORMAT_TITLES[fmt]})")
+    except InvalidGaussiansError as exc:
+        raise SplatFormatError(str(exc)) from None
+    return LoadedSplat(gaussians, report, fmt)
+
+
+def format_for_output(path: str | os.PathLike, fmt: str | None = None) -> str:
+    """``fmt`` when given (checked), else the format the output name asks for (default ``ply``)."""
+    if fmt is not None:
+        if fmt not in FORMATS:
+            raise ValueError(f"unknown splat format {fmt!r}, expected one of {', '.join(FORMATS)}")
+        return fmt
+    name = Path(path).name.lower()
+    if name.endswith(".compressed.ply"):
+        return "compressed_ply"
+    if name.endswith(".splat"):
+        return "splat"
+    if name.endswith(".spz"):
+        return "spz"
+    return "ply"
+
+
+def write_gaussians(path: str | os.PathLike, gaussians: Gaussians, fmt: str | None = None, *,
+                    spz_version: int = 4, ply_comments: tuple[str, ...] = ()) -> str:
+    """Write ``gaussians`` atomically in ``fmt`` (or the format of the name) -> the format written.
+
+    Only ``ply`` keeps extras (labels); the other formats hold the splat attributes alone.
+    """
+    fmt = format_for_output(path, fmt)
+    if fmt == "ply":
+        write_vertex_table(path, gaussians_to_vertex_table(gaussians, byte_order="="), comments=ply_comments)
+    elif fmt == "compressed_ply":
+        write_compressed_ply(path, gaussians)
+    elif fmt == "splat":
+        write_splat(path, gaussians)
+    else:
+        write_spz(path, gaussians, version=spz_version)
+    return fmt

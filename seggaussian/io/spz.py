@@ -1,0 +1,300 @@
+"""Niantic SPZ files, versions 1 to 4 (the versions Niantic's reference library reads).
+
+Versions 1-3: a 16-byte header and the attribute blocks one after the other, normally inside one gzip
+stream (an unwrapped stream is read too). Version 4: a 32-byte plain header, optional extensions, a
+table of contents (per stream: uint64 compressed size, uint64 uncompressed size) and one zstd stream
+per attribute. Header (little endian)::
+
+    uint32 magic 0x5053474e ("NGSP"), uint32 version, uint32 N, uint8 sh_degree, uint8 fractional_bits,
+    uint8 flags (1 = antialiased, 2 = extensions), uint8 reserved (v4: number of streams),
+    v4 only: uint32 toc_offset, 12 reserved bytes
+
+Attributes, in this order (each a block of N records):
+
+* positions: v1 float16 x3; v2+ signed 24-bit fixed point x3, value ``q / 2^fractional_bits``.
+* alphas: uint8, opacity ``a / 255`` (logit clamped by ``UNIT_OPACITY_EPS``, as splat-transform).
+* colours: uint8 x3, ``f_dc = (c / 255 - 0.5) / 0.15`` (SPZ's colour scale, not SH_C0).
+* scales: uint8 x3, ``log_scale = s / 16 - 10``.
+* rotations: v1-2 uint8 x3 = x, y, z as ``b / 127.5 - 1`` with ``w = sqrt(1 - x^2 - y^2 - z^2)``;
+  v3+ uint32 "smallest three": bits 30..31 the index of the largest component in (x, y, z, w) order,
+  then three 10-bit fields (the last remaining component in the lowest bits), each a 9-bit magnitude
+  ``m / 511 / sqrt(2)`` and a sign bit (bit 9); the largest is ``sqrt(1 - sum of squares)``.
+* SH: uint8 ``(b - 128) / 128``, per Gaussian coefficient-major with the channel innermost.
+
+Coordinates are read raw (no axis conversion), as @playcanvas/splat-transform does. SH degree 4 (72
+coefficients) is refused: the toolkit stops at degree 3.
+
+Quantisation steps: positions ``2^-fractional_bits`` (1/4096 m as written here), colour ``1 / (255 *
+0.15)`` in ``f_dc`` units, log scale 1/16, opacity 1/255, SH 1/128, quaternion components ``1 / (511 *
+sqrt(2))`` (v3+) or 1/127.5 (v2).
+
+Writing: versions 2 and 3 (gzip) and 4 (zstd), 12 fractional bits; extras are dropped. zstd comes from
+the ``zstandard`` package.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from seggaussian.gaussians import Gaussians
+from seggaussian.io.splat_common import SplatFormatError, logit_from_unit, read_file_bytes, unit_from_logit
+
+__all__ = ["SPZ_MAGIC", "SPZ_VERSIONS", "read_spz", "decode_spz", "encode_spz", "write_spz", "spz_payload_head"]
+
+TITLE = "Niantic SPZ"
+SPZ_MAGIC = 0x5053474E
+SPZ_MAGIC_BYTES = b"NGSP"
+GZIP_MAGIC = b"\x1f\x8b"
+#: Versions read; versions written are 2, 3 and 4.
+SPZ_VERSIONS = (1, 2, 3, 4)
+WRITE_VERSIONS = (2, 3, 4)
+LEGACY_HEADER = struct.Struct("<IIIBBBB")              # 16 bytes
+V4_HEADER = struct.Struct("<IIIBBBBI12s")              # 32 bytes
+TOC_ENTRY = struct.Struct("<QQ")
+#: SPZ quantises the DC colour with this scale instead of SH_C0.
+SPZ_COLOR_SCALE = 0.15
+#: Fixed-point fraction bits we write (1/4096 m, the reference library's choice).
+WRITE_FRACTIONAL_BITS = 12
+#: Largest SH degree accepted (the toolkit's MAX_SH_DEGREE); SPZ itself allows 4.
+MAX_SPZ_SH_DEGREE = 3
+#: Cap on the decompressed size relative to the file (protects against a header claiming billions of points).
+MAX_EXPANSION = 1024
+_SH_DIM = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}
+#: zstd compression level of the written v4 streams.
+ZSTD_LEVEL = 3
+
+
+def _gunzip(data: bytes, source) -> bytes:
+    try:
+        return gzip.decompress(data)
+    except (OSError, EOFError, zlib.error) as exc:
+        raise SplatFormatError(f"{source}: {TITLE}: broken gzip stream ({exc})") from None
+
+
+def spz_payload_head(data: bytes, size: int = 16) -> bytes:
+    """The first ``size`` bytes of the (gunzipped when gzip-wrapped) payload; b"" when not decodable."""
+    if not data.startswith(GZIP_MAGIC):
+        return data[:size]
+    try:
+        return zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(data, size)
+    except zlib.error:
+        return b""
+
+
+def _sizes(version: int, n: int, degree: int) -> list[tuple[str, int]]:
+    return [("positions", n * 3 * (2 if version == 1 else 3)), ("alphas", n), ("colors", n * 3), ("scales", n * 3),
+            ("rotations", n * (4 if version >= 3 else 3)), ("sh", n * 3 * _SH_DIM[degree])]
+
+
+def _zstd_decompress(blob: bytes, expected: int, source, name: str) -> bytes:
+    try:
+        import zstandard
+    except ImportError:
+        raise SplatFormatError(f"{source}: {TITLE} version 4 needs the 'zstandard' package "
+                               "(pip install zstandard)") from None
+    try:
+        out = zstandard.ZstdDecompressor().decompress(blob, max_output_size=expected)
+    except zstandard.ZstdError as exc:
+        raise SplatFormatError(f"{source}: {TITLE}: the '{name}' zstd stream is broken ({exc})") from None
+    if len(out) != expected:
+        raise SplatFormatError(f"{source}: {TITLE}: the '{name}' stream holds {len(out)} bytes, expected {expected}")
+    return out
+
+
+def _split_streams(data: bytes, source) -> tuple[dict, dict[str, np.ndarray]]:
+    """Header fields and the raw attribute blocks (uint8 arrays) of a decoded payload."""
+    where = f"{source}: {TITLE}"
+    if len(data) < LEGACY_HEADER.size:
+        raise SplatFormatError(f"{where}: {len(data)} bytes, shorter than the 16-byte header")
+    magic, version, n, degree, frac, flags, reserved = LEGACY_HEADER.unpack_from(data)
+    if magic != SPZ_MAGIC:
+        raise SplatFormatError(f"{where}: bad magic {data[:4]!r}, expected {SPZ_MAGIC_BYTES!r}")
+    if version not in SPZ_VERSIONS:
+        raise SplatFormatError(f"{where}: version {version} is not supported (supported: {SPZ_VERSIONS})")
+    if degree > 4:
+        raise SplatFormatError(f"{where}: SH degree {degree} is not valid (0..4)")
+    if degree > MAX_SPZ_SH_DEGREE:
+        raise SplatFormatError(f"{where}: SH degree {degree} is not supported (the toolkit reads degrees 0..3)")
+    if frac > 24:
+        raise SplatFormatError(f"{where}: {frac} fractional bits; at most 24 fit a 24-bit position")
+    header = {"version": version, "num_points": n, "sh_degree": degree, "fractional_bits": frac,
+              "antialiased": bool(flags & 1)}
+    sizes = _sizes(version, n, degree)
+    if sum(s for _, s in sizes) > MAX_EXPANSION * max(len(data), 1) + 1024:
+        raise SplatFormatError(f"{where}: the header claims {n} points, impossible for a {len(data)}-byte file")
+    blocks: dict[str, np.ndarray] = {}
+    if version < 4:
+        offset = LEGACY_HEADER.size
+        needed = offset + sum(s for _, s in sizes)
+        if len(data) < needed:
+            raise SplatFormatError(f"{where}: truncated: the header declares {n} points (SH degree {degree}), "
+                                   f"{needed} bytes, but the payload has {len(data)}")
+        raw = np.frombuffer(data, np.uint8)
+        for name, size in sizes:
+            blocks[name] = raw[offset: offset + size]
+            offset += size
+        return header, blocks
+    if len(data) < V4_HEADER.size:
+        raise SplatFormatError(f"{where}: {len(data)} bytes, shorter than the 32-byte version-4 header")
+    *_, num_streams, toc_offset, _reserved = V4_HEADER.unpack_from(data)
+    present = [(name, size) for name, size in sizes if size > 0]
+    if n == 0:
+        present = [(name, 0) for name, _ in sizes[:5]]
+    if num_streams != len(present):
+        raise SplatFormatError(f"{where}: {num_streams} streams declared, expected {len(present)} "
+                               f"({', '.join(name for name, _ in present)})")
+    toc_end = toc_offset + num_streams * TOC_ENTRY.size
+    if toc_offset < V4_HEADER.size or toc_end > len(data):
+        raise SplatFormatError(f"{where}: table of contents at byte {toc_offset} lies outside the "
+                               f"{len(data)}-byte file")
+    offset = toc_end
+    for i, (name, size) in enumerate(present):
+        compressed, uncompressed = TOC_ENTRY.unpack_from(data, toc_offset + i * TOC_ENTRY.size)
+        if uncompressed != size:
+            raise SplatFormatError(f"{where}: stream '{name}' declares {uncompressed} bytes, expected {size} "
+                                   f"for {n} points")
+        if compressed > len(data) - offset:
+            raise SplatFormatError(f"{where}: truncated: stream '{name}' ({compressed} bytes) runs past the end "
+                                   f"of the file")
+        blob = data[offset: offset + compressed]
+        offset += compressed
+        blocks[name] = np.frombuffer(_zstd_decompress(blob, size, source, name) if size else b"", np.uint8)
+    if offset != len(data):
+        raise SplatFormatError(f"{where}: {len(data) - offset} bytes after the last stream")
+    for name, size in sizes:
+        blocks.setdefault(name, np.zeros(size, np.uint8))
+    return header, blocks
+
+
+def _decode_rotations_v3(packed: np.ndarray) -> np.ndarray:
+    """``[N]`` uint32 smallest-three -> ``[N, 4]`` float32 (w, x, y, z)."""
+    n = packed.shape[0]
+    largest = (packed >> np.uint32(30)).astype(np.intp)
+    xyzw = np.zeros((n, 4), np.float32)
+    # fields from the lowest bits up belong to the remaining components from index 3 down
+    others = np.array([[3, 2, 1], [3, 2, 0], [3, 1, 0], [2, 1, 0]], dtype=np.intp)[largest]   # [N, 3]
+    values = np.empty((n, 3), np.float32)
+    for j in range(3):
+        field = packed >> np.uint32(10 * j)
+        magnitude = (field & np.uint32(511)).astype(np.float32) * np.float32(np.sqrt(0.5) / 511.0)
+        values[:, j] = np.where((field >> np.uint32(9)) & np.uint32(1), -magnitude, magnitude)
+    np.put_along_axis(xyzw, others, values, axis=1)
+    xyzw[np.arange(n), largest] = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", values, values)))
+    return np.ascontiguousarray(xyzw[:, [3, 0, 1, 2]])
+
+
+def decode_spz(data: bytes, source: str | os.PathLike = "<bytes>") -> Gaussians:
+    """The bytes of an SPZ file (gzip-wrapped or not) -> ``Gaussians`` (raw decoded values, not validated)."""
+    if not data:
+        raise SplatFormatError(f"{source}: empty file (0 bytes), not a {TITLE} file")
+    payload = _gunzip(data, source) if data.startswith(GZIP_MAGIC) else data
+    header, blocks = _split_streams(payload, source)
+    n, version, degree = header["num_points"], header["version"], header["sh_degree"]
+    if version == 1:
+        means = blocks["positions"].view("<f2").reshape(n, 3).astype(np.float32)
+    else:
+        b = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
+        fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
+        fixed = (fixed ^ 0x800000) - 0x800000                                  # sign-extend 24 bits
+        means = (fixed * np.float32(1.0 / (1 << header["fractional_bits"]))).astype(np.float32)
+    opacity_logits = logit_from_unit(blocks["alphas"] * np.float32(1.0 / 255.0))
+    k = (degree + 1) ** 2
+    sh = np.empty((n, k, 3), np.float32)
+    sh[:, 0, :] = ((blocks["colors"].reshape(n, 3) * np.float32(1.0 / 255.0) - np.float32(0.5))
+                   / np.float32(SPZ_COLOR_SCALE))
+    if k > 1:
+        sh[:, 1:, :] = (blocks["sh"].reshape(n, k - 1, 3).astype(np.float32) - np.float32(128.0)) / np.float32(128.0)
+    log_scales = (blocks["scales"].reshape(n, 3) * np.float32(1.0 / 16.0) - np.float32(10.0)).astype(np.float32)
+    if version >= 3:
+        quats = _decode_rotations_v3(blocks["rotations"].view("<u4"))
+    else:
+        xyz = blocks["rotations"].reshape(n, 3) * np.float32(1.0 / 127.5) - np.float32(1.0)
+        w = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", xyz, xyz)))
+        quats = np.concatenate([w[:, None], xyz], axis=1).astype(np.float32)
+    return Gaussians(means, quats, log_scales, opacity_logits, sh)
+
+
+def read_spz(path: str | os.PathLike) -> Gaussians:
+    """Read an SPZ file -> ``Gaussians`` (not validated); ``SplatFormatError`` when malformed."""
+    path = Path(path)
+    return decode_spz(read_file_bytes(path, TITLE), path)
+
+
+# --------------------------------------------------------------------------------------------
+# writing
+# --------------------------------------------------------------------------------------------
+def _bytes(values: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(np.nan_to_num(values, nan=0.0)), 0, 255).astype(np.uint8)
+
+
+def _encode_rotations_v3(quats: np.ndarray) -> np.ndarray:
+    n = quats.shape[0]
+    norms = np.linalg.norm(quats.astype(np.float64), axis=1, keepdims=True)
+    wxyz = np.where(norms > 0, quats / np.where(norms > 0, norms, 1.0), np.array([1.0, 0, 0, 0]))
+    xyzw = wxyz[:, [1, 2, 3, 0]]
+    largest = np.argmax(np.abs(xyzw), axis=1)
+    xyzw = xyzw * np.where(xyzw[np.arange(n), largest] < 0, -1.0, 1.0)[:, None]
+    packed = largest.astype(np.uint32)
+    for i in range(4):          # the component with the highest index ends in the lowest bits
+        keep = largest != i
+        value = xyzw[:, i]
+        magnitude = np.clip(np.round(np.abs(value) / np.sqrt(0.5) * 511.0), 0, 511).astype(np.uint32)
+        field = magnitude | (np.uint32(1 << 9) * (value < 0).astype(np.uint32))
+        packed = np.where(keep, (packed << np.uint32(10)) | field, packed)
+    return packed.astype("<u4")
+
+
+def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
+    """``Gaussians`` -> the bytes of an SPZ file of ``version`` (2, 3: gzip; 4: zstd streams)."""
+    if version not in WRITE_VERSIONS:
+        raise ValueError(f"SPZ version {version} cannot be written (choose one of {WRITE_VERSIONS})")
+    g = gaussians
+    n = len(g)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        if not np.isfinite(getattr(g, name)).all():
+            raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
+    limit = (1 << 23) - 1
+    fixed = np.round(g.means.astype(np.float64) * (1 << WRITE_FRACTIONAL_BITS))
+    if n and np.abs(fixed).max() > limit:
+        raise ValueError(f"{TITLE}: positions beyond +-{limit / (1 << WRITE_FRACTIONAL_BITS):.0f} m do not fit "
+                         f"24-bit fixed point with {WRITE_FRACTIONAL_BITS} fraction bits")
+    fixed = fixed.astype(np.int32) & 0xFFFFFF
+    positions = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], axis=-1).astype(np.uint8)
+    alphas = _bytes(unit_from_logit(g.opacity_logits) * 255.0)
+    colors = _bytes((g.sh[:, 0, :].astype(np.float64) * SPZ_COLOR_SCALE + 0.5) * 255.0)
+    scales = _bytes((g.log_scales.astype(np.float64) + 10.0) * 16.0)
+    if version >= 3:
+        rotations = _encode_rotations_v3(g.quats).view(np.uint8)
+    else:
+        wxyz = g.normalized_quats().astype(np.float64)
+        wxyz = wxyz * np.where(wxyz[:, :1] < 0, -1.0, 1.0)
+        rotations = _bytes((wxyz[:, 1:] + 1.0) * 127.5)
+    sh = _bytes(g.sh[:, 1:, :].astype(np.float64) * 128.0 + 128.0)
+    degree = g.sh_degree
+    blocks = [positions, alphas, colors, scales, rotations, sh]
+    payloads = [np.ascontiguousarray(b).tobytes() for b in blocks]
+    if version < 4:
+        header = LEGACY_HEADER.pack(SPZ_MAGIC, version, n, degree, WRITE_FRACTIONAL_BITS, 0, 0)
+        return gzip.compress(header + b"".join(payloads), mtime=0)
+    import zstandard
+
+    compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
+    streams = [p for p in payloads if p] if n else payloads[:5]
+    compressed = [compressor.compress(p) for p in streams]
+    header = V4_HEADER.pack(SPZ_MAGIC, 4, n, degree, WRITE_FRACTIONAL_BITS, 0, len(streams), V4_HEADER.size,
+                            bytes(12))
+    toc = b"".join(TOC_ENTRY.pack(len(c), len(p)) for c, p in zip(compressed, streams))
+    return header + toc + b"".join(compressed)
+
+
+def write_spz(path: str | os.PathLike, gaussians: Gaussians, version: int = 4) -> None:
+    """Write ``gaussians`` as an SPZ file of ``version``, atomically (extras dropped)."""
+    from seggaussian.atomic import write_bytes_atomic
+
+    write_bytes_atomic(path, encode_spz(gaussians, version))
