@@ -1,4 +1,5 @@
-"""``seggaussian import SCENE.ply --out DIR``: validated standard 3DGS PLY plus a JSON report."""
+"""``seggaussian import SCENE --out DIR``: any splat file (PLY, compressed PLY, .splat, SPZ) -> validated
+standard 3DGS PLY plus a JSON report."""
 
 from __future__ import annotations
 
@@ -19,14 +20,17 @@ from cli._output import finish, guarded, json_option
 @json_option
 @guarded
 def command(scene: Path, out_dir: Path, on_invalid: str, as_json: bool) -> None:
-    """Read a 3DGS PLY, validate it, write a standard PLY and a JSON report into OUT."""
+    """Read a splat file (3DGS PLY, compressed PLY, .splat or SPZ; detected by content), validate it, write a
+    standard 3DGS PLY and a JSON report into OUT."""
     from seggaussian.io.ply_import import ImportConfig, import_ply
+    from seggaussian.io.splat_common import FORMAT_TITLES
 
     result = import_ply(scene, out_dir, ImportConfig(on_invalid=on_invalid))
     report = result.report
     summary = (f"imported {result.num_gaussians} Gaussians (SH degree {result.sh_degree}) from {scene} "
+               f"({FORMAT_TITLES[result.format]}) "
                f"-> {result.ply_path}; {report.describe_actions()}")
-    payload = {"source": result.source, "ply": result.ply_path, "report": result.report_path,
+    payload = {"source": result.source, "format": result.format, "ply": result.ply_path, "report": result.report_path,
                "num_gaussians": result.num_gaussians, "sh_degree": result.sh_degree,
                "validation": report.to_dict()}
     details = None if report.ok else f"found: {report.describe_issues()}"

@@ -1,4 +1,4 @@
-"""``seggaussian inspect PATH``: a 3DGS PLY (layout, statistics, validation) or a dataset folder."""
+"""``seggaussian inspect PATH``: a splat file (format, layout, statistics, validation) or a dataset folder."""
 
 from __future__ import annotations
 
@@ -34,8 +34,9 @@ def _format_ply(info: dict) -> str:
 
     bounds = info["bounds"]
     lines = [
-        f"file        {info['path']} ({info['format']}, {info['file_bytes']} bytes, {info['num_properties']} properties"
-        f"{', normals' if info['has_normals'] else ''})",
+        f"file        {info['path']} ({info['format_title']}, {info['file_bytes']} bytes"
+        + (f", {info['format']}, {info['num_properties']} properties" if info["file_format"] == "ply" else "")
+        + f"{', normals' if info['has_normals'] else ''})",
         f"gaussians   {info['num_gaussians']}  SH degree {info['sh_degree']}"
         + (f"  extras {', '.join(f'{k}:{v}' for k, v in info['extras'].items())}" if info["extras"] else ""),
     ]
@@ -58,19 +59,20 @@ def _format_ply(info: dict) -> str:
 @json_option
 @guarded
 def command(path: Path, verify: bool, as_json: bool) -> None:
-    """Summarize a 3DGS PLY (count, SH degree, bounds, scale/opacity/colour statistics, validation) or a
-    dataset folder (exit 1 when a shard is missing, truncated or, with --verify, corrupted)."""
+    """Summarize a splat file (3DGS PLY, compressed PLY, .splat or SPZ, detected by content: format, count, SH
+    degree, bounds, scale/opacity/colour statistics, validation) or a dataset folder (exit 1 when a shard is
+    missing, truncated or, with --verify, corrupted)."""
     if path.is_dir():
         if (path / "manifest.json").is_file():
             _inspect_dataset(path, as_json, verify)
             return
         raise click.ClickException(f"{path}: a folder without manifest.json is not a dataset")
-    from seggaussian.io.ply_inspect import inspect_ply
+    from seggaussian.io.ply_inspect import inspect_scene
     from seggaussian.io.validate import ValidationReport
 
-    info = inspect_ply(path)
+    info = inspect_scene(path)
     validation = info["validation"]
     report = ValidationReport(**{k: validation[k] for k in ValidationReport._fields})
-    summary = (f"{path}: {info['num_gaussians']} Gaussians, SH degree {info['sh_degree']}, "
+    summary = (f"{path}: {info['format_title']}, {info['num_gaussians']} Gaussians, SH degree {info['sh_degree']}, "
                f"{'valid' if report.ok else 'INVALID: ' + report.describe_issues()}")
     finish(summary, info, as_json, _format_ply(info))

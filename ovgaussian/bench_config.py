@@ -77,6 +77,14 @@ class PredictConfig:
     colour_mode: Literal["f_dc", "rgb", "both"] = "both"
     """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
     red/green/blue properties, or both."""
+    color_by: Literal["semantic", "none"] = "semantic"
+    """``semantic``: paint each Gaussian in the fixed palette colour of its class (seggaussian.palette) and
+    write a legend (JSON + PNG) beside the output; ``none``: keep the scene's colours, add only the labels."""
+    output_format: Optional[Literal["ply", "compressed_ply", "splat", "spz"]] = None
+    """Format of the output file; None takes it from the name (.compressed.ply, .splat, .spz, else PLY).
+    Only PLY keeps the ``semantic`` property; the other formats carry the class colours alone."""
+    spz_version: Literal[2, 3, 4] = 4
+    """SPZ version written when the output is SPZ."""
     min_alpha: float = DEFAULT_MIN_ALPHA
     """Pixels of label-map PNGs whose accumulated alpha is below this are written as IGNORE (0 in the colour PNG)."""
     blend_top_k: int = 16

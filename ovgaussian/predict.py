@@ -128,14 +128,10 @@ def parse_vocabulary(text: str) -> tuple[str, ...]:
 
 
 def class_colours(num_classes: int) -> np.ndarray:
-    """``[C, 3]`` uint8 distinct colours (golden-ratio hues, fixed saturation/value): deterministic."""
-    import colorsys
+    """``[C, 3]`` uint8 colours of vocabulary indices 0..C-1: the fixed palette of ``seggaussian.palette``."""
+    from seggaussian.palette import palette
 
-    out = np.zeros((num_classes, 3), np.uint8)
-    for i in range(num_classes):
-        r, g, b = colorsys.hsv_to_rgb((i * 0.618033988749895) % 1.0, 0.75, 0.95 if i % 2 == 0 else 0.7)
-        out[i] = np.round(np.array([r, g, b]) * 255).astype(np.uint8)
-    return out
+    return palette(num_classes)
 
 
 def read_cameras(path: Path) -> list[tuple[str, object]]:
@@ -237,7 +233,10 @@ def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig,
         raise ValueError("predict: empty vocabulary")
     vectors = predictor.encode_gaussians(gaussians)
     labels = argmax_labels(lambda v: predictor.score_names(v, names), vectors, config.chunk_rows)
-    painted = paint_gaussians(gaussians, labels, class_colours(len(names)), config.colour_mode)
+    if config.color_by == "semantic":
+        painted = paint_gaussians(gaussians, labels, class_colours(len(names)), config.colour_mode)
+    else:  # keep the scene's colours; only the label property is added
+        painted = gaussians.with_extras(semantic=labels.astype(np.int32))
     counts = np.bincount(labels, minlength=len(names))
     total = max(int(counts.sum()), 1)
     label_maps = {}
@@ -279,18 +278,23 @@ def write_label_maps(folder: Path, label_maps: dict, num_classes: int) -> list[P
 
 
 class PredictReport(NamedTuple):
-    """What ``ovgaussian predict`` wrote: the labelled PLY, PNGs, and the JSON summary."""
+    """What ``ovgaussian predict`` wrote: the labelled scene (``ply``: its path, in ``format``), PNGs, the
+    legend files (empty without colouring), and the JSON summary."""
 
     result: PredictResult
     ply: Path
     pngs: list
     summary: dict
+    legend: tuple = ()
+    format: str = "ply"
 
 
 def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_path: Path | None = None,
                 views_dir: Path | None = None, predictor: ModelPredictor | None = None) -> PredictReport:
-    """Read ``scene_path``, label it with the run's model, write ``out`` (PLY) and optional label-map PNGs."""
-    from seggaussian.io.ply import gaussians_to_vertex_table, read_gaussians_ply, write_vertex_table
+    """Read ``scene_path`` (any splat format), label it with the run's model, write ``out`` (PLY unless
+    ``config.output_format`` or the name asks for another format), the legend and optional label-map PNGs."""
+    from seggaussian.io.formats import format_for_output, read_gaussians, write_gaussians
+    from seggaussian.palette import build_legend, write_legend
 
     scene_path, out = Path(scene_path), Path(out)
     if scene_path.resolve() == out.resolve():
@@ -299,20 +303,31 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
 
     ensure_writable_dir(out.parent)  # fail before the model runs, not after it
     cameras = read_cameras(cameras_path) if cameras_path is not None else []
-    gaussians, report = read_gaussians_ply(scene_path, on_invalid=config.on_invalid)
+    out_format = format_for_output(out, config.output_format)
+    if out_format != "ply" and config.color_by == "semantic" and config.colour_mode == "rgb":
+        raise ValueError(f"{out}: --colours rgb puts the class colours in PLY properties, which a {out_format} "
+                         "file cannot hold; use --colours f_dc or both, or a .ply output")
+    gaussians, report, in_format = read_gaussians(scene_path, on_invalid=config.on_invalid)
     if predictor is None:
         predictor = load_model_predictor(config.run, config.checkpoint, device=config.device)
     result = label_gaussians(predictor, gaussians, config, cameras)
     # the vocabulary goes into the header so the file explains its own labels
     comments = tuple(f"ovgaussian semantic {i} = {name}" for i, name in enumerate(result.vocabulary))
-    write_vertex_table(out, gaussians_to_vertex_table(result.gaussians, byte_order="="), comments=comments)
+    write_gaussians(out, result.gaussians, out_format, spz_version=config.spz_version,
+                    ply_comments=comments)
+    legend_files: tuple = ()
+    if config.color_by == "semantic":
+        legend_files = write_legend(out, build_legend(result.labels, "semantic", result.vocabulary))
     pngs = []
     if cameras:
         views_dir = views_dir or out.with_name(out.stem + "_views")
         pngs = write_label_maps(views_dir, result.label_maps, len(result.vocabulary))
     summary = {
         "scene": str(scene_path),
+        "scene_format": in_format,
         "out": str(out),
+        "out_format": out_format,
+        "legend": [str(p) for p in legend_files],
         "run": str(config.run),
         "checkpoint": None if predictor.checkpoint is None else str(predictor.checkpoint),
         "num_gaussians": int(len(gaussians)),
@@ -323,4 +338,4 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
         "colours": {n: class_colours(len(result.vocabulary))[i].tolist() for i, n in enumerate(result.vocabulary)},
         "label_maps": [str(p) for p in pngs],
     }
-    return PredictReport(result, out, pngs, summary)
+    return PredictReport(result, out, pngs, summary, legend_files, out_format)

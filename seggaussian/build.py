@@ -3,7 +3,7 @@
 Orchestration only; every stage is a call into its own module:
 
     discover   sources.{scannetpp,replica}.list_scenes + a stat fingerprint of each scene's raw files
-    gaussians  fit.fit_scene | io.ply.read_gaussians_ply (trained PLY) | sample_oracle_gaussians (--gaussians oracle)
+    gaussians  fit.fit_scene | io.formats.read_gaussians (trained splat) | sample_oracle_gaussians (--gaussians oracle)
     transfer   transfer.transfer_labels  -> per-scene ``gaussians`` table
     views      render.compute_blend_weights + render_label_maps -> per-scene ``views`` table
     assemble   split.assign_splits + shards.write_dataset (shards, manifest, dataset card, splits.json)
@@ -250,12 +250,14 @@ def _owner(parts: tuple, ids: set) -> str | None:
 
 
 def find_trained_ply(ply_dir: Path | None, scene_id: str) -> Path | None:
-    """``ply_dir/<scene>.ply`` or the highest ``ply_dir/<scene>/point_cloud/iteration_*/point_cloud.ply``."""
+    """``ply_dir/<scene>.ply`` (or ``.compressed.ply``, ``.splat``, ``.spz``: any format ``io.formats``
+    reads, detected by content) or the highest ``ply_dir/<scene>/point_cloud/iteration_*/point_cloud.ply``."""
     if ply_dir is None:
         return None
-    flat = Path(ply_dir) / f"{scene_id}.ply"
-    if flat.is_file():
-        return flat
+    for suffix in (".ply", ".compressed.ply", ".splat", ".spz"):
+        flat = Path(ply_dir) / f"{scene_id}{suffix}"
+        if flat.is_file():
+            return flat
     runs = sorted((Path(ply_dir) / scene_id / "point_cloud").glob("iteration_*/point_cloud.ply"),
                   key=lambda p: int(p.parent.name.split("_")[-1]) if p.parent.name.split("_")[-1].isdigit() else -1)
     return runs[-1] if runs else None
@@ -499,9 +501,9 @@ def run_gaussians(scene, config: BuildConfig, stage_cfg: dict, task: SceneTask) 
         metrics = {k: v for k, v in result.metrics.items()
                    if k in ("novel_psnr", "novel_ssim", "novel_l1", "iterations", "early_stop_reason")}
         return result.gaussians, None, {"mode": "fit", "fit_metrics": metrics}
-    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.io.formats import read_gaussians
 
-    g, report = read_gaussians_ply(task.trained_ply)
+    g, report, _format = read_gaussians(task.trained_ply)
     g = Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)  # labels come from the transfer
     return g, None, {"mode": "import", "ply": str(task.trained_ply)}
 
@@ -933,9 +935,14 @@ def split_dataset(out: Path, split_config) -> tuple[dict, dict, bool]:
     return counts, result.reasons, assembled
 
 
-def export_scene_ply(dataset: Path, scene_id: str, out: Path) -> dict:
-    """``seggaussian export-ply``: one scene's Gaussians with semantic and instance vertex properties."""
+def export_scene_ply(dataset: Path, scene_id: str, out: Path, color_by: str | None = None) -> dict:
+    """``seggaussian export-ply``: one scene's Gaussians with semantic and instance vertex properties.
+
+    ``color_by`` (``semantic`` or ``instance``): the DC colour becomes the label's palette colour (higher SH
+    zeroed, ``seggaussian.palette``) and a legend JSON + PNG is written beside ``out``.
+    """
     from seggaussian.io.ply import write_gaussians_ply
+    from seggaussian.palette import build_legend, colour_by_labels, write_legend
     from seggaussian.shards import find_split, read_scene
 
     split = find_split(dataset, scene_id)
@@ -943,11 +950,19 @@ def export_scene_ply(dataset: Path, scene_id: str, out: Path) -> dict:
     g = record.gaussians
     keep = {k: g.extras[k].astype(np.int32) for k in ("semantic", "instance")}
     keep["transfer_distance"] = g.extras["transfer_distance"].astype(np.float32)
+    if color_by not in (None, "semantic", "instance"):
+        raise ValueError(f"color_by must be semantic or instance, got {color_by!r}")
     plain = Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, keep)
+    if color_by is not None:
+        plain = colour_by_labels(plain, keep[color_by])
     write_gaussians_ply(out, plain)
+    legend = []
+    if color_by is not None:
+        names = read_class_names() if color_by == "semantic" else None
+        legend = [str(p) for p in write_legend(out, build_legend(keep[color_by], color_by, names))]
     sem = keep["semantic"]
     return {"scene": scene_id, "split": split, "gaussians": len(g), "labelled": int((sem != IGNORE_LABEL).sum()),
-            "out": str(out)}
+            "out": str(out), "color_by": color_by, "legend": legend}
 
 
 def summary_table(report: BuildReport) -> str:

@@ -35,7 +35,7 @@ from seggaussian.io.spz import GZIP_MAGIC, SPZ_MAGIC_BYTES, read_spz, spz_payloa
 from seggaussian.io.validate import InvalidGaussiansError, validate_gaussians
 
 __all__ = ["FORMATS", "SplatFormat", "LoadedSplat", "detect_format", "read_gaussians", "read_gaussians_raw",
-           "write_gaussians", "format_for_output"]
+           "write_gaussians", "format_for_output", "scene_stem"]
 
 SplatFormat = Literal["ply", "compressed_ply", "splat", "spz"]
 #: Every format read and written.
@@ -84,7 +84,7 @@ def detect_format(path: str | os.PathLike) -> str:
         return "splat"
     first = head[:8]
     raise SplatFormatError(
-        f"{path}: unknown splat format (starts with {first!r}, {size} bytes): not a PLY ('ply' header), "
+        f"{path}: unknown splat format (starts with {first!r}, {size} bytes): not a PLY file ('ply' header), "
         f"not SPZ ('NGSP' or gzip), not an antimatter15 .splat (32-byte records"
         f"{'' if size % 32 == 0 else f'; {size} is not a multiple of 32'})"
     )
@@ -119,6 +119,15 @@ def read_gaussians(path: str | os.PathLike, on_invalid: str = "error") -> Loaded
     except InvalidGaussiansError as exc:
         raise SplatFormatError(str(exc)) from None
     return LoadedSplat(gaussians, report, fmt)
+
+
+def scene_stem(path: str | os.PathLike) -> str:
+    """The file name without its splat suffix (``room.compressed.ply`` -> ``room``, ``room.spz`` -> ``room``)."""
+    name = Path(path).name
+    for suffix in (".compressed.ply", ".ply", ".splat", ".spz"):
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            return name[: -len(suffix)]
+    return Path(path).stem
 
 
 def format_for_output(path: str | os.PathLike, fmt: str | None = None) -> str:

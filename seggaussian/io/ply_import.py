@@ -1,4 +1,5 @@
-"""``seggaussian import``: read a foreign 3DGS PLY, validate it, write a standard PLY plus a JSON report."""
+"""``seggaussian import``: read any splat file (format detected by content), validate it, write a standard
+3DGS PLY (Inria layout) plus a JSON report."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-from seggaussian.io.ply import read_gaussians_ply, write_atomic, write_gaussians_ply
+from seggaussian.io.formats import read_gaussians, scene_stem
+from seggaussian.io.ply import write_atomic, write_gaussians_ply
 from seggaussian.io.validate import ValidationReport
 
 
@@ -34,6 +36,7 @@ class ImportResult(NamedTuple):
         num_gaussians: Gaussians written.
         sh_degree: SH degree of the scene.
         report: the validation report.
+        format: the detected input format (``ply``, ``compressed_ply``, ``splat``, ``spz``).
     """
 
     source: Path
@@ -42,20 +45,23 @@ class ImportResult(NamedTuple):
     num_gaussians: int
     sh_degree: int
     report: ValidationReport
+    format: str = "ply"
 
 
 def import_ply(source: str | os.PathLike, out_dir: str | os.PathLike, config: ImportConfig = ImportConfig()) -> ImportResult:
     """Read ``source``, validate with ``config.on_invalid``, write ``out_dir/<stem>.ply`` and its report."""
     source = Path(source)
     out_dir = Path(out_dir)
-    gaussians, report = read_gaussians_ply(source, on_invalid=config.on_invalid)
-    ply_path = out_dir / f"{source.stem}.ply"
+    gaussians, report, fmt = read_gaussians(source, on_invalid=config.on_invalid)
+    stem = scene_stem(source)
+    ply_path = out_dir / f"{stem}.ply"
     if ply_path.resolve() == source.resolve():
         raise ValueError(f"{ply_path}: the output would overwrite the input; choose another --out folder")
-    report_path = out_dir / f"{source.stem}.import.json"
+    report_path = out_dir / f"{stem}.import.json"
     write_gaussians_ply(ply_path, gaussians, binary=config.binary, normals=config.normals)
     payload = {
         "source": str(source),
+        "format": fmt,
         "output": str(ply_path),
         "num_gaussians": len(gaussians),
         "sh_degree": gaussians.sh_degree,
@@ -63,4 +69,4 @@ def import_ply(source: str | os.PathLike, out_dir: str | os.PathLike, config: Im
         "validation": report.to_dict(),
     }
     write_atomic(report_path, [(json.dumps(payload, indent=2, sort_keys=True) + "\n").encode()])
-    return ImportResult(source, ply_path, report_path, len(gaussians), gaussians.sh_degree, report)
+    return ImportResult(source, ply_path, report_path, len(gaussians), gaussians.sh_degree, report, fmt)

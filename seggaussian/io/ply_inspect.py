@@ -1,4 +1,4 @@
-"""``seggaussian inspect`` for one 3DGS PLY: layout, statistics and the validation report (nothing changed)."""
+"""``seggaussian inspect`` for one splat file: format, layout, statistics and the validation report (nothing changed)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from seggaussian.gaussians import Gaussians
+from seggaussian.io.formats import detect_format, read_gaussians_raw
 from seggaussian.io.ply import read_ply_header, read_vertex_table, vertex_table_to_gaussians
+from seggaussian.io.splat_common import FORMAT_TITLES
 from seggaussian.io.validate import validate_gaussians
 
 #: Quantiles reported for scales and opacities.
@@ -71,3 +73,18 @@ def inspect_ply(path: str | os.PathLike) -> dict:
         **summarize_gaussians(gaussians),
         "validation": report.to_dict(),
     }
+
+
+def inspect_scene(path: str | os.PathLike) -> dict:
+    """``inspect_ply`` for any splat file: ``file_format`` names the detected format (``ply``,
+    ``compressed_ply``, ``splat``, ``spz``) and ``format_title`` says it in words."""
+    fmt = detect_format(path)
+    if fmt == "ply":
+        info = inspect_ply(path)
+    else:
+        gaussians, _ = read_gaussians_raw(path, fmt)
+        _, report = validate_gaussians(gaussians, on_invalid="report", source=f"{path} ({FORMAT_TITLES[fmt]})")
+        info = {"path": str(Path(path)), "format": fmt, "file_bytes": Path(path).stat().st_size,
+                "num_properties": None, "has_normals": False, **summarize_gaussians(gaussians),
+                "validation": report.to_dict()}
+    return {**info, "file_format": fmt, "format_title": FORMAT_TITLES[fmt]}

@@ -110,11 +110,11 @@ def render_ply_view(config: QuicklookConfig) -> dict:
     """Read the PLY, render the view, write the PNG; returns a JSON-ready summary."""
     import torch
 
-    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.io.formats import read_gaussians
     from seggaussian.render.rasterize import render_gaussians
 
     start = time.perf_counter()
-    gaussians, _report = read_gaussians_ply(config.ply)
+    gaussians, _report, _format = read_gaussians(config.ply)  # any splat format, detected by content
     camera = read_camera_json(config.camera_json) if config.camera_json else orbit_camera(gaussians.means, config)
     out = render_gaussians(
         gaussians, camera, sh_degree=config.sh_degree,
