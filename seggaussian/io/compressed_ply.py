@@ -166,10 +166,15 @@ def read_compressed_ply(path: str | os.PathLike, header: PlyHeader | None = None
     has_colours, num_rest = _check_layout(header)
     elements = _read_elements(header)
     chunk, vertex = elements["chunk"], elements["vertex"]
+    with np.errstate(invalid="ignore", over="ignore"):   # NaN / Inf bounds give NaN values, reported by validation
+        return _decode(chunk, vertex, elements.get("sh"), has_colours, num_rest)
+
+
+def _decode(chunk: np.ndarray, vertex: np.ndarray, sh_rows: np.ndarray | None, has_colours: bool,
+            num_rest: int) -> Gaussians:
     n = vertex.shape[0]
     bounds = {name: np.ascontiguousarray(chunk[name]) for name in chunk.dtype.names}
     pp, pr, ps, pc = (np.ascontiguousarray(vertex[name]) for name in VERTEX_PACKED)
-
     means = np.empty((n, 3), np.float32)
     log_scales = np.empty((n, 3), np.float32)
     sh = np.zeros((n, 1 + num_rest // 3, 3), np.float32)
@@ -185,7 +190,7 @@ def read_compressed_ply(path: str | os.PathLike, header: PlyHeader | None = None
     opacity_logits = logit_from_unit(_unorm(pc, 0, 8))
     quats = decode_rotations(pr)
     if num_rest:
-        raw = elements["sh"].view(np.uint8).reshape(n, num_rest)
+        raw = sh_rows.view(np.uint8).reshape(n, num_rest)
         k = num_rest // 3
         sh[:, 1:, :] = SH_DECODE[raw].reshape(n, 3, k).transpose(0, 2, 1)
     return Gaussians(means, quats, log_scales, opacity_logits, sh)
