@@ -357,3 +357,50 @@ def test_ray_executor_builds_the_same_bytes(built, raw, tmp_path):
     local, remote = _public_files(ds), _public_files(out)
     shards = [name for name in local if name.endswith(".parquet")]
     assert shards and all(local[name] == remote[name] for name in shards)
+
+
+def test_export_ply_color_by_writes_palette_colours_and_legend(built, tmp_path):
+    from click.testing import CliRunner
+
+    from cli.seggaussian_cli import main
+    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.palette import IGNORE_RGB, label_colours
+
+    ds, _ = built
+    scene_id = shards.list_scenes(ds, "train")[0]
+    rec = shards.read_scene(ds, "train", scene_id, views=False)
+    for by in ("semantic", "instance"):
+        out = tmp_path / f"{by}.ply"
+        result = CliRunner().invoke(main, ["export-ply", str(ds), "--scene", scene_id, "--out", str(out),
+                                           "--color-by", by, "--json"])
+        assert result.exit_code == 0, result.output
+        g, _ = read_gaussians_ply(out)
+        labels = rec.gaussians.extras[by]
+        np.testing.assert_array_equal(g.extras[by], labels)                      # labels stay as properties
+        np.testing.assert_allclose(g.dc_colors() * 255, label_colours(labels), atol=1e-3)
+        assert g.sh_degree == rec.gaussians.sh_degree and not g.sh[:, 1:].any()  # higher bands zeroed
+        legend = json.loads((tmp_path / f"{by}.legend.json").read_text())
+        assert legend["by"] == by and legend["ignore"]["rgb"] == list(IGNORE_RGB)
+        assert sum(e["count"] for e in legend["entries"]) == len(g)
+        if by == "semantic":
+            assert {e["name"] for e in legend["entries"]} <= set(read_class_names()) | {"ignore"}
+        assert (tmp_path / f"{by}.legend.png").stat().st_size > 0
+        assert not list(tmp_path.glob(".*"))                                      # no temp files left
+
+
+def test_source_ply_reads_other_splat_formats(built, raw, tmp_path):
+    from seggaussian.io.formats import write_gaussians
+
+    ds, _ = built
+    scene_id = shards.list_scenes(ds, "train")[0]
+    orig = shards.read_scene(ds, "train", scene_id, views=False)
+    ply_dir = tmp_path / "splats"
+    write_gaussians(ply_dir / f"{scene_id}.spz", orig.gaussians)
+    report = build_mod.build_dataset(BuildConfig(source="ply", root=raw / "scannetpp", out=tmp_path / "from_spz",
+                                                 ply_dir=ply_dir, scenes=(scene_id,), progress=False))
+    (outcome,) = report.outcomes
+    assert outcome.status == "built" and outcome.info["mode"] == "import", outcome.reason
+    rec = shards.read_scene(tmp_path / "from_spz", shards.find_split(tmp_path / "from_spz", scene_id), scene_id,
+                            views=False)
+    assert len(rec.gaussians) == len(orig.gaussians)
+    np.testing.assert_allclose(rec.gaussians.means, orig.gaussians.means, atol=0.5 / 4096 + 1e-6)

@@ -19,8 +19,8 @@ Writing: positions and ``exp(log_scales)`` as float32, ``round(255 * (0.5 + SH_C
 Records keep the input order (viewers sort by depth themselves).
 
 There is no magic number: a file is taken as ``.splat`` when no other format matches, its size is a
-multiple of 32 and its first records hold finite positions and non-negative finite scales
-(:func:`looks_like_splat`).
+multiple of 32 and at least 3/4 of its first 64 records hold finite positions and non-negative finite
+scales (:func:`looks_like_splat`).
 """
 
 from __future__ import annotations
@@ -52,6 +52,8 @@ RECORD_BYTES = 32
 assert SPLAT_RECORD.itemsize == RECORD_BYTES
 #: Records checked by ``looks_like_splat``.
 SNIFF_RECORDS = 64
+#: Share of those records that must hold finite positions and non-negative finite scales.
+SNIFF_PLAUSIBLE_SHARE = 0.75
 #: Half the byte range of a quaternion component: component = (byte - QUAT_HALF) / QUAT_HALF.
 QUAT_HALF = np.float32(127.5)
 
@@ -64,8 +66,11 @@ def looks_like_splat(head: bytes, file_size: int) -> bool:
     if count == 0:
         return False
     records = np.frombuffer(head[: count * RECORD_BYTES], dtype=SPLAT_RECORD)
-    return bool(np.isfinite(records["position"]).all() and np.isfinite(records["scale"]).all()
-                and (records["scale"] >= 0).all())
+    with np.errstate(invalid="ignore"):
+        plausible = (np.isfinite(records["position"]).all(axis=1) & np.isfinite(records["scale"]).all(axis=1)
+                     & (records["scale"] >= 0).all(axis=1))
+    # most, not all: a broken record is then reported by validation, naming the field
+    return bool(plausible.mean() >= SNIFF_PLAUSIBLE_SHARE)
 
 
 def decode_splat(data: bytes | np.ndarray, source: str | os.PathLike = "<bytes>") -> Gaussians:

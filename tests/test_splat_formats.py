@@ -1,0 +1,241 @@
+"""Splat formats without the reference converter: detection by content, round trips within each format's
+quantisation step, layout details, errors, the palette and the CLI (see test_splat_reference.py for the
+comparison with @playcanvas/splat-transform and test_splat_fuzz.py for malformed files)."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import struct
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from seggaussian.constants import IGNORE_LABEL, SH_C0
+from seggaussian.gaussians import Gaussians
+from seggaussian.io.formats import (FORMATS, detect_format, format_for_output, read_gaussians, read_gaussians_raw,
+                                    scene_stem, write_gaussians)
+from seggaussian.io.splat_common import SplatFormatError
+
+
+def _gaussians(n: int = 300, degree: int = 2, seed: int = 0) -> Gaussians:
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2
+    return Gaussians.from_arrays(rng.uniform(-5, 5, (n, 3)), rng.normal(size=(n, 4)) * 3, rng.uniform(-8, 2, (n, 3)),
+                                 rng.normal(0, 3, n), np.concatenate([rng.uniform(-1.7, 1.7, (n, 1, 3)),
+                                                                     rng.uniform(-0.9, 0.9, (n, k - 1, 3))], 1))
+
+
+def _quat_error(a, b):
+    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    return np.minimum(np.abs(a - b).max(1), np.abs(a + b).max(1))
+
+
+@pytest.mark.parametrize("fmt, kwargs", [("ply", {}), ("compressed_ply", {}), ("splat", {}),
+                                         ("spz", {"spz_version": 2}), ("spz", {"spz_version": 3}),
+                                         ("spz", {"spz_version": 4})])
+def test_round_trip_within_quantisation_and_detected_by_content(fmt, kwargs, tmp_path):
+    g = _gaussians(degree=0 if fmt == "splat" else 2)
+    path = tmp_path / "scene.bin"                      # no telling extension
+    assert write_gaussians(path, g, fmt, **kwargs) == fmt
+    assert detect_format(path) == fmt
+    back, report, detected = read_gaussians(path)
+    assert detected == fmt and report.ok and len(back) == len(g) and back.sh_degree == g.sh_degree
+    # steps: see each module's docstring
+    pos = {"ply": 0, "splat": 0, "spz": 0.5 / 4096, "compressed_ply": np.ptp(g.means, 0) / 1023}[fmt]
+    assert (np.abs(back.means - g.means) <= pos + 1e-5).all()
+    scale = {"ply": 0, "splat": 1e-6, "spz": 0.5 / 16, "compressed_ply": np.ptp(g.log_scales, 0) / 1023}[fmt]
+    assert (np.abs(back.log_scales - g.log_scales) <= scale + 1e-5).all()
+    assert (np.abs(back.opacities() - g.opacities()) <= (0 if fmt == "ply" else 0.5 / 255) + 1e-5).all()
+    dc = {"ply": 0, "splat": 0.5 / 255 / SH_C0, "spz": 0.5 / 255 / 0.15,
+          "compressed_ply": np.ptp(g.dc_colors(), 0) / 255 / SH_C0}[fmt]
+    assert (np.abs(back.sh[:, 0] - g.sh[:, 0]) <= dc + 1e-5).all()
+    rest = {"ply": 0, "spz": 0.5 / 128, "compressed_ply": 8 / 256}.get(fmt)
+    if rest is not None:
+        assert (np.abs(back.sh[:, 1:] - g.sh[:, 1:]) <= rest + 1e-5).all()
+    if fmt == "spz" and kwargs["spz_version"] == 2:
+        unit = g.normalized_quats() * np.where(g.normalized_quats()[:, :1] < 0, -1, 1)
+        assert (np.abs(back.quats[:, 1:] - unit[:, 1:]) <= 1 / 127.5).all()   # w is derived (see spz.py)
+    else:
+        assert (_quat_error(back.quats, g.quats) <= {"ply": 1e-6, "splat": 1 / 127.5, "spz": 1 / 511,
+                                                      "compressed_ply": np.sqrt(2) / 1023}[fmt] + 1e-5).all()
+
+
+def test_spz_gzip_wrapped_and_raw_payload_decode_identically(tmp_path):
+    from seggaussian.io.spz import decode_spz, encode_spz
+
+    g = _gaussians(degree=3)
+    for version in (2, 3):
+        wrapped = encode_spz(g, version)
+        assert wrapped[:2] == b"\x1f\x8b"
+        raw = gzip.decompress(wrapped)
+        assert raw[:4] == b"NGSP" and struct.unpack_from("<I", raw, 4)[0] == version
+        a, b = decode_spz(wrapped), decode_spz(raw)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    v4 = encode_spz(g, 4)
+    assert v4[:4] == b"NGSP" and struct.unpack_from("<IB", v4, 4)[0] == 4
+
+
+def test_spz_v4_layout_and_sh_degree_4_refused(tmp_path):
+    from seggaussian.io.spz import V4_HEADER, encode_spz
+
+    g = _gaussians(degree=0, n=10)
+    data = bytearray(encode_spz(g, 4))
+    magic, version, n, degree, frac, flags, streams, toc, _ = V4_HEADER.unpack_from(data)
+    assert (version, n, degree, frac, streams, toc) == (4, 10, 0, 12, 5, 32)   # no SH stream for degree 0
+    data[12] = 4                                                               # claim SH degree 4
+    path = tmp_path / "deg4.spz"
+    path.write_bytes(bytes(data))
+    with pytest.raises(SplatFormatError, match=r"deg4.spz: Niantic SPZ: SH degree 4 is not supported"):
+        read_gaussians(path)
+
+
+def test_compressed_ply_layout(tmp_path):
+    from seggaussian.io.ply import read_ply_header
+
+    g = _gaussians(n=600, degree=1)
+    path = tmp_path / "a.compressed.ply"
+    write_gaussians(path, g)
+    header = read_ply_header(path)
+    assert [(e.name, e.count) for e in header.elements] == [("chunk", 3), ("vertex", 600), ("sh", 600)]
+    assert [p.name for p in header.element("sh").properties] == [f"f_rest_{i}" for i in range(9)]
+    # a chunk count that does not match ceil(N / 256) names both numbers
+    data = path.read_bytes().replace(b"element chunk 3", b"element chunk 2")
+    path.write_bytes(data)
+    with pytest.raises(SplatFormatError, match=r"a.compressed.ply: compressed PLY: 2 chunks for 600 vertices"):
+        read_gaussians(path)
+
+
+def test_rotation_packing_matches_a_per_record_reference():
+    """The vectorised 2+10+10+10 decode against a plain loop over the bits (slow, obviously correct)."""
+    from seggaussian.io.compressed_ply import decode_rotations, encode_rotations
+
+    rng = np.random.default_rng(3)
+    packed = rng.integers(0, 2**32, 500, dtype=np.uint64).astype(np.uint32)
+    fast = decode_rotations(packed)
+    for i, value in enumerate(packed.tolist()):
+        small = [((value >> s) & 1023) / 1023 for s in (20, 10, 0)]
+        small = [(v - 0.5) * np.sqrt(2) for v in small]
+        largest = value >> 30
+        q, it = [0.0] * 4, iter(small)
+        for j in range(4):
+            q[j] = np.sqrt(max(0.0, 1 - sum(v * v for v in small))) if j == largest else next(it)
+        np.testing.assert_allclose(fast[i], q, atol=1e-6)
+    unit = rng.normal(size=(200, 4))
+    assert (_quat_error(decode_rotations(encode_rotations(unit)), unit) < np.sqrt(2) / 1023).all()
+
+
+def test_unknown_and_empty_files_name_the_file(tmp_path):
+    for content, message in ((b"", "empty file"), (b"hello world", "unknown splat format"),
+                             (gzip.compress(b"ply\nformat ascii 1.0\n"), "gzip file whose content is not SPZ"),
+                             (b"\x00" * 31, "not a multiple of 32")):
+        path = tmp_path / "x.dat"
+        path.write_bytes(content)
+        with pytest.raises(SplatFormatError, match=message) as info:
+            read_gaussians(path)
+        assert str(path) in str(info.value)
+    with pytest.raises(SplatFormatError, match="cannot read"):
+        read_gaussians(tmp_path / "missing.spz")
+
+
+def test_splat_nan_payload_is_a_clear_error_or_a_counted_repair(tmp_path):
+    g = _gaussians(degree=0, n=20)
+    path = tmp_path / "a.splat"
+    write_gaussians(path, g)
+    data = bytearray(path.read_bytes())
+    data[32 * 3 + 12: 32 * 3 + 16] = struct.pack("<f", -1.0)         # a negative scale: log -> NaN
+    path.write_bytes(bytes(data))
+    with pytest.raises(SplatFormatError, match=r"a.splat \(antimatter15 .splat\): invalid values .*scale_0"):
+        read_gaussians(path)
+    repaired, report, _ = read_gaussians(path, on_invalid="repair")
+    assert len(repaired) == 19 and report.num_dropped == 1
+
+
+def test_output_format_from_name_and_stem():
+    assert format_for_output("a/b.compressed.ply") == "compressed_ply"
+    assert [format_for_output(f"x{s}") for s in (".ply", ".splat", ".spz", ".PLY")] == ["ply", "splat", "spz", "ply"]
+    assert format_for_output("x.ply", "spz") == "spz"
+    with pytest.raises(ValueError, match="unknown splat format"):
+        format_for_output("x.ply", "ksplat")
+    assert [scene_stem(p) for p in ("r.compressed.ply", "r.ply", "r.spz", "r.splat")] == ["r"] * 4
+    assert set(FORMATS) == {"ply", "compressed_ply", "splat", "spz"}
+
+
+# ---------------------------------------------------------------------------------------------
+# palette and legend
+# ---------------------------------------------------------------------------------------------
+def test_palette_is_fixed_and_documented():
+    import colorsys
+
+    from seggaussian.palette import IGNORE_RGB, label_colours, palette
+
+    colours = palette(100)
+    assert len({tuple(c) for c in colours}) == 100                    # 100 distinct class colours
+    for i in (0, 1, 7, 99, 1234):
+        r, g, b = colorsys.hsv_to_rgb((i * 0.618033988749895) % 1, 0.75, 0.95 if i % 2 == 0 else 0.7)
+        np.testing.assert_array_equal(label_colours(np.array([i]))[0], np.round(np.array([r, g, b]) * 255))
+    assert tuple(label_colours(np.array([IGNORE_LABEL]))[0]) == IGNORE_RGB
+    assert tuple(label_colours(np.array([-1]))[0]) == IGNORE_RGB
+    assert tuple(colours[0]) == (242, 61, 61)                            # the documented rule, pinned
+
+
+def test_colour_by_labels_and_legend(tmp_path):
+    from seggaussian.palette import build_legend, colour_by_labels, label_colours, legend_paths, write_legend
+
+    g = _gaussians(n=50, degree=3).with_extras(semantic=np.r_[np.zeros(20), np.ones(25), np.full(5, IGNORE_LABEL)]
+                                               .astype(np.int32))
+    painted = colour_by_labels(g, g.extras["semantic"])
+    rgb = label_colours(g.extras["semantic"]).astype(np.float32) / 255
+    np.testing.assert_allclose(painted.sh[:, 0], (rgb - 0.5) / SH_C0, rtol=1e-6)
+    assert painted.sh.shape == g.sh.shape and not painted.sh[:, 1:].any()
+    np.testing.assert_array_equal(painted.extras["semantic"], g.extras["semantic"])
+    np.testing.assert_array_equal(painted.means, g.means)
+    legend = build_legend(g.extras["semantic"], "semantic", ["wall", "floor"])
+    assert [(e.id, e.name, e.count) for e in legend.entries] == [(0, "wall", 20), (1, "floor", 25),
+                                                                  (IGNORE_LABEL, "ignore", 5)]
+    out = tmp_path / "scene.ply"
+    json_path, png_path = write_legend(out, legend)
+    assert (json_path, png_path) == legend_paths(out) == (tmp_path / "scene.legend.json", tmp_path / "scene.legend.png")
+    doc = json.loads(json_path.read_text())
+    assert doc["entries"][1] == {"id": 1, "name": "floor", "rgb": label_colours(np.array([1]))[0].tolist(), "count": 25}
+    import cv2
+
+    image = cv2.imread(str(png_path))
+    assert image is not None and image.shape[0] > 3 * 22
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.legend.json", "scene.legend.png"]
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------------------
+def test_cli_inspect_names_the_format_and_import_converts(tmp_path):
+    from cli.seggaussian_cli import main
+    from seggaussian.io.ply import read_gaussians_ply
+
+    g = _gaussians(degree=1)
+    runner = CliRunner()
+    for name, fmt in (("s.compressed.ply", "compressed_ply"), ("s.splat", "splat"), ("s.spz", "spz")):
+        src = tmp_path / name
+        write_gaussians(src, g if fmt != "splat" else _gaussians(degree=0))
+        result = runner.invoke(main, ["inspect", str(src), "--json"])
+        assert result.exit_code == 0, result.output
+        info = json.loads(result.output)
+        assert info["file_format"] == fmt and info["num_gaussians"] == len(g)
+        text = runner.invoke(main, ["inspect", str(src)]).output
+        assert info["format_title"] in text.splitlines()[-1]
+        out = tmp_path / f"imported_{fmt}"
+        result = runner.invoke(main, ["import", str(src), "--out", str(out), "--json"])
+        assert result.exit_code == 0, result.output
+        payload = json.loads(result.output)
+        assert payload["format"] == fmt and payload["ply"].endswith("/s.ply")
+        ply, report = read_gaussians_ply(out / "s.ply")
+        decoded, _ = read_gaussians_raw(src)
+        np.testing.assert_array_equal(ply.means, decoded.means)
+        np.testing.assert_array_equal(ply.sh, decoded.sh)
+    bad = tmp_path / "bad.spz"
+    bad.write_bytes(b"NGSP" + bytes(20))
+    result = runner.invoke(main, ["import", str(bad), "--out", str(tmp_path / "o")])
+    assert result.exit_code != 0 and "bad.spz" in result.output and "Traceback" not in result.output
