@@ -165,3 +165,39 @@ def test_refuses_to_overwrite_input(run_dir, tmp_path):
     p.write_bytes(b"")
     with pytest.raises(ValueError, match="refusing to overwrite"):
         run_predict(p, p, PredictConfig(run=run_dir, vocabulary=("a",)))
+
+
+def test_predict_reads_and_writes_other_formats_with_legend(run_dir, tmp_path):
+    from cli.ov_predict import command
+    from seggaussian.io.formats import read_gaussians, write_gaussians
+    from seggaussian.io.ply import read_gaussians_ply
+
+    scene = REALDATA / "loadersgl_train-1000.ply"
+    if not scene.is_file():
+        pytest.skip(f"{scene} absent (shared real data not mounted)")
+    original, _ = read_gaussians_ply(scene)
+    spz = tmp_path / "scene.spz"
+    write_gaussians(spz, original)
+    out = tmp_path / "labelled.compressed.ply"
+    result = CliRunner().invoke(command, [str(spz), "--run", str(run_dir), "--vocab", VOCAB, "--out", str(out),
+                                          "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["scene_format"] == "spz" and summary["out_format"] == "compressed_ply"
+    labelled, _, fmt = read_gaussians(out)
+    assert fmt == "compressed_ply" and len(labelled) == len(original)
+    legend = json.loads((tmp_path / "labelled.compressed.legend.json").read_text())
+    assert [e["name"] for e in legend["entries"]] == [n for n in summary["vocabulary"] if summary["counts"][n]]
+    # every Gaussian shows one of the legend's colours (within the compressed colour step)
+    colours = np.array([e["rgb"] for e in legend["entries"]], np.float64)
+    distance = np.abs(labelled.dc_colors()[:, None, :] * 255 - colours[None]).max(axis=2).min(axis=1)
+    assert distance.max() < 1.5
+    # --color-by none keeps the scene's colours and writes no legend
+    plain = tmp_path / "plain.ply"
+    result = CliRunner().invoke(command, [str(spz), "--run", str(run_dir), "--vocab", VOCAB, "--out", str(plain),
+                                          "--color-by", "none"])
+    assert result.exit_code == 0, result.output
+    kept, _ = read_gaussians_ply(plain)
+    decoded, _, _ = read_gaussians(spz)
+    np.testing.assert_array_equal(kept.sh, decoded.sh)
+    assert "semantic" in kept.extras and not (tmp_path / "plain.legend.json").exists()
