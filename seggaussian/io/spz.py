@@ -66,15 +66,24 @@ MAX_SPZ_SH_DEGREE = 3
 #: Cap on the decompressed size relative to the file (protects against a header claiming billions of points).
 MAX_EXPANSION = 1024
 _SH_DIM = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}
+#: Decoded value of each SH byte, ``(b - 128) / 128``.
+SH_DECODE = ((np.arange(256, dtype=np.float32) - np.float32(128.0)) / np.float32(128.0)).astype(np.float32)
 #: zstd compression level of the written v4 streams.
 ZSTD_LEVEL = 3
 
 
 def _gunzip(data: bytes, source) -> bytes:
+    """One gzip member (what SPZ writers produce), CRC checked by zlib; one call, no per-block Python."""
+    inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
     try:
-        return gzip.decompress(data)
-    except (OSError, EOFError, zlib.error) as exc:
+        out = inflater.decompress(data)
+    except zlib.error as exc:
         raise SplatFormatError(f"{source}: {TITLE}: broken gzip stream ({exc})") from None
+    if not inflater.eof:
+        raise SplatFormatError(f"{source}: {TITLE}: truncated gzip stream (no end of stream after {len(data)} bytes)")
+    if inflater.unused_data:
+        raise SplatFormatError(f"{source}: {TITLE}: {len(inflater.unused_data)} bytes after the gzip stream")
+    return out
 
 
 def spz_payload_head(data: bytes, size: int = 16) -> bytes:
@@ -209,7 +218,7 @@ def decode_spz(data: bytes, source: str | os.PathLike = "<bytes>") -> Gaussians:
     sh[:, 0, :] = ((blocks["colors"].reshape(n, 3) * np.float32(1.0 / 255.0) - np.float32(0.5))
                    / np.float32(SPZ_COLOR_SCALE))
     if k > 1:
-        sh[:, 1:, :] = (blocks["sh"].reshape(n, k - 1, 3).astype(np.float32) - np.float32(128.0)) / np.float32(128.0)
+        sh[:, 1:, :] = SH_DECODE[blocks["sh"].reshape(n, k - 1, 3)]          # one gather, no float passes
     log_scales = (blocks["scales"].reshape(n, 3) * np.float32(1.0 / 16.0) - np.float32(10.0)).astype(np.float32)
     if version >= 3:
         quats = _decode_rotations_v3(blocks["rotations"].view("<u4"))
