@@ -38,7 +38,7 @@ import numpy as np
 
 from seggaussian.constants import SH_C0
 from seggaussian.gaussians import Gaussians, sh_degree_from_coeffs
-from seggaussian.io.ply import PlyHeader, _record_dtype, read_ply_header
+from seggaussian.io.ply import PlyElement, PlyHeader, read_ply_header
 from seggaussian.io.splat_common import SplatFormatError, dc_from_rgb, logit_from_unit, unit_from_logit
 
 __all__ = ["CHUNK_SIZE", "is_compressed_ply_header", "read_compressed_ply", "encode_compressed_ply",
@@ -117,9 +117,14 @@ def _check_layout(header: PlyHeader) -> tuple[bool, int]:
     return len(props) == len(CHUNK_BOUNDS) + len(CHUNK_COLOURS), num_rest
 
 
+def _element_dtype(element: PlyElement) -> np.dtype:
+    """Little-endian record dtype of a (list-free, checked by ``_check_layout``) element."""
+    return np.dtype([(p.name, "<" + p.dtype) for p in element.properties])
+
+
 def _read_elements(header: PlyHeader) -> dict[str, np.ndarray]:
     """Every element as a structured array, after checking the body size."""
-    dtypes = [(e, _record_dtype(e, "<")) for e in header.elements]
+    dtypes = [(e, _element_dtype(e)) for e in header.elements]
     needed = sum(e.count * dt.itemsize for e, dt in dtypes)
     available = header.file_size - header.body_offset
     if available < needed:
