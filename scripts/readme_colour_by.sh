@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The README's colour-by-label picture: a small synthetic set, a short training run, an open-vocabulary
 # prediction written as a compressed PLY (SuperSplat) coloured by class, and `seggaussian render` of it.
-# About 10 minutes on 2 cores. Output: $OUT/labelled.compressed.ply (+ .legend.json/.png) and the PNG.
+# About 8 minutes on 2 cores (longer under load). Output: $OUT/labelled.compressed.ply (+ .legend.json/.png) and the PNG.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=.venv/bin
@@ -12,7 +12,7 @@ $BIN/seggaussian synth --out "$OUT/raw" --scenes 4 --replica-scenes 1 --width 12
 $BIN/seggaussian build --source synthetic --root "$OUT/raw" --out "$OUT/dataset" --gaussians oracle \
     --oracle-gaussians 20000 --jobs 2 --no-progress | tail -n 1
 $BIN/seggaussian split --data "$OUT/dataset" | tail -n 1
-$BIN/ovgaussian train --data "$OUT/dataset" --out "$OUT/run" --epochs 60 --classes 20 --model-preset slim \
+$BIN/ovgaussian train --data "$OUT/dataset" --out "$OUT/run" --epochs 16 --classes 20 --model-preset slim \
     --pixels-per-view 4096 --no-progress | tail -n 1
 VAL=$($BIN/python -c "from seggaussian.shards import list_scenes; print(list_scenes('$OUT/dataset', 'val')[0])")
 $BIN/seggaussian export-ply "$OUT/dataset" --scene "$VAL" --out "$OUT/scene.ply" | tail -n 1

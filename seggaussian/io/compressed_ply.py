@@ -182,7 +182,7 @@ def _decode(chunk: np.ndarray, vertex: np.ndarray, sh_rows: np.ndarray | None, h
     pp, pr, ps, pc = (np.ascontiguousarray(vertex[name]) for name in VERTEX_PACKED)
     means = np.empty((n, 3), np.float32)
     log_scales = np.empty((n, 3), np.float32)
-    sh = np.zeros((n, 1 + num_rest // 3, 3), np.float32)
+    sh = np.empty((n, 1 + num_rest // 3, 3), np.float32)
     for axis, (shift, bits) in enumerate(((21, 11), (11, 10), (0, 11))):
         c = "xyz"[axis]
         means[:, axis] = _lerp_chunks(_unorm(pp, shift, bits), bounds[f"min_{c}"], bounds[f"max_{c}"])
@@ -197,7 +197,7 @@ def _decode(chunk: np.ndarray, vertex: np.ndarray, sh_rows: np.ndarray | None, h
     if num_rest:
         raw = sh_rows.view(np.uint8).reshape(n, num_rest)
         k = num_rest // 3
-        sh[:, 1:, :] = SH_DECODE[raw].reshape(n, 3, k).transpose(0, 2, 1)
+        sh[:, 1:, :] = SH_DECODE[raw.reshape(n, 3, k).transpose(0, 2, 1)]   # channel-major bytes -> [N, K-1, 3]
     return Gaussians(means, quats, log_scales, opacity_logits, sh)
 
 
