@@ -19,3 +19,7 @@ $BIN/seggaussian export-ply "$OUT/dataset" --scene "$VAL" --out "$OUT/scene.ply"
 $BIN/ovgaussian predict "$OUT/scene.ply" --run "$OUT/run" --vocab "wall, floor, ceiling, chair, table, sofa, bed, bookshelf, curtain" \
     --out "$OUT/labelled.compressed.ply" --color-by semantic | tail -n 1
 $BIN/seggaussian render "$OUT/labelled.compressed.ply" --out "$PNG" --width 480 --height 360 --azimuth -60 --elevation 35
+cp "$OUT/labelled.compressed.legend.png" "${PNG%.png}.legend.png"
+# the same palette on the ground-truth labels of that scene, for comparison
+$BIN/seggaussian export-ply "$OUT/dataset" --scene "$VAL" --out "$OUT/truth.ply" --color-by semantic | tail -n 1
+$BIN/seggaussian render "$OUT/truth.ply" --out docs/images/colour_by_truth.png --width 480 --height 360 --azimuth -60 --elevation 35
