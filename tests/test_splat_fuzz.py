@@ -149,3 +149,24 @@ def test_fuzz_gives_clear_errors_only(name, tmp_path):
     # the base file itself is accepted
     (tmp_path / "base.bin").write_bytes(base)
     assert _classify(tmp_path / "base.bin") == "accepted"
+
+
+# ---------------------------------------------------------------------------------------------
+# the same formats through the shared harness (seggaussian.fuzz: own-code, one-line and hang checks)
+# ---------------------------------------------------------------------------------------------
+#: Mutants per format through the harness.
+HARNESS_MUTANTS = 400
+
+
+@pytest.mark.parametrize("index", range(7))
+def test_splat_formats_in_the_shared_fuzz_harness(index, tmp_path):
+    from seggaussian import fuzz
+    from seggaussian.fuzz_splat import splat_targets
+
+    target = splat_targets(seed=0)[index]
+    report = fuzz.run_fuzz(target, HARNESS_MUTANTS, seed=15, workdir=tmp_path)
+    assert report.failures() == [], [f"{o.name}: {o.verdict}: {o.detail}" for o in report.failures()[:10]]
+    counts = report.counts
+    assert counts["clean_error"] >= HARNESS_MUTANTS // 4 and counts["accepted"] > 0, (target.name, counts)
+    assert set(report.by_mutator()) == {name for name, _ in target.mutators}
+    assert not list(tmp_path.iterdir())
