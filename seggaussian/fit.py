@@ -33,6 +33,8 @@ from seggaussian.fit_config import FitConfig
 from seggaussian.gaussians import Gaussians
 from seggaussian.scene import Scene
 from seggaussian.sources._common import read_valid_mask
+from seggaussian.sources.layout import find_scene_layout, reader
+from seggaussian.transfer import nearest_neighbours
 
 if TYPE_CHECKING:
     import torch
@@ -224,8 +226,6 @@ def initialize_gaussians(points: np.ndarray, colors: np.ndarray, config: FitConf
     """Initial Gaussians at the voxel-averaged points: isotropic scales = mean distance to the
     ``init_knn`` nearest other points (log), identity rotations, opacity ``init_opacity`` (logit),
     SH DC from the point colours, higher SH zero. Returns the Gaussians and counts for the metrics."""
-    from scipy.spatial import cKDTree
-
     pts, cols = voxel_downsample(points, colors, config.init_voxel_size)
     stats = {"input_points": int(points.shape[0]), "voxel_points": int(pts.shape[0]), "subsampled_away": 0}
     if pts.shape[0] > config.max_gaussians:
@@ -235,8 +235,8 @@ def initialize_gaussians(points: np.ndarray, colors: np.ndarray, config: FitConf
     n = pts.shape[0]
     if n > 1:
         k = min(config.init_knn, n - 1)
-        dist, _ = cKDTree(pts).query(pts, k=k + 1)
-        nn = np.asarray(dist, dtype=np.float64).reshape(n, k + 1)[:, 1:].mean(axis=1)
+        dist, _ = nearest_neighbours(pts, "scipy")(pts, k + 1)
+        nn = dist[:, 1:].mean(axis=1)
     else:
         nn = np.full(n, 0.01)
     nn = np.maximum(nn, INIT_MIN_NN_DISTANCE)
@@ -666,21 +666,8 @@ def read_source_scene(source: str, root: str | Path, scene_id: str) -> Scene:
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: raw tree does not exist")
     if source == "synthetic":
-        candidates = [("scannetpp", root / "scannetpp"), ("replica", root / "replica"),
-                      ("scannetpp", root), ("replica", root)]
-        for layout, layout_root in candidates:
-            where = layout_root / "data" / scene_id if layout == "scannetpp" else layout_root / scene_id
-            if where.is_dir() and (layout == "replica" or (layout_root / "data").is_dir()):
-                source, root = layout, layout_root
-                break
-        else:
-            raise FileNotFoundError(f"{root}: no synthetic scene {scene_id!r} (looked in scannetpp/data, replica, "
-                                    f"data and the root itself)")
-    if source == "scannetpp":
-        from seggaussian.sources import scannetpp as module
-    else:
-        from seggaussian.sources import replica as module
-    return module.read_scene(root, scene_id)
+        source, root = find_scene_layout(root, scene_id)
+    return reader(source).read_scene(root, scene_id)
 
 
 def metrics_path(ply_path: str | Path) -> Path:

@@ -12,10 +12,12 @@ import pyarrow.parquet as pq
 import pytest
 
 from seggaussian import build as build_mod
-from seggaussian import shards
+from seggaussian import build_cache, export, oracle, shards
 from seggaussian.build_config import BuildConfig, OracleConfig, SplitConfig, TransferConfig
 from seggaussian.constants import IGNORE_LABEL, read_class_names
 from seggaussian.split import SceneSplitInfo, assign_splits, target_val_count
+from seggaussian.stages import transfer as transfer_stage
+from seggaussian.stages import views as views_stage
 
 synthetic = pytest.importorskip("seggaussian.sources.synthetic")
 
@@ -24,15 +26,15 @@ synthetic = pytest.importorskip("seggaussian.sources.synthetic")
 def frozen_code_hash():
     """Other modules are being edited while tests run; freeze each code hash at its first value so that
     cache hits and misses in this file come only from what the tests change."""
-    real, memo = build_mod.code_hash, {}
+    real, memo = build_cache.code_digest, {}
 
-    def frozen(*relative):
-        if relative not in memo:
-            memo[relative] = real(*relative)
-        return memo[relative]
+    def frozen(entry):
+        if entry not in memo:
+            memo[entry] = real(entry)
+        return memo[entry]
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(build_mod, "code_hash", frozen)
+        mp.setattr(build_cache, "code_digest", frozen)
         yield
 
 
@@ -134,7 +136,7 @@ def test_killed_build_resumes_to_identical_bytes(built, raw, tmp_path, monkeypat
     ds, _ = built
     out = tmp_path / "resumed"
     calls = {"n": 0}
-    real = build_mod.run_views
+    real = views_stage.run_views
 
     def dying(*args, **kwargs):
         calls["n"] += 1
@@ -142,10 +144,10 @@ def test_killed_build_resumes_to_identical_bytes(built, raw, tmp_path, monkeypat
             raise KeyboardInterrupt  # like a kill: not caught per scene
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(build_mod, "run_views", dying)
+    monkeypatch.setattr(views_stage, "run_views", dying)
     with pytest.raises(KeyboardInterrupt):
         build_mod.build_dataset(_config(raw, out))
-    monkeypatch.setattr(build_mod, "run_views", real)
+    monkeypatch.setattr(views_stage, "run_views", real)
     assert not (out / "manifest.json").exists()
     resumed = build_mod.build_dataset(_config(raw, out))
     stages = {o.scene_id: o.stages_run for o in resumed.outcomes}
@@ -220,7 +222,7 @@ def test_source_ply_imports_trained_plys(built, raw, tmp_path):
     ds, _ = built
     scene_id = shards.list_scenes(ds, "train")[0]
     ply_dir = tmp_path / "plys"
-    build_mod.export_scene_ply(ds, scene_id, ply_dir / f"{scene_id}.ply")
+    export.export_scene_ply(ds, scene_id, ply_dir / f"{scene_id}.ply")
     out = tmp_path / "from_ply"
     report = build_mod.build_dataset(BuildConfig(source="ply", root=raw / "scannetpp", out=out, ply_dir=ply_dir,
                                                  scenes=(scene_id,), progress=False))
@@ -245,10 +247,10 @@ def test_oracle_transfer_accuracy_on_synthetic_scenes(raw):
     config = _config(raw, raw / "unused")
     for scene in scenes:
         rng = np.random.default_rng(0)
-        g, truth = build_mod.sample_oracle_gaussians(scene.points, scene.colors, scene.semantic, scene.faces,
+        g, truth = oracle.sample_oracle_gaussians(scene.points, scene.colors, scene.semantic, scene.faces,
                                                      OracleConfig(num_gaussians=20000), rng,
                                                      tuple(v.camera for v in scene.views))
-        _, facts = build_mod.run_transfer(scene, g, truth, config)
+        _, facts = transfer_stage.run_transfer(scene, g, truth, config)
         assert facts["label_accuracy"]["accuracy"] >= 0.99, (scene.scene_id, facts["label_accuracy"])
 
 
@@ -256,9 +258,9 @@ def test_code_change_reruns_the_stage(built, raw, tmp_path, monkeypatch):
     ds, _ = built
     out = tmp_path / "copy"
     shutil.copytree(ds, out)
-    real = build_mod.code_hash
-    monkeypatch.setattr(build_mod, "code_hash",
-                        lambda *rel: real(*rel) + ("x" if rel and rel[0] == "render" and len(rel) == 3 else ""))
+    real = build_cache.code_digest
+    monkeypatch.setattr(build_cache, "code_digest",
+                        lambda entry: real(entry) + ("x" if entry == views_stage.__name__ else ""))
     report = build_mod.build_dataset(_config(raw, out))
     assert {o.stages_run for o in report.outcomes} == {("views",)}
 
@@ -305,7 +307,7 @@ def test_quats_from_z_axis_rotates_z_onto_the_normal():
     rng = np.random.default_rng(0)
     normals = np.concatenate([rng.normal(size=(50, 3)), [[0, 0, 1.0], [0, 0, -1.0], [1e-12, 0, -1.0]]])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    q = build_mod.quats_from_z_axis(normals)
+    q = oracle.quats_from_z_axis(normals)
     assert np.isfinite(q).all()
     rotated_z = quats_to_rotmats(q)[:, :, 2]
     np.testing.assert_allclose(rotated_z, normals, atol=1e-6)
@@ -323,7 +325,7 @@ def test_oracle_samples_lie_on_the_mesh_with_their_surface_label():
     colors = np.full((8, 3), 128, np.uint8)
     cam = Camera(intrinsics(40, 40, 32, 24), look_at([0.5, -1.0, 0.8], [0.5, 0.7, 0.3]), 64, 48)
     for cameras in ((cam,), ()):
-        g, truth = build_mod.sample_oracle_gaussians(v, colors, semantic, faces, OracleConfig(num_gaussians=500),
+        g, truth = oracle.sample_oracle_gaussians(v, colors, semantic, faces, OracleConfig(num_gaussians=500),
                                                      np.random.default_rng(1), cameras)
         assert 0 < len(g) <= 500 and np.isfinite(g.log_scales).all()
         on_floor = np.abs(g.means[:, 2]) < 1e-6
@@ -335,10 +337,10 @@ def test_oracle_samples_lie_on_the_mesh_with_their_surface_label():
         np.testing.assert_array_equal(truth[clear], np.where(on_floor, 1, 2)[clear])
         np.testing.assert_array_equal(surface_labels(g.means, v, faces, semantic)[clear], truth[clear])
     # a point cloud: Gaussians on the points, truth = their labels
-    g, truth = build_mod.sample_oracle_gaussians(v, colors, semantic, None, OracleConfig(num_gaussians=20),
+    g, truth = oracle.sample_oracle_gaussians(v, colors, semantic, None, OracleConfig(num_gaussians=20),
                                                  np.random.default_rng(1))
     assert len(g) == 20 and set(truth.tolist()) <= {1, 2}
-    empty, t0 = build_mod.sample_oracle_gaussians(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32),
+    empty, t0 = oracle.sample_oracle_gaussians(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32),
                                                   None, OracleConfig(), np.random.default_rng(0))
     assert len(empty) == 0 and len(t0) == 0
 

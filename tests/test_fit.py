@@ -453,7 +453,7 @@ def test_cli_fit_writes_ply_and_metrics(tmp_path):
     assert text.exit_code == 0 and text.output.strip().splitlines()[-1].startswith(f"{out}: scene {scene_id}")
     # a scene that is not there: a clear error, no traceback
     bad = CliRunner().invoke(main, ["fit", "--root", str(raw), "--scene", "nope", "--out", str(tmp_path / "x.ply")])
-    assert bad.exit_code != 0 and "no synthetic scene 'nope'" in bad.output and "Traceback" not in bad.output
+    assert bad.exit_code != 0 and "no scene 'nope'" in bad.output and "Traceback" not in bad.output
 
 
 def test_config_with_iterations_scales_the_schedule():

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian import build as build_mod
+from seggaussian.build import build_dataset
 from seggaussian import shards
 from seggaussian.build_config import BuildConfig, OracleConfig
 from seggaussian.constants import IGNORE_LABEL
@@ -181,7 +181,7 @@ def test_build_succeeds_on_the_complete_tree_and_masks_label_maps(pristine, tmp_
     out = tmp_path / "dataset"
     config = BuildConfig(source="scannetpp", root=root, out=out, gaussians="oracle", progress=False,
                          oracle=OracleConfig(num_gaussians=3000))
-    report = build_mod.build_dataset(config)
+    report = build_dataset(config)
     assert report.counts["built"] == 1 and report.counts["failed"] == 0
     # the transfer report of a generated room: a real (non-zero) median spacing of the mesh points
     transfer = report.outcomes[0].info["transfer"]

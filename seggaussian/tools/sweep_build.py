@@ -12,7 +12,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from seggaussian.build import STAGES as BUILD_STAGES
+from seggaussian.build_scene import STAGES as BUILD_STAGES
 from seggaussian.build import build_dataset
 from seggaussian.build_config import BuildConfig, OracleConfig, ViewConfig
 from seggaussian.sources.layout import source_of_tree

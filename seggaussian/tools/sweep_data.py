@@ -14,8 +14,10 @@ from typing import Callable
 import numpy as np
 
 from seggaussian.atomic import atomic_dir, sweep_temps, write_text_atomic
-from seggaussian.build import discover, sample_oracle_gaussians, scene_seed
 from seggaussian.build_config import BuildConfig, OracleConfig
+from seggaussian.build_discover import discover
+from seggaussian.oracle import sample_oracle_gaussians
+from seggaussian.seeds import scene_seed
 from seggaussian.sources.layout import reader, source_of_tree
 from seggaussian.sources.synthetic import SynthConfig, synthesize
 from seggaussian.tools.sweep_config import StageSweepConfig

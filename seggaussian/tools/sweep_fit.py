@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from seggaussian.build import scene_seed
+from seggaussian.seeds import scene_seed
 from seggaussian.fit import GaussianParameters, evaluate, fit_scene, load_views
 from seggaussian.fit_config import FitConfig
 from seggaussian.render.rasterize import default_backend

@@ -16,7 +16,7 @@ import time
 import numpy as np
 import torch
 
-from seggaussian.build import view_scale
+from seggaussian.stages.views import view_scale
 from seggaussian.build_config import ViewConfig
 from seggaussian.constants import IGNORE_LABEL, read_class_names
 from seggaussian.fit import evenly_spaced

@@ -19,7 +19,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from seggaussian.build import scene_seed
+from seggaussian.seeds import scene_seed
 from seggaussian.build_config import TransferConfig
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.tools.pareto import Trial, one_at_a_time

@@ -1,0 +1,79 @@
+"""The build's records: one scene task (sent to workers), what building it did, and the whole build's report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+
+class SceneTask(NamedTuple):
+    """One scene to build (picklable; sent to workers).
+
+    Fields:
+        scene_id: the source's scene id.
+        domain: reader used: ``scannetpp`` or ``replica``.
+        root: the layout root passed to the reader.
+        fingerprint: sha256 of the scene's raw files (relative path, size, mtime) and the reader code.
+        trained_ply: a trained 3DGS PLY for this scene, or None.
+        official_split: ``train`` / ``val`` from the official lists, or None.
+    """
+
+    scene_id: str
+    domain: str
+    root: Path
+    fingerprint: str
+    trained_ply: Path | None
+    official_split: str | None
+
+
+class SceneOutcome(NamedTuple):
+    """What building one scene did.
+
+    Fields:
+        scene_id, domain, official_split: as in the task.
+        status: ``built`` (a stage ran), ``skipped`` (every stage cached) or ``failed``.
+        stages_run: names of the stages that ran.
+        reason: the error (type and message) for a failed scene.
+        info: JSON-ready facts copied into the manifest (counts, transfer statistics, accuracy).
+        fragments: {table: cached per-scene Parquet path}.
+        keys: {stage: key}.
+        seconds: wall time.
+    """
+
+    scene_id: str
+    domain: str
+    official_split: str | None
+    status: str
+    stages_run: tuple
+    reason: str | None
+    info: dict
+    fragments: dict
+    keys: dict
+    seconds: float
+
+
+class BuildReport(NamedTuple):
+    """Result of ``build_dataset``: per-scene outcomes, split counts, files, whether shards were rewritten."""
+
+    dataset: Path
+    outcomes: list
+    split_counts: dict
+    files: int
+    bytes: int
+    assembled: bool
+    synthesized: list
+    seconds: float
+    #: Failed scenes whose last good copy stays in the shards (see ``build_record.write_build_record``).
+    kept: tuple = ()
+    #: Temporaries of killed earlier runs removed from the dataset folder at the start.
+    swept: int = 0
+
+    @property
+    def counts(self) -> dict:
+        return {s: sum(1 for o in self.outcomes if o.status == s) for s in ("built", "skipped", "failed")}
+
+
+def failed_outcome(task: SceneTask, reason: str, seconds: float, trace: str | None = None) -> SceneOutcome:
+    """The outcome of a scene that failed with ``reason`` (the traceback appended when given)."""
+    return SceneOutcome(task.scene_id, task.domain, task.official_split, "failed", (),
+                        reason + (f"\n{trace}" if trace else ""), {}, {}, {}, seconds)
