@@ -1,7 +1,7 @@
 """Frozen configuration of the dataset build: label transfer, oracle Gaussians, views, shards, split.
 
 Kept apart from the code that uses it. Every field that changes a stage's output takes part in that
-stage's cache key (``build.py``), so changing one setting reruns only the stages downstream of it.
+stage's cache key (``build_scene.stage_keys``), so changing one setting reruns only the stages downstream of it.
 """
 
 from __future__ import annotations

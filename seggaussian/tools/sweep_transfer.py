@@ -1,7 +1,7 @@
 """The transfer stage sweep: label agreement of the label transfer against oracle Gaussians' true labels.
 
 Oracle Gaussians sampled on the visible labelled triangles carry their true label (the corner of the sampled
-triangle with the largest barycentric weight, ``build.sample_oracle_gaussians``); their centres are pushed off
+triangle with the largest barycentric weight, ``oracle.sample_oracle_gaussians``); their centres are pushed off
 the surface along the normal by seeded noise (``TransferSweep.surface_noise``) because fitted Gaussians sit a
 few cm off the mesh. Quality = label agreement over all Gaussians, ignore counted as a label: a Gaussian on a
 labelled surface must get its class (ignore is wrong), one on an unlabelled surface (rug, None-mapped object,
