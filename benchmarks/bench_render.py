@@ -65,7 +65,7 @@ def bench_small(num: int, width: int, height: int, repeats: int) -> dict:
     import torch
 
     from seggaussian.render import compute_blend_weights, rasterize
-    from seggaussian.render.fast import blend_fast
+    from seggaussian.render.rasterize_numba import blend_fast
     from seggaussian.render.projection import project_gaussians
     from seggaussian.render.tiles import bin_gaussians
     from seggaussian.render.torch_tiles import blend_torch_tiles
@@ -130,7 +130,7 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
     import torch
 
     from seggaussian.render import rasterize
-    from seggaussian.render.fast import blend_fast
+    from seggaussian.render.rasterize_numba import blend_fast
     from seggaussian.render.fast_projection import project_gaussians_fast
     from seggaussian.render.sh import sh_to_colors
     from seggaussian.render.tiles import bin_gaussians

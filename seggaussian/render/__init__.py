@@ -9,10 +9,11 @@ Public API (torch tensors in and out; see docs/INTERFACES.md):
 - ``render_gaussians(gaussians, camera, ...)``: the numpy ``Gaussians`` / ``Camera`` convenience.
 """
 
-from seggaussian.render.blend import DEFAULT_TOP_K, BlendWeights, compute_blend_weights, render_features
+from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights, render_features
 from seggaussian.render.labelmaps import LABEL_MIN_ALPHA, LabelMaps, render_label_maps
 from seggaussian.render.projection import Projection, project_gaussians
-from seggaussian.render.rasterize import RenderOutput, rasterize, render_gaussians
+from seggaussian.render.rasterize import rasterize, render_gaussians
+from seggaussian.render.results import BlendWeights, RenderOutput
 
 __all__ = [
     "BlendWeights",

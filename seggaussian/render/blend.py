@@ -7,31 +7,21 @@ for any feature (semantic vectors, labels) without re-rasterizing.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 from torch import Tensor
 
 from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TRANSMITTANCE_MIN
+from seggaussian.render.fast_projection import project_gaussians_fast
+from seggaussian.render.inputs import check_inputs
+from seggaussian.render.projection import project_gaussians
+from seggaussian.render.rasterize_numba import blend_weights_fast
+from seggaussian.render.reference import depth_order
+from seggaussian.render.results import BlendWeights
+from seggaussian.render.tiles import bin_gaussians
 
 #: Default number of contributors kept per pixel. Past ~16 front-most Gaussians the remaining
 #: transmittance of a converged 3DGS scene is small; ``residual_alpha`` reports what was left out.
 DEFAULT_TOP_K = 16
-
-
-class BlendWeights(NamedTuple):
-    """The K front-most contributors of every pixel of one view (no gradient).
-
-    Fields:
-        ids: ``[H, W, K]`` int64 Gaussian indices in blending order, -1 for unused slots.
-        weights: ``[H, W, K]`` float32 blend weights ``alpha_i T_i`` (0 for unused slots).
-        residual_alpha: ``[H, W]`` float32 accumulated alpha of contributors beyond the first K
-            (total accumulated alpha = weights.sum(-1) + residual_alpha).
-    """
-
-    ids: Tensor
-    weights: Tensor
-    residual_alpha: Tensor
 
 
 def blend_weights_reference(
@@ -39,8 +29,6 @@ def blend_weights_reference(
     width: int, height: int, top_k: int,
 ) -> BlendWeights:
     """Same walk as ``reference.blend_reference`` (float32), recording the first ``top_k`` weights."""
-    from seggaussian.render.reference import depth_order
-
     dtype = torch.float32
     v, u = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
     px, py = u.reshape(-1) + 0.5, v.reshape(-1) + 0.5
@@ -91,18 +79,13 @@ def compute_blend_weights(
     ``render_features(blend, f)`` equals ``rasterize(..., features=f).image`` exactly when ``top_k`` covers
     every contributor (``residual_alpha == 0``); otherwise it misses ``residual_alpha`` worth of weight.
     """
-    from seggaussian.render.projection import project_gaussians
-    from seggaussian.render.rasterize import check_inputs
-
     if int(top_k) < 1:
         raise ValueError(f"compute_blend_weights: top_k must be >= 1, got {top_k}")
     width, height, top_k = int(width), int(height), int(top_k)
     with torch.no_grad():
         check_inputs(means, quats, log_scales, opacity_logits, viewmat, K, width, height)
         if backend == "auto":
-            from seggaussian.render.rasterize import default_backend
-
-            backend = default_backend()
+            backend = "fast"
         if backend not in ("fast", "reference"):
             raise ValueError(f"compute_blend_weights: backend must be auto, fast or reference, got {backend!r}")
         opacities = torch.sigmoid(opacity_logits.to(torch.float32))
@@ -112,10 +95,6 @@ def compute_blend_weights(
                 projection.means2d.float(), projection.conics.float(), opacities, projection.depths, projection.valid,
                 width, height, top_k,
             )
-        from seggaussian.render.fast import blend_weights_fast
-        from seggaussian.render.fast_projection import project_gaussians_fast
-        from seggaussian.render.tiles import bin_gaussians
-
         projection = project_gaussians_fast(means, quats, log_scales, viewmat, K, width, height)
         means2d, conics = projection.means2d.float(), projection.conics.float()
 

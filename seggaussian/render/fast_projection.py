@@ -25,7 +25,7 @@ from seggaussian.constants import (
     QUAT_NORM_EPS,
     RADIUS_SIGMAS,
 )
-from seggaussian.render.fast import GAUSSIANS_PER_CHUNK, run_parallel
+from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
 from seggaussian.render.projection import (
     LOG_SCALE_MIN,
     MAX_SCREEN_COORD,

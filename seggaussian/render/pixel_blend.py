@@ -28,12 +28,15 @@ from numba import prange
 from torch import Tensor
 
 from seggaussian.constants import TILE_SIZE
-from seggaussian.render.blend import DEFAULT_TOP_K, BlendWeights, compute_blend_weights
-from seggaussian.render.fast import (
+from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights
+from seggaussian.render.fast_projection import project_gaussians_fast
+from seggaussian.render.inputs import check_inputs
+from seggaussian.render.rasterize_numba import (
     _ALPHA_MAX, _ALPHA_MIN, _CUTOFF, _DONE_CHECK_EVERY, _HALF, _JIT, _ONE, _T_MIN, _TWO, _ZERO, _exp_neg, _f32,
     run_parallel,
 )
-from seggaussian.render.tiles import TileBins
+from seggaussian.render.results import BlendWeights, TileBins
+from seggaussian.render.tiles import bin_gaussians
 
 
 class PixelBlendWeights(NamedTuple):
@@ -182,10 +185,6 @@ class ViewBlender:
         height: int,
         top_k: int = DEFAULT_TOP_K,
     ) -> None:
-        from seggaussian.render.fast_projection import project_gaussians_fast
-        from seggaussian.render.rasterize import check_inputs
-        from seggaussian.render.tiles import bin_gaussians
-
         if int(top_k) < 1:
             raise ValueError(f"blend weights: top_k must be >= 1, got {top_k}")
         self.width, self.height, self.top_k = int(width), int(height), int(top_k)

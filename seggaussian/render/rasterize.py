@@ -7,14 +7,21 @@ culls, orders and cuts off exactly the same Gaussians.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 from torch import Tensor
 
+from seggaussian.render.fast_projection import project_gaussians_fast
+from seggaussian.render.gsplat_backend import rasterize_gsplat
+from seggaussian.render.inputs import check_finite, check_inputs
 from seggaussian.render.projection import Projection, project_gaussians
-from seggaussian.render.sh import sh_to_colors
+from seggaussian.render.rasterize_numba import blend_fast
+from seggaussian.render.reference import blend_reference
+from seggaussian.render.results import RenderOutput
+from seggaussian.render.sh import sh_degree_of, sh_to_colors
+from seggaussian.render.tiles import bin_gaussians
+from seggaussian.render.torch_tiles import blend_torch_tiles
 
 if TYPE_CHECKING:
     from seggaussian.cameras import Camera
@@ -26,53 +33,6 @@ BACKENDS = ("auto", "fast", "reference", "torch", "gsplat")
 DEPTH_ALPHA_EPS = 1e-12
 
 
-class RenderOutput(NamedTuple):
-    """A rendered view.
-
-    Fields:
-        image: ``[H, W, D]`` blended colours/features plus ``(1 - alpha) * background``.
-        alpha: ``[H, W]`` accumulated opacity ``1 - T``.
-        depth: ``[H, W]`` expected camera depth of the blended Gaussians, ``sum w z / alpha`` (0 where
-            nothing was blended).
-    """
-
-    image: Tensor
-    alpha: Tensor
-    depth: Tensor
-
-
-def _check_finite(name: str, x: Tensor | None, allow_inf: bool = False) -> None:
-    """ValueError naming ``name`` when ``x`` holds NaN (or Inf unless ``allow_inf``).
-
-    Checked with numpy on a zero-copy view: single-threaded, so it costs no torch thread synchronization.
-    """
-    if x is None or x.numel() == 0:
-        return
-    values = x.detach().cpu().numpy()
-    bad = np.isnan(values) if allow_inf else ~np.isfinite(values)
-    if bad.any():
-        kind = "NaN" if allow_inf else "NaN/Inf"
-        raise ValueError(f"rasterize: {name} holds {kind} ({int(bad.sum())} values)")
-
-
-def check_inputs(means, quats, log_scales, opacity_logits, viewmat, K, width, height) -> int:
-    """Validate shapes and values; returns N. ``log_scales`` and ``opacity_logits`` may be +-inf."""
-    n = means.shape[0] if means.ndim == 2 else -1
-    for name, x, shape in (
-        ("means", means, (n, 3)), ("quats", quats, (n, 4)), ("log_scales", log_scales, (n, 3)),
-        ("opacity_logits", opacity_logits, (n,)), ("viewmat", viewmat, (4, 4)), ("K", K, (3, 3)),
-    ):
-        if tuple(x.shape) != shape or n < 0:
-            raise ValueError(f"rasterize: {name} has shape {tuple(x.shape)}, expected {shape}")
-    for name, x in (("means", means), ("quats", quats), ("viewmat", viewmat), ("K", K)):
-        _check_finite(name, x)
-    _check_finite("log_scales", log_scales, allow_inf=True)
-    _check_finite("opacity_logits", opacity_logits, allow_inf=True)
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"rasterize: image size must be positive, got {width}x{height}")
-    return n
-
-
 def resolve_colors(
     n: int, projection: Projection, features: Tensor | None, sh: Tensor | None, sh_degree: int | None,
     dtype: torch.dtype,
@@ -82,23 +42,18 @@ def resolve_colors(
     if features is not None:
         if features.ndim != 2 or features.shape[0] != n:
             raise ValueError(f"rasterize: features has shape {tuple(features.shape)}, expected ({n}, D)")
-        _check_finite("features", features)
+        check_finite("features", features)
         return features
     if sh is not None:
         if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3:
             raise ValueError(f"rasterize: sh has shape {tuple(sh.shape)}, expected ({n}, K, 3)")
-        _check_finite("sh", sh)
+        check_finite("sh", sh)
         return sh_to_colors(sh, projection.view_dirs, sh_degree)
     return torch.zeros(n, 0, dtype=dtype)
 
 
 def default_backend() -> str:
-    """``fast`` when the numba kernels import, else ``reference``."""
-    try:
-        import seggaussian.render.fast  # noqa: F401
-        import seggaussian.render.fast_projection  # noqa: F401
-    except ImportError:
-        return "reference"
+    """The backend ``auto`` resolves to: the numba kernels (numba is a required dependency)."""
     return "fast"
 
 
@@ -108,18 +63,10 @@ def blend(
 ) -> tuple[Tensor, Tensor]:
     """Dispatch the blending stage: (accumulated colours [H, W, D], accumulated alpha [H, W])."""
     if backend == "reference":
-        from seggaussian.render.reference import blend_reference
-
         return blend_reference(means2d, conics, opacities, colors, projection.depths, projection.valid, width, height)
-    from seggaussian.render.tiles import bin_gaussians
-
     bins = bin_gaussians(projection, width, height, opacities)
     if backend == "torch":
-        from seggaussian.render.torch_tiles import blend_torch_tiles
-
         return blend_torch_tiles(means2d, conics, opacities, colors, bins)
-    from seggaussian.render.fast import blend_fast
-
     return blend_fast(means2d, conics, opacities, colors, bins)
 
 
@@ -158,8 +105,6 @@ def rasterize(
         return _rasterize_gsplat(means, quats, log_scales, opacity_logits, viewmat, K, width, height, features, sh,
                                  sh_degree, background)
     if backend == "fast":
-        from seggaussian.render.fast_projection import project_gaussians_fast
-
         projection = project_gaussians_fast(means, quats, log_scales, viewmat, K, width, height)
     else:
         projection = project_gaussians(means, quats, log_scales, viewmat, K, width, height)
@@ -190,9 +135,6 @@ def rasterize(
 
 def _rasterize_gsplat(means, quats, log_scales, opacity_logits, viewmat, K, width, height, features, sh, sh_degree,
                       background) -> RenderOutput:
-    from seggaussian.render.gsplat_backend import rasterize_gsplat
-    from seggaussian.render.sh import sh_degree_of
-
     if (features is None) == (sh is None):
         raise ValueError("rasterize: the gsplat backend needs exactly one of features or sh")
     degree = None if sh is None else (sh_degree_of(sh) if sh_degree is None else int(sh_degree))

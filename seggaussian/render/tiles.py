@@ -2,35 +2,12 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 
 from seggaussian.constants import ALPHA_MIN, TILE_SIZE
 from seggaussian.render.projection import Projection
-
-
-class TileBins(NamedTuple):
-    """Per-tile Gaussian lists (CSR layout).
-
-    Fields:
-        width, height: image size in pixels.
-        tiles_x, tiles_y: tile grid size (``ceil(width / TILE_SIZE)``, ...).
-        offsets: ``[tiles_x * tiles_y + 1]`` int64: tile t holds ``gaussian_ids[offsets[t]:offsets[t + 1]]``;
-            tiles are numbered row-major (``t = ty * tiles_x + tx``).
-        gaussian_ids: ``[I]`` int32 Gaussian indices, each tile's run sorted by depth (ties: index order).
-    """
-
-    width: int
-    height: int
-    tiles_x: int
-    tiles_y: int
-    offsets: np.ndarray
-    gaussian_ids: np.ndarray
-
-    @property
-    def num_intersections(self) -> int:
-        return int(self.gaussian_ids.shape[0])
+from seggaussian.render.rasterize_numba import fill_tile_lists
+from seggaussian.render.results import TileBins
 
 
 def bin_gaussians(
@@ -48,7 +25,6 @@ def bin_gaussians(
     idx = np.flatnonzero(valid)
     depths = projection.depths.detach().cpu().numpy().astype(np.float64)[idx]
     order = idx[np.argsort(depths, kind="stable")].astype(np.int64)
-    from seggaussian.render.fast import fill_tile_lists  # numba: imported only when binning
 
     pixel_box = np.ascontiguousarray(projection.pixel_box.detach().cpu().numpy())
     offsets, ids = fill_tile_lists(order, pixel_box, tiles_x, tiles_y)

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
-from seggaussian.render.tiles import TileBins
+from seggaussian.render.results import TileBins
 
 #: Upper bound on (tiles x 256 pixels x padded list length) evaluated at once, to bound memory.
 CHUNK_PAIRS = 4_000_000

@@ -21,7 +21,7 @@ from seggaussian.build_config import ViewConfig
 from seggaussian.constants import IGNORE_LABEL, read_class_names
 from seggaussian.fit import evenly_spaced
 from seggaussian.render import compute_blend_weights, rasterize, render_features, render_label_maps
-from seggaussian.render.blend import BlendWeights
+from seggaussian.render.results import BlendWeights
 from seggaussian.render.rasterize import camera_tensors, default_backend
 from seggaussian.sources.raycast import MeshRaycaster
 from seggaussian.tools.pareto import Trial, one_at_a_time

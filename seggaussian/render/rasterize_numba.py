@@ -29,8 +29,7 @@ from numba import prange
 from torch import Tensor
 
 from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
-from seggaussian.render.blend import BlendWeights
-from seggaussian.render.tiles import TileBins
+from seggaussian.render.results import BlendWeights, TileBins
 
 _f32 = np.float32
 # float32 constants: a bare Python float literal would promote the kernels' arithmetic to float64.
