@@ -25,6 +25,8 @@ from typing import Callable, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from ovgaussian.sparse._numba_kernels import gather_rows, scatter_add_rows
+from ovgaussian.sparse.gather_gemm import gather_gemm_conv
 from ovgaussian.sparse.kernel_map import KernelMap
 from ovgaussian.sparse.voxelize import SparseVoxels
 
@@ -43,8 +45,6 @@ def torch_row_ops() -> RowOps:
 
 def numba_row_ops() -> RowOps:
     """Serial numba loops on the tensors' memory (same results as :func:`torch_row_ops`, 2-3x faster)."""
-    from ovgaussian.sparse._numba_kernels import gather_rows, scatter_add_rows
-
     def gather(x: Tensor, rows: Tensor) -> Tensor:
         out = x.new_empty(rows.shape[0], x.shape[1])
         gather_rows(x.detach().contiguous().numpy(), rows.contiguous().numpy(), out.numpy())
@@ -127,8 +127,6 @@ def sparse_conv(
     if features.dtype != weight.dtype:
         raise ValueError(f"features are {features.dtype}, weight is {weight.dtype}")
     if method == "gemm":
-        from ovgaussian.sparse.gather_gemm import gather_gemm_conv
-
         return gather_gemm_conv(features, weight, kernel_map, backend)
     if method != "scatter":
         raise ValueError(f"method must be 'gemm' or 'scatter', got {method!r}")

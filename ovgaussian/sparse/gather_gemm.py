@@ -37,8 +37,11 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Callable, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
+
+import ovgaussian.sparse._numba_kernels as nk
 
 if TYPE_CHECKING:
     from ovgaussian.sparse.kernel_map import KernelMap
@@ -127,10 +130,6 @@ def _table_and_words_torch(kernel_map: "KernelMap", skip: int) -> tuple[Tensor, 
 
 def _table_and_words_numba(kernel_map: "KernelMap", skip: int) -> tuple[Tensor, Tensor, int]:
     """Same as :func:`_table_and_words_torch`, one pass over the pairs (numba)."""
-    import numpy as np
-
-    from ovgaussian.sparse._numba_kernels import fill_neighbour_table
-
     kept = [k != skip for k in range(kernel_map.kernel_volume)]
     counts = [int(rows.numel()) if keep else 0 for rows, keep in zip(kernel_map.out_indices, kept)]
     starts = np.zeros(len(counts) + 1, dtype=np.int64)
@@ -139,7 +138,7 @@ def _table_and_words_numba(kernel_map: "KernelMap", skip: int) -> tuple[Tensor, 
     in_rows = torch.cat([rows for rows, keep in zip(kernel_map.in_indices, kept) if keep] or empty)
     out_rows = torch.cat([rows for rows, keep in zip(kernel_map.out_indices, kept) if keep] or empty)
     in_rows, out_rows = in_rows.numpy(), out_rows.numpy()
-    table, words, collisions = fill_neighbour_table(
+    table, words, collisions = nk.fill_neighbour_table(
         in_rows, out_rows, starts, kernel_map.num_in, kernel_map.num_out, MASK_WORD_BITS)
     return torch.from_numpy(table), torch.from_numpy(words), int(collisions)
 
@@ -231,17 +230,13 @@ def build_gather_plan(
         if rows.numel():
             offsets = bits[candidate].nonzero().squeeze(1)
             if use_numba:
-                from ovgaussian.sparse._numba_kernels import gather_table_block
-
-                neighbours = torch.from_numpy(gather_table_block(table.numpy(), rows.numpy(), offsets.numpy()))
+                neighbours = torch.from_numpy(nk.gather_table_block(table.numpy(), rows.numpy(), offsets.numpy()))
             else:
                 neighbours = table.index_select(0, rows).index_select(1, offsets)
             groups.append(GatherGroup(rows, offsets, neighbours))
     # Residual: the pairs of each row at offsets outside its group's pattern (all of them if none).
     if use_numba:
-        from ovgaussian.sparse._numba_kernels import residual_pairs
-
-        in_cat, out_cat, counts_k = residual_pairs(
+        in_cat, out_cat, counts_k = nk.residual_pairs(
             table.numpy(), group_of_row.numpy(), cand_bits.to(torch.uint8).numpy(), kernel_map.num_in)
         split = counts_k.tolist()
         residual_in = torch.split(torch.from_numpy(in_cat), split)
@@ -302,8 +297,6 @@ class _BlockOps(NamedTuple):
 
 
 def _numba_block_ops() -> _BlockOps:
-    from ovgaussian.sparse import _numba_kernels as nk
-
     def gather_neighbours(x: Tensor, neighbours: Tensor, out: Tensor) -> Tensor:
         nk.gather_neighbour_block(x.detach().numpy(), neighbours.numpy(), out.numpy())
         return out

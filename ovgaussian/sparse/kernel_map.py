@@ -18,10 +18,12 @@ from __future__ import annotations
 import itertools
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from ovgaussian.sparse.voxelize import KEY_MARGIN, offset_key_delta, pack_keys
+from ovgaussian.sparse._numba_kernels import merge_pairs
+from ovgaussian.sparse.keys import KEY_MARGIN, offset_key_delta, pack_keys
 
 
 class KernelMap(NamedTuple):
@@ -94,10 +96,6 @@ def search_lookup_pairs(sorted_keys: Tensor, deltas: list[int]) -> list[tuple[Te
 
 def merge_lookup_pairs(sorted_keys: Tensor, deltas: list[int]) -> list[tuple[Tensor, Tensor]]:
     """Same result as :func:`search_lookup_pairs`, by a linear merge per delta (numba)."""
-    import numpy as np
-
-    from ovgaussian.sparse._numba_kernels import merge_pairs
-
     keys = sorted_keys.contiguous().numpy()
     rows_i, rows_j, counts = merge_pairs(keys, np.asarray(deltas, dtype=np.int64))
     out = []
