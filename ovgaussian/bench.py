@@ -37,6 +37,10 @@ from ovgaussian.bench_config import (
     BenchConfig,
 )
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
+from ovgaussian.predict import load_model_predictor
+from ovgaussian.view_labels import (  # noqa: F401  (re-exported: part of the benchmark's API)
+    BlendFunctions, accumulated_alpha, default_blend_functions, stream_view_labels,
+)
 from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
 from seggaussian.atomic import atomic_path, write_json_atomic  # noqa: F401 (write_json_atomic: CLI API)
 from seggaussian.shards import sha256_file
@@ -156,76 +160,6 @@ def classify_vectors(predictor: Predictor, vectors: np.ndarray, vocabulary: Voca
             raise ValueError(f"predictor {getattr(predictor, 'name', predictor)!r} returned a row with no finite score")
         out[start:start + scores.shape[0]] = np.argmax(np.where(np.isnan(scores), -np.inf, scores), axis=1)
     return out
-
-
-class BlendFunctions(NamedTuple):
-    """How per-Gaussian vectors become a view's rendered map (injectable for tests).
-
-    Fields:
-        blend: ``(gaussians, camera, top_k) -> blender`` with ``blender.height`` and
-            ``blender.rows(r0, r1) -> BlendWeights`` of the rows ``r0:r1`` (ids ``[R, W, K]``, weights
-            ``[R, W, K]``, residual_alpha ``[R, W]``); the view is scored one band of rows at a time.
-        render: ``(blend, vectors [N, F]) -> [R, W, F]`` = W S.
-    """
-
-    blend: Callable
-    render: Callable
-
-
-def default_blend_functions() -> BlendFunctions:
-    """``seggaussian.render``'s blend weights (``ViewBlender``, float64 camera) and M = W S, numpy out."""
-    import torch
-
-    from seggaussian.render.pixel_blend import ViewBlender, render_features_no_grad
-    from seggaussian.render.rasterize import camera_tensors
-
-    def blend(gaussians, camera, top_k):
-        # copies: shard columns are read-only numpy views, which torch.from_numpy warns about
-        t = {name: torch.tensor(getattr(gaussians, name)) for name in ("means", "quats", "log_scales", "opacity_logits")}
-        viewmat, K = camera_tensors(camera)
-        return ViewBlender(t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
-                           camera.width, camera.height, top_k)
-
-    def render_vectors(blend_weights, vectors):  # render.render_features' sum, compiled (no autograd needed)
-        return render_features_no_grad(_to_numpy(blend_weights.ids), _to_numpy(blend_weights.weights),
-                                       np.asarray(vectors, dtype=np.float32))
-
-    return BlendFunctions(blend, render_vectors)
-
-
-def accumulated_alpha(blend_weights) -> np.ndarray:
-    """``[H, W]`` accumulated alpha of a view: the kept weights plus the residual of the dropped contributors."""
-    weights = np.asarray(_to_numpy(blend_weights.weights), dtype=np.float64)
-    residual = getattr(blend_weights, "residual_alpha", None)
-    alpha = weights.sum(axis=-1)
-    if residual is not None:
-        alpha = alpha + np.asarray(_to_numpy(residual), dtype=np.float64)
-    return alpha
-
-
-def _to_numpy(x) -> np.ndarray:
-    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
-
-
-def stream_view_labels(classify: Callable[[np.ndarray], np.ndarray], vectors: np.ndarray, blender,
-                       functions: BlendFunctions, min_alpha: float, band_rows: int = DEFAULT_BAND_ROWS) -> np.ndarray:
-    """``[H, W]`` labels of one view, ``classify(rendered [M, F]) -> [M]`` where the accumulated alpha reaches
-    ``min_alpha``, IGNORE_LABEL elsewhere. Rendered ``band_rows`` rows at a time: the view's blend weights and
-    rendered map never exist whole (memory ~ band_rows x W x K)."""
-    if band_rows < 1:
-        raise ValueError(f"band_rows must be >= 1, got {band_rows}")
-    height = int(blender.height)
-    bands = []
-    for r0 in range(0, height, band_rows):
-        band = blender.rows(r0, min(height, r0 + band_rows))
-        rendered = np.asarray(functions.render(band, vectors))  # [R, W, F]
-        h, w = rendered.shape[:2]
-        covered = accumulated_alpha(band).reshape(h, w) >= min_alpha
-        labels = np.full((h, w), IGNORE_LABEL, dtype=np.int64)
-        if covered.any():
-            labels[covered] = classify(rendered[covered])
-        bands.append(labels)
-    return np.concatenate(bands, axis=0)
 
 
 def predict_view_labels(predictor: Predictor, vectors: np.ndarray, blender, vocabulary: Vocabulary,
@@ -453,8 +387,6 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
     if config.predictor == "model":
         if config.run is None:
             raise ValueError("bench: --run is needed to score the model (or pick a baseline --predictor)")
-        from ovgaussian.predict import load_model_predictor
-
         predictor = load_model_predictor(config.run, config.checkpoint, device=config.device)
         weights = Path(predictor.checkpoint) / "model.safetensors"
         return predictor, {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),

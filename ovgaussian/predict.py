@@ -19,6 +19,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from ovgaussian.bench_config import PredictConfig
+from ovgaussian.view_labels import default_blend_functions, stream_view_labels
 from seggaussian.constants import IGNORE_LABEL, SH_C0, read_class_names
 
 #: Lower bound of a decoded vector's norm before cosine similarity (a zero vector scores 0, not NaN).
@@ -226,8 +227,6 @@ def paint_gaussians(gaussians, labels: np.ndarray, colours: np.ndarray, mode: st
 def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig, cameras=(),
                     functions=None) -> PredictResult:
     """Label every Gaussian against ``config.vocabulary``; render label maps for ``cameras``."""
-    from ovgaussian.bench import default_blend_functions, stream_view_labels
-
     names = tuple(config.vocabulary)
     if not names:
         raise ValueError("predict: empty vocabulary")
