@@ -20,6 +20,9 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
+from ovgaussian.model import OVGaussianNet
+from ovgaussian.model_config import OVGaussianNetConfig
+from ovgaussian.train_config import config_from_dict
 from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps, write_bytes_atomic
 
 if TYPE_CHECKING:
@@ -56,8 +59,6 @@ def build_network(model_config, teacher_width: int | None = None):
     from ``model_config.embedding_width`` (text and teacher embeddings of different widths)."""
     import torch
     from torch import nn
-
-    from ovgaussian.model import OVGaussianNet
 
     net = OVGaussianNet(model_config)
     if teacher_width is not None and teacher_width != model_config.embedding_width:
@@ -154,9 +155,6 @@ def load_trained_model(run_dir: Path, checkpoint: Path | None = None, device: st
     Text embeddings of any vocabulary come from ``ovgaussian.text.encode_texts(names, text_config)``
     with ``text_config = config_from_dict(TextConfig, run_config["train"]["text"])``.
     """
-    from ovgaussian.model_config import OVGaussianNetConfig
-    from ovgaussian.train_config import config_from_dict
-
     run_dir = Path(run_dir)
     run_config = read_json(run_dir / CONFIG_NAME)
     folder = Path(checkpoint) if checkpoint is not None else latest_checkpoint(run_dir)

@@ -26,6 +26,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+from seggaussian.jsonsafe import json_safe
+
 #: ``.<name>.tmp-<pid>-<token><suffix>``: the one temp-name pattern of the toolkit (earlier versions
 #: wrote ``.<name>.tmp-<pid>``, also recognised).
 _TEMP_NAME = re.compile(r"^\..+\.tmp-(\d+)(-[0-9a-f]+)?(\.[A-Za-z0-9]+)?$")
@@ -203,8 +205,6 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 
 def json_text(payload, *, sort_keys: bool = False) -> str:
     """Indented JSON (numpy values converted, NaN/Inf as null) with a final newline."""
-    from seggaussian.jsonsafe import json_safe
-
     return json.dumps(json_safe(payload), indent=2, sort_keys=sort_keys, allow_nan=False) + "\n"
 
 

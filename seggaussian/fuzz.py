@@ -31,6 +31,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 
 from seggaussian.gaussians import Gaussians
+from seggaussian.io.ply import PlyFormatError, read_gaussians_ply, read_ply_header, write_gaussians_ply
 
 VERDICTS = ("accepted", "clean_error", "nonfinite", "crash", "hang")
 #: Packages whose frames count as "our code" when deciding whether an error was raised cleanly.
@@ -442,8 +443,6 @@ MAX_SEED_RECORDS = 2000
 
 def real_ply_seed(path: Path, max_records: int = MAX_SEED_RECORDS) -> tuple[str, bytes]:
     """A real binary 3DGS PLY as a seed, cut to its first ``max_records`` vertices (header count edited)."""
-    from seggaussian.io.ply import read_ply_header
-
     header = read_ply_header(path)
     vertex = header.element("vertex")
     data = Path(path).read_bytes()
@@ -459,8 +458,6 @@ def real_ply_seed(path: Path, max_records: int = MAX_SEED_RECORDS) -> tuple[str,
 def written_ply_seeds(seed: int = 0) -> list[tuple[str, bytes]]:
     """Seeds written by our own writer: SH 1 with labels (binary LE), SH 2 big endian, SH 0 ASCII."""
     import tempfile
-
-    from seggaussian.io.ply import write_gaussians_ply
 
     rng = np.random.default_rng(seed)
     seeds = []
@@ -484,8 +481,6 @@ def written_ply_seeds(seed: int = 0) -> list[tuple[str, bytes]]:
 
 def ply_target(real_files: Sequence[Path] = (), seed: int = 0) -> FuzzTarget:
     """The 3DGS PLY reader (``on_invalid='error'``) over the real files given plus our written seeds."""
-    from seggaussian.io.ply import PlyFormatError, read_gaussians_ply
-
     seeds = [real_ply_seed(Path(p)) for p in real_files] + written_ply_seeds(seed)
     return FuzzTarget("ply", lambda path: read_gaussians_ply(path)[0], seeds, PLY_MUTATORS + BYTE_MUTATORS,
                       (PlyFormatError,), ".ply")

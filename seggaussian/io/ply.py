@@ -32,7 +32,9 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
+from seggaussian.atomic import atomic_path
 from seggaussian.gaussians import Gaussians, sh_degree_from_coeffs
+from seggaussian.io.validate import InvalidGaussiansError, validate_gaussians
 
 __all__ = [
     "PlyFormatError",
@@ -670,8 +672,6 @@ def _ascii_body(table: np.ndarray) -> bytes:
 
 def write_atomic(path: str | os.PathLike, chunks) -> None:
     """Write ``chunks`` (bytes-like or arrays) to a temp file in the same folder, then ``os.replace``."""
-    from seggaussian.atomic import atomic_path
-
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         expected = 0
         for chunk in chunks:
@@ -730,8 +730,6 @@ def read_gaussians_ply(path: str | os.PathLike, on_invalid: str = "error"):
     count), ``drop`` (remove the affected rows), ``repair`` (documented fixes, see
     ``seggaussian.io.validate``) or ``report`` (keep the values as stored, only count the problems).
     """
-    from seggaussian.io.validate import InvalidGaussiansError, validate_gaussians
-
     header = read_ply_header(path)
     table = read_vertex_table(path, header)
     gaussians = vertex_table_to_gaussians(table, source=header.path)

@@ -11,7 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from seggaussian.atomic import atomic_path
 from seggaussian.cameras import Camera, intrinsics, look_at
+from seggaussian.io.formats import read_gaussians
+from seggaussian.render.rasterize import render_gaussians
 
 #: The orbit camera stands this many times the scene's robust radius away from its centre.
 ORBIT_DISTANCE_FACTOR = 2.2
@@ -98,8 +101,6 @@ def write_png_atomic(path: Path, rgb: np.ndarray) -> None:
     """uint8 RGB ``[H, W, 3]`` -> PNG, via a temporary file in the same folder and ``os.replace``."""
     import cv2
 
-    from seggaussian.atomic import atomic_path
-
     path = Path(path)
     with atomic_path(path, suffix=".png") as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
@@ -109,9 +110,6 @@ def write_png_atomic(path: Path, rgb: np.ndarray) -> None:
 def render_ply_view(config: QuicklookConfig) -> dict:
     """Read the PLY, render the view, write the PNG; returns a JSON-ready summary."""
     import torch
-
-    from seggaussian.io.formats import read_gaussians
-    from seggaussian.render.rasterize import render_gaussians
 
     start = time.perf_counter()
     gaussians, _report, _format = read_gaussians(config.ply)  # any splat format, detected by content

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from seggaussian.cameras import Camera
+from seggaussian.constants import IGNORE_LABEL
 
 #: open3d reports a missed ray with this primitive id (uint32 max).
 MISS_PRIMITIVE = 4294967295
@@ -173,8 +174,6 @@ def render_labelled_views(
     cameras: list[Camera],
 ):
     """Yield a ``LabelledRender`` per camera (the BVH is built once)."""
-    from seggaussian.constants import IGNORE_LABEL
-
     caster = MeshRaycaster(points, faces)
     for camera in cameras:
         hits = caster.cast(camera)

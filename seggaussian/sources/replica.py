@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from seggaussian.cameras import Camera, intrinsics
+from seggaussian.classes import replica_class_to_top100
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.scene import Scene, View
 from seggaussian.sources._common import (
@@ -40,7 +41,8 @@ from seggaussian.sources._common import (
     read_mesh_ply,
     triangulate_quads,
 )
-from seggaussian.classes import replica_class_to_top100
+from seggaussian.sources.camera_path import default_intrinsics, generate_camera_path
+from seggaussian.sources.raycast import render_labelled_views
 
 MESH_FILE = "habitat/mesh_semantic.ply"
 INFO_FILE = "habitat/info_semantic.json"
@@ -249,9 +251,6 @@ def _views_semantic_nerf(room_dir: Path, info: ReplicaInfo, cache_dir: Path | No
 
 def _views_rendered(scene_id, points, colors, faces, face_semantic, face_instance, cache_dir: Path, raw_root: Path) -> list[View]:
     """Render ``RENDER_VIEWS`` views along a generated path into ``cache_dir/<scene_id>/render``."""
-    from seggaussian.sources.camera_path import default_intrinsics, generate_camera_path
-    from seggaussian.sources.raycast import render_labelled_views
-
     cache = Path(cache_dir).resolve() / scene_id / "render"
     if cache == raw_root.resolve() or raw_root.resolve() in cache.parents:
         raise SourceError(cache, None, "cache_dir lies inside the raw tree; readers never write there")

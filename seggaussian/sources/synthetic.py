@@ -20,7 +20,10 @@ import numpy as np
 
 from seggaussian.atomic import make_dirs, sweep_temps, temp_name
 from seggaussian.cameras import Camera
+from seggaussian.sources import synth_replica, synth_scannetpp
 from seggaussian.sources.camera_path import default_intrinsics, generate_camera_path
+from seggaussian.sources.replica import nice_slam_intrinsics
+from seggaussian.sources.synth_replica import replica_size
 from seggaussian.sources.synth_room import RoomConfig, RoomMesh, build_room
 
 LAYOUTS = ("scannetpp", "replica")
@@ -58,9 +61,6 @@ def build_scene(seed: int, index: int, layout: str, config: SynthConfig = SynthC
     rng = scene_rng(seed, index, layout)
     room = build_room(rng, RoomConfig(max_edge=config.max_edge, style=layout))
     if layout == "replica":
-        from seggaussian.sources.replica import nice_slam_intrinsics
-        from seggaussian.sources.synth_replica import replica_size
-
         width, height = replica_size(config.width)
         K = nice_slam_intrinsics(width, height)
     else:
@@ -99,14 +99,10 @@ def synthesize(
         room, cameras = build_scene(seed, index, layout, config)
         staging = temp_name(scene_parent / name)
         if layout == "scannetpp":
-            from seggaussian.sources import synth_scannetpp
-
             # writers take the folder that holds data/<id>; stage under a private DATA_ROOT
             synth_scannetpp.write_scene(staging, name, room, cameras)
             _move_into_place(staging / "data" / name, scene_parent / name)
         else:
-            from seggaussian.sources import synth_replica
-
             synth_replica.write_scene(staging, name, room, cameras)
             _move_into_place(staging / name, scene_parent / name)
         shutil.rmtree(staging)
@@ -114,12 +110,8 @@ def synthesize(
         if progress is not None:
             progress(index, name)
     if layout == "scannetpp":
-        from seggaussian.sources import synth_scannetpp
-
         synth_scannetpp.write_metadata(out, ids)
     else:
-        from seggaussian.sources import synth_replica
-
         synth_replica.write_root_files(out, ids)
     return ids
 

@@ -28,6 +28,9 @@ import numpy as np
 
 from seggaussian.cameras import Camera, intrinsics, look_at
 from seggaussian.gaussians import Gaussians
+from seggaussian.io.ply import PlyFormatError, read_gaussians_ply, write_gaussians_ply
+from seggaussian.render import compute_blend_weights, rasterize, render_features, render_gaussians, render_label_maps
+from seggaussian.transfer import transfer_labels
 
 #: Image size used for stress renders (small: the suite checks values, not speed).
 STRESS_IMAGE_SIZE = (48, 36)
@@ -191,8 +194,6 @@ def render_and_check(g: Gaussians, camera: Camera, backend: str, label: str) -> 
     """Forward and backward through the rasterizer, blend weights and label maps; all must be finite."""
     import torch
 
-    from seggaussian.render import compute_blend_weights, rasterize, render_features, render_label_maps
-
     t = {k: v.clone().requires_grad_(True) for k, v in g.to_torch().items()}
     viewmat = torch.as_tensor(camera.viewmat)
     K = torch.as_tensor(camera.K)
@@ -216,8 +217,6 @@ def render_and_check(g: Gaussians, camera: Camera, backend: str, label: str) -> 
 def run_ply_case(rng: np.random.Generator, kind: str, workdir: Path, backend: str) -> str | None:
     """Write a corrupted PLY; reading with ``error`` must refuse it cleanly (or accept a valid file),
     reading with ``repair`` must count its repairs, and the repaired scene must render finitely."""
-    from seggaussian.io.ply import PlyFormatError, read_gaussians_ply, write_gaussians_ply
-
     g = corrupt(random_gaussians(rng, int(rng.integers(1, 200)), int(rng.integers(0, 4))), kind, rng)
     path = workdir / f"{kind}.ply"
     write_gaussians_ply(path, g)
@@ -236,8 +235,6 @@ def run_ply_case(rng: np.random.Generator, kind: str, workdir: Path, backend: st
 
 def write_broken_file(kind: str, workdir: Path, rng: np.random.Generator) -> Path:
     """A PLY that no reader should accept, of the given kind."""
-    from seggaussian.io.ply import write_gaussians_ply
-
     path = workdir / f"broken_{kind}.ply"
     if kind == "empty":
         path.write_bytes(b"")
@@ -263,8 +260,6 @@ def write_broken_file(kind: str, workdir: Path, rng: np.random.Generator) -> Pat
 
 
 def run_broken_file_case(rng: np.random.Generator, kind: str, workdir: Path) -> str | None:
-    from seggaussian.io.ply import read_gaussians_ply
-
     read_gaussians_ply(write_broken_file(kind, workdir, rng), on_invalid="repair")
     raise RuntimeError(f"broken file ({kind}) was accepted")
 
@@ -294,8 +289,6 @@ def run_camera_case(rng: np.random.Generator, kind: str, backend: str) -> None:
 
 def check_far_offset(g: Gaussians, camera: Camera, backend: str) -> None:
     """The image of a scene and its camera shifted by FAR_OFFSET equals the unshifted one."""
-    from seggaussian.render import render_gaussians
-
     near = render_gaussians(g, camera, backend=backend).image
     offset = np.full(3, FAR_OFFSET)
     far_g = Gaussians((g.means.astype(np.float64) + offset).astype(np.float32), g.quats, g.log_scales,
@@ -314,8 +307,6 @@ def check_far_offset(g: Gaussians, camera: Camera, backend: str) -> None:
 
 def run_transfer_case(rng: np.random.Generator, kind: str) -> None:
     """Label transfer with ties, empty point sets, no Gaussians, far offsets."""
-    from seggaussian.transfer import transfer_labels
-
     n, p = int(rng.integers(0, 50)), int(rng.integers(1, 50))
     means = rng.normal(size=(n, 3))
     points = rng.normal(size=(p, 3))
