@@ -53,7 +53,7 @@ def measure_paper_scene(num_gaussians: int, num_views: int, workdir: Path) -> di
 
     from bench_paper_step import HEIGHT, WIDTH, make_room
     from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, folder_bytes
-    from ovgaussian.data import InMemorySource, TrainingData, make_vocabulary
+    from ovgaussian.data import InMemorySource, TrainingData, training_vocabulary
     from ovgaussian.teacher import DenseTeacher
     from ovgaussian.train_config import DataConfig, TeacherConfig
     from seggaussian import shards
@@ -96,7 +96,7 @@ def measure_paper_scene(num_gaussians: int, num_views: int, workdir: Path) -> di
     run = workdir / "run"
     budget = int(CACHE_BUDGET_FRACTION * dataset_bytes)
     data = TrainingData(InMemorySource([scene._replace(gaussians=g, views=views)]),
-                        DataConfig(pixels_per_view=16384, view_cache_size=1), make_vocabulary(20),
+                        DataConfig(pixels_per_view=16384, view_cache_size=1), training_vocabulary(20),
                         cache_dir=run / "caches", teacher=teacher, cache_budget_bytes=budget)
     t1 = time.perf_counter()
     for i, view in enumerate(views):

@@ -162,13 +162,13 @@ def run(args) -> dict:
     import torch
 
     from ovgaussian.checkpoint import build_network
-    from ovgaussian.data import InMemorySource, TrainingData, make_vocabulary
+    from ovgaussian.data import InMemorySource, TrainingData, training_vocabulary
     from ovgaussian.train import batch_losses, make_model_config
     from ovgaussian.train_config import DataConfig, TrainConfig
 
     t_setup = time.perf_counter()
     config = TrainConfig(model_preset=args.preset, data=DataConfig(pixels_per_view=args.pixels))
-    vocabulary = make_vocabulary(20)
+    vocabulary = training_vocabulary(20)
     records = [make_room(s, args.gaussians) for s in range(args.scenes)]
     data = TrainingData(InMemorySource(records), config.data, vocabulary)
     text = torch.nn.functional.normalize(torch.randn(len(vocabulary.class_ids), 384), dim=1)

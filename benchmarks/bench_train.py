@@ -71,12 +71,12 @@ def run_one(preset: str, pixels: int | None, steps: int) -> dict:
     import torch
 
     from ovgaussian.checkpoint import build_network
-    from ovgaussian.data import InMemorySource, TrainingData, make_vocabulary
+    from ovgaussian.data import InMemorySource, TrainingData, training_vocabulary
     from ovgaussian.train import batch_losses, make_model_config
     from ovgaussian.train_config import DataConfig, TrainConfig
 
     config = TrainConfig(model_preset=preset, data=DataConfig(pixels_per_view=pixels))
-    vocabulary = make_vocabulary(20)
+    vocabulary = training_vocabulary(20)
     records = [make_scene(s) for s in range(NUM_SCENES)]
     data = TrainingData(InMemorySource(records), config.data, vocabulary)
     t0 = time.perf_counter()

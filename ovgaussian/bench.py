@@ -27,6 +27,7 @@ from typing import Callable, Iterable, NamedTuple, Protocol, Sequence
 
 import numpy as np
 
+from ovgaussian import baseline
 from ovgaussian.bench_config import (
     DEFAULT_BAND_ROWS,
     DEFAULT_MIN_ALPHA,
@@ -38,11 +39,22 @@ from ovgaussian.bench_config import (
 )
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from ovgaussian.predict import load_model_predictor
+from ovgaussian.train_config import config_to_dict
 from ovgaussian.view_labels import (  # noqa: F401  (re-exported: part of the benchmark's API)
-    BlendFunctions, accumulated_alpha, default_blend_functions, stream_view_labels,
+    BlendFunctions,
+    accumulated_alpha,
+    default_blend_functions,
+    stream_view_labels,
 )
-from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+from ovgaussian.vocabulary import (  # noqa: F401  (re-exported: part of the benchmark's API)
+    Vocabulary,
+    benchmark_vocabulary,
+    make_vocabulary,
+    to_vocabulary_labels,
+)
+from seggaussian import shards
 from seggaussian.atomic import atomic_path, write_json_atomic  # noqa: F401 (write_json_atomic: CLI API)
+from seggaussian.constants import IGNORE_LABEL
 from seggaussian.shards import sha256_file
 
 
@@ -56,22 +68,6 @@ class Predictor(Protocol):
 
     def classify(self, vectors: np.ndarray, class_ids: np.ndarray) -> np.ndarray:
         """``[M, F]`` vectors -> ``[M, K]`` scores of the K classes ``class_ids`` (top-100 ids)."""
-
-
-class Vocabulary(NamedTuple):
-    """The K benchmark classes.
-
-    Fields:
-        class_ids: ``[K]`` top-100 ids; vocabulary index i <-> class_ids[i].
-        names: the K class names.
-        unseen: ``[U]`` vocabulary indices of the unseen classes (never supervised).
-        lut: ``[L]`` int64 lookup top-100 id -> vocabulary index or IGNORE_LABEL (L = number of top-100 classes).
-    """
-
-    class_ids: np.ndarray
-    names: tuple[str, ...]
-    unseen: np.ndarray
-    lut: np.ndarray
 
 
 class MetricResult(NamedTuple):
@@ -106,44 +102,6 @@ class BenchResult(NamedTuple):
 # ---------------------------------------------------------------------------------------------
 # vocabulary and labels
 # ---------------------------------------------------------------------------------------------
-def make_vocabulary(class_ids: Sequence[int], class_names: Sequence[str] | None = None) -> Vocabulary:
-    """Vocabulary of the given top-100 ids (order kept); unseen = the UNSEEN_CLASSES among them."""
-    names_all = tuple(class_names) if class_names is not None else read_class_names()
-    ids = np.asarray(list(class_ids), dtype=np.int64)
-    if ids.ndim != 1 or ids.size == 0:
-        raise ValueError("vocabulary: need at least one class id")
-    if ids.min() < 0 or ids.max() >= len(names_all):
-        raise ValueError(f"vocabulary: class ids must lie in 0..{len(names_all) - 1}")
-    if np.unique(ids).size != ids.size:
-        raise ValueError("vocabulary: duplicate class ids")
-    names = tuple(names_all[i] for i in ids)
-    unseen = np.array([i for i, n in enumerate(names) if n in UNSEEN_CLASSES], dtype=np.int64)
-    lut = np.full(len(names_all), IGNORE_LABEL, dtype=np.int64)
-    lut[ids] = np.arange(ids.size)
-    return Vocabulary(ids, names, unseen, lut)
-
-
-def benchmark_vocabulary(num_classes: int) -> Vocabulary:
-    """The K-class benchmark vocabulary (4 unseen + first K-4 others of top-100)."""
-    from seggaussian.classes import benchmark_vocabulary as class_ids_for
-
-    return make_vocabulary(class_ids_for(num_classes))
-
-
-def to_vocabulary_labels(labels: np.ndarray, vocabulary: Vocabulary, what: str = "labels") -> np.ndarray:
-    """Top-100 ids (or IGNORE_LABEL) -> vocabulary indices; ids outside the vocabulary -> IGNORE_LABEL."""
-    labels = np.asarray(labels)
-    if labels.dtype.kind not in "iu":
-        raise TypeError(f"{what}: ground-truth labels must be integers, got {labels.dtype}")
-    flat = labels.astype(np.int64)
-    valid = (flat >= 0) & (flat < vocabulary.lut.size)
-    bad = ~valid & (flat != IGNORE_LABEL)
-    if bad.any():
-        raise ValueError(f"{what}: {int(bad.sum())} labels are neither a top-100 id nor IGNORE_LABEL "
-                         f"(first: {int(flat[bad][0])})")
-    return np.where(valid, vocabulary.lut[np.where(valid, flat, 0)], IGNORE_LABEL)
-
-
 # ---------------------------------------------------------------------------------------------
 # prediction
 # ---------------------------------------------------------------------------------------------
@@ -391,8 +349,6 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
         weights = Path(predictor.checkpoint) / "model.safetensors"
         return predictor, {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),
                            "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None}
-    from ovgaussian import baseline
-    from seggaussian import shards
 
     train = shards.iter_scenes(config.dataset, "train", views=False, verify=config.verify)
     if config.predictor == "majority":
@@ -407,9 +363,6 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
 def run_bench(config: BenchConfig, predictor: Predictor | None = None, *,
               functions: BlendFunctions | None = None) -> BenchReport:
     """Evaluate the configured predictor on the dataset's splits; nothing is written (see write_json_atomic)."""
-    from ovgaussian.train_config import config_to_dict
-    from seggaussian import shards
-
     vocabulary = benchmark_vocabulary(config.num_classes)
     description = {"kind": getattr(predictor, "name", "custom")}
     if predictor is None:

@@ -35,78 +35,31 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol, Sequence
 
 import numpy as np
 
-from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
-from seggaussian.gaussians import quats_to_rotmats
+from ovgaussian.cache_budget import folder_bytes
+from ovgaussian.teacher import sample_patch_features
 from ovgaussian.train_config import DataConfig
+from ovgaussian.vocabulary import (  # noqa: F401  (re-exported: the training data's API)
+    Vocabulary,
+    benchmark_class_ids,
+    map_labels,
+    training_vocabulary,
+)
+from seggaussian import shards
+from seggaussian.constants import IGNORE_LABEL
+from seggaussian.gaussians import quats_to_rotmats
+from seggaussian.render.pixel_blend import compute_pixel_blend_weights
 
 if TYPE_CHECKING:
     import torch
 
     from ovgaussian.teacher import DenseTeacher
 
-#: Label values of int32 maps are looked up in a table of this size (IGNORE_LABEL = 65535 fits).
-LABEL_TABLE_SIZE = 65536
 #: Bytes a safetensors file takes beyond its tensor data (JSON header with names, shapes, offsets); an
 #: upper bound used when checking the cache budget before writing.
 SAFETENSORS_HEADER_ALLOWANCE = 512
 #: Quaternions recovered from rotation matrices: the largest of the four candidates is at least 1/2, so
 #: this floor only protects against a non-orthonormal input.
 QUAT_FROM_MATRIX_EPS = 1e-12
-
-
-# --- vocabulary ----------------------------------------------------------------------------------
-
-
-class Vocabulary(NamedTuple):
-    """The training vocabulary.
-
-    Fields:
-        class_ids: ``[C]`` top-100 ids of the seen classes, ascending (index = seen-class index).
-        names: their names (prompted for the text embeddings).
-        label_table: ``[65536]`` int64, top-100 id -> seen-class index or IGNORE_LABEL.
-        num_classes: the benchmark K the seen classes come from.
-    """
-
-    class_ids: np.ndarray
-    names: tuple[str, ...]
-    label_table: np.ndarray
-    num_classes: int
-
-
-def benchmark_class_ids(num_classes: int) -> list[int]:
-    """Top-100 ids of the K-class benchmark vocabulary (seggaussian.classes, or the rule itself)."""
-    try:
-        from seggaussian.classes import benchmark_vocabulary
-    except ImportError:
-        benchmark_vocabulary = None
-    if benchmark_vocabulary is not None:
-        return sorted(benchmark_vocabulary(num_classes))
-    names = read_class_names()
-    unseen = [names.index(n) for n in UNSEEN_CLASSES]
-    others = [i for i in range(len(names)) if i not in unseen][: num_classes - len(unseen)]
-    return sorted(unseen + others)
-
-
-def make_vocabulary(num_classes: int) -> Vocabulary:
-    """Seen classes of the K-class benchmark: the vocabulary minus the unseen classes."""
-    names = read_class_names()
-    unseen = {names.index(n) for n in UNSEEN_CLASSES}
-    seen = np.array([i for i in benchmark_class_ids(num_classes) if i not in unseen], dtype=np.int64)
-    table = np.full(LABEL_TABLE_SIZE, IGNORE_LABEL, dtype=np.int64)
-    table[seen] = np.arange(len(seen))
-    return Vocabulary(seen, tuple(names[i] for i in seen), table, num_classes)
-
-
-def map_labels(labels: np.ndarray, vocabulary: Vocabulary) -> np.ndarray:
-    """int labels (top-100 ids, IGNORE_LABEL, anything else) -> int64 seen-class index or IGNORE_LABEL."""
-    labels = np.asarray(labels)
-    if labels.dtype.kind not in "iu":
-        raise TypeError(f"labels must be integers, got dtype {labels.dtype}")
-    wide = labels.astype(np.int64)
-    inside = (wide >= 0) & (wide < LABEL_TABLE_SIZE)
-    out = np.full(wide.shape, IGNORE_LABEL, dtype=np.int64)
-    out[inside] = vocabulary.label_table[wide[inside]]
-    return out
 
 
 # --- geometry --------------------------------------------------------------------------------------
@@ -222,13 +175,9 @@ class ShardSource:
         self.dataset, self.split, self.verify = Path(dataset), split, verify
 
     def list_scenes(self) -> list[str]:
-        from seggaussian import shards
-
         return list(shards.list_scenes(self.dataset, self.split))
 
     def read_scene(self, scene_id: str):
-        from seggaussian import shards
-
         return shards.read_scene(self.dataset, self.split, scene_id, verify=self.verify)
 
     def fingerprint_files(self) -> dict[str, str]:
@@ -424,8 +373,6 @@ def prepare_scene(record, vocabulary: Vocabulary) -> PreparedScene:
 
 def default_pixel_blend_function():
     """``seggaussian.render.pixel_blend.compute_pixel_blend_weights``."""
-    from seggaussian.render.pixel_blend import compute_pixel_blend_weights
-
     return compute_pixel_blend_weights
 
 
@@ -555,8 +502,6 @@ class TrainingData:
         if self.cache_dir is None or self.cache_budget_bytes is None:
             return self.teacher.cached_patch_features(rgb, self.cache_dir, name).patch_features
         if self._cache_bytes is None:
-            from ovgaussian.cache_budget import folder_bytes
-
             self._cache_bytes = folder_bytes(self.cache_dir)
         path = self.teacher.cache_path(self.cache_dir, name)
         existed = path.is_file()
@@ -575,8 +520,6 @@ class TrainingData:
     def sample(self, scene_id: str, rng: np.random.Generator) -> SceneSample:
         """One view, augmentation and pixel set of a scene, drawn from ``rng``."""
         import torch
-
-        from ovgaussian.teacher import sample_patch_features
 
         scene = self.prepared_scene(scene_id)
         view_name = scene.train_views[int(rng.integers(len(scene.train_views)))]

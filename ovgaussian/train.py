@@ -43,7 +43,7 @@ from ovgaussian.checkpoint import (
     save_checkpoint, sweep_run_temps, write_json_atomic,
 )
 from ovgaussian.data import (
-    InMemorySource, SceneSample, ShardSource, TrainingData, epoch_batches, make_vocabulary, rank_slice,
+    InMemorySource, SceneSample, ShardSource, TrainingData, epoch_batches, rank_slice, training_vocabulary,
     sample_seed, scan_scenes,
 )
 from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, DATASET_INTERNAL_FOLDERS, folder_bytes
@@ -457,7 +457,7 @@ def train_in_process_group(
         ensure_writable_dir(run_dir)  # fail before reading data and models, not after
         sweep_run_temps(run_dir)  # half-written checkpoints and files of a killed earlier run
 
-    vocabulary = make_vocabulary(config.data.num_classes)
+    vocabulary = training_vocabulary(config.data.num_classes)
     source = source if source is not None else ShardSource(config.data.dataset, config.data.split, config.data.verify)
     scan = scan_scenes(source, vocabulary)
     if not scan.usable:

@@ -81,7 +81,7 @@ def scenes():
 
 
 def test_vocabulary_excludes_unseen_and_maps_labels():
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     assert len(voc.class_ids) == 16
     unseen = [NAMES.index(n) for n in UNSEEN_CLASSES]
     assert not set(unseen) & set(voc.class_ids.tolist())
@@ -155,7 +155,7 @@ def test_similarity_of_scene_and_camera_leaves_the_image_unchanged():
 
 
 def test_scan_skips_and_counts_empty_and_all_ignore(scenes):
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     empty = SceneRecord("empty", "synthetic", Gaussians.empty(), [])
     g = scenes[0].gaussians
     ignore = SceneRecord("ignore", "synthetic", g.with_extras(semantic=np.full(len(g), IGNORE_LABEL, np.int32)),
@@ -168,7 +168,7 @@ def test_scan_skips_and_counts_empty_and_all_ignore(scenes):
 
 
 def test_prepared_scene_is_recentred_and_unseen_ignored(scenes):
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     prepared = D.prepare_scene(scenes[1], voc)
     g = scenes[1].gaussians
     assert prepared.means.dtype == np.float32
@@ -183,7 +183,7 @@ def test_training_data_computes_pixel_weights_on_the_fly_and_stores_none(scenes,
     from seggaussian.render.pixel_blend import pixel_blend_weights_reference
     from seggaussian.render.rasterize import camera_tensors
 
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     cfg = DataConfig(blend_top_k=8, pixels_per_view=100, view_cache_size=1)
     data = D.TrainingData(D.InMemorySource(scenes), cfg, voc, cache_dir=tmp_path)
     first = [data.sample("scene00", np.random.default_rng(i)) for i in range(6)]
@@ -212,7 +212,7 @@ def test_training_data_computes_pixel_weights_on_the_fly_and_stores_none(scenes,
 def test_render_pixels_matches_reference(scenes):
     from ovgaussian.train import render_pixels, render_pixels_reference
 
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     data = D.TrainingData(D.InMemorySource(scenes), DataConfig(blend_top_k=8), voc)
     sample = data.sample("scene01", np.random.default_rng(0))
     semantic = torch.randn(len(sample.means), 16, dtype=torch.float64, requires_grad=True)
@@ -263,7 +263,7 @@ def test_every_parameter_gets_a_finite_gradient(scenes, tmp_path):
     from ovgaussian.checkpoint import build_network
     from ovgaussian.train import batch_losses
 
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     data = D.TrainingData(D.InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=300), voc)
     samples = [data.sample(s, np.random.default_rng(0)) for s in ("scene00", "scene01")]
     samples[1] = samples[1]._replace(teacher=torch.randn(300, 6))
@@ -498,7 +498,7 @@ def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkey
     from ovgaussian.checkpoint import build_network
     from ovgaussian.train import batch_losses
 
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     data = D.TrainingData(D.InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
     samples = [data.sample(s, np.random.default_rng(i)) for i, s in enumerate(("scene00", "scene01"))]
     config = tiny_config(Path("unused"), 1)
