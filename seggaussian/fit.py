@@ -31,6 +31,7 @@ from seggaussian.cameras import Camera
 from seggaussian.constants import NEAR_PLANE, QUAT_NORM_EPS, RADIUS_SIGMAS, SH_C0
 from seggaussian.fit_config import FitConfig
 from seggaussian.gaussians import Gaussians
+from seggaussian.rotations import quats_to_rotmats_torch
 from seggaussian.scene import Scene
 from seggaussian.sources._common import read_valid_mask
 from seggaussian.sources.layout import find_scene_layout, reader
@@ -432,7 +433,7 @@ def densify_and_prune(params: GaussianParameters, config: FitConfig, extent: flo
         samples = torch.randn(scales.shape, generator=generator) * scales
         q = normalized(p["quats"][split]).repeat(k, 1)
         children = {
-            "means": torch.einsum("nij,nj->ni", quats_to_rotmats(q), samples) + p["means"][split].repeat(k, 1),
+            "means": torch.einsum("nij,nj->ni", quats_to_rotmats_torch(q), samples) + p["means"][split].repeat(k, 1),
             "log_scales": (scales / config.split_scale_divisor).log(),
             "quats": p["quats"][split].repeat(k, 1),
             "opacity_logits": p["opacity_logits"][split].repeat(k),
@@ -460,18 +461,6 @@ def densify_and_prune(params: GaussianParameters, config: FitConfig, extent: flo
     params.reset_stats()
     return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned_transparent": int(transparent.sum()),
             "pruned_large": int(large.sum()), "gaussians": len(params)}
-
-
-def quats_to_rotmats(quats: "torch.Tensor") -> "torch.Tensor":
-    """``[N, 4]`` unit quaternions (w, x, y, z) -> ``[N, 3, 3]``."""
-    import torch
-
-    w, x, y, z = quats.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)
 
 
 def reset_opacity(params: GaussianParameters, ceiling: float) -> None:

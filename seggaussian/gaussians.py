@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Mapping
 import numpy as np
 
 from seggaussian.constants import MAX_SH_DEGREE, QUAT_NORM_EPS, SH_C0
+from seggaussian.rotations import quats_to_rotmats  # noqa: F401  (re-exported: Gaussians' API)
 
 if TYPE_CHECKING:  # torch is heavy: imported only where tensors are asked for
     import torch
@@ -178,17 +179,3 @@ class Gaussians:
             return torch.from_numpy(array if array.flags.writeable else array.copy()).to(device)
 
         return {name: tensor(getattr(self, name)) for name in ("means", "quats", "log_scales", "opacity_logits", "sh")}
-
-
-def quats_to_rotmats(quats: np.ndarray) -> np.ndarray:
-    """``[N, 4]`` unit quaternions (w, x, y, z) -> ``[N, 3, 3]`` rotation matrices."""
-    w, x, y, z = (quats[:, i].astype(np.float64) for i in range(4))
-    r = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )
-    return r.reshape(-1, 3, 3).astype(quats.dtype if quats.dtype in (np.float32, np.float64) else np.float64)

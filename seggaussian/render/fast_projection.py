@@ -25,7 +25,6 @@ from seggaussian.constants import (
     QUAT_NORM_EPS,
     RADIUS_SIGMAS,
 )
-from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
 from seggaussian.render.projection import (
     LOG_SCALE_MIN,
     MAX_SCREEN_COORD,
@@ -34,6 +33,7 @@ from seggaussian.render.projection import (
     Projection,
     camera_centre,
 )
+from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 

@@ -23,6 +23,7 @@ from seggaussian.constants import (
     QUAT_NORM_EPS,
     RADIUS_SIGMAS,
 )
+from seggaussian.rotations import quats_to_rotmats_torch
 
 #: Log-scales are clamped below this before ``exp`` (exp(-30) ~ 1e-13 m, far below any pixel), so
 #: ``-inf`` (a zero scale) gives finite values and gradients.
@@ -69,16 +70,6 @@ def normalize_quats(quats: Tensor) -> Tensor:  # [N, 4] -> [N, 4]
     return torch.where(ok, unit, identity)
 
 
-def quats_to_rotmats(quats: Tensor) -> Tensor:  # [N, 4] unit (w, x, y, z) -> [N, 3, 3]
-    w, x, y, z = quats.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, -1).reshape(-1, 3, 3)
-
-
 def robust_det(t0: Tensor, t1: Tensor, a0: Tensor, c0: Tensor) -> Tensor:
     """det(T T^T + d I) for T = [t0; t1] (rows [N, 3]), a0 = |t0|^2, c0 = |t1|^2, d = COV2D_DILATION.
 
@@ -123,7 +114,7 @@ def project_gaussians(
     z_safe = torch.where(in_depth, z, torch.ones_like(z))
 
     # 3D covariance in camera axes: (W R S)(W R S)^T
-    rot = quats_to_rotmats(normalize_quats(quats.to(f64)))
+    rot = quats_to_rotmats_torch(normalize_quats(quats.to(f64)))
     scales = torch.exp(log_scales.to(f64).clamp(LOG_SCALE_MIN, LOG_SCALE_FLOAT32_MAX))
     m = rot_w2c @ rot * scales[:, None, :]  # [N, 3, 3]
 
