@@ -23,7 +23,9 @@ from typing import TYPE_CHECKING, NamedTuple
 from ovgaussian.model import OVGaussianNet
 from ovgaussian.model_config import OVGaussianNetConfig
 from ovgaussian.train_config import config_from_dict
-from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps, write_bytes_atomic
+from seggaussian import atomic
+from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps
+from seggaussian.jsonsafe import NAN_IS_ERROR
 
 if TYPE_CHECKING:
     import torch
@@ -39,9 +41,8 @@ class CheckpointError(ValueError):
 
 
 def write_json_atomic(path: Path, payload) -> None:
-    """JSON to a temp file in the same folder, then rename (NaN is refused)."""
-    text = json.dumps(payload, indent=2, allow_nan=False) + "\n"  # raises on NaN before anything is written
-    write_bytes_atomic(path, text.encode())
+    """The run's JSON files (config, optimizer state, latest pointer): NaN/Inf refused (they must read back)."""
+    atomic.write_json_atomic(path, payload, nan=NAN_IS_ERROR)
 
 
 def read_json(path: Path) -> dict:

@@ -26,7 +26,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from seggaussian.jsonsafe import json_safe
+from seggaussian.jsonsafe import NAN_AS_NULL, json_safe
 
 #: ``.<name>.tmp-<pid>-<token><suffix>``: the one temp-name pattern of the toolkit (earlier versions
 #: wrote ``.<name>.tmp-<pid>``, also recognised).
@@ -203,13 +203,16 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     write_bytes_atomic(path, text.encode("utf-8"))
 
 
-def json_text(payload, *, sort_keys: bool = False) -> str:
-    """Indented JSON (numpy values converted, NaN/Inf as null) with a final newline."""
-    return json.dumps(json_safe(payload), indent=2, sort_keys=sort_keys, allow_nan=False) + "\n"
+def json_text(payload, *, sort_keys: bool = False, nan: str = NAN_AS_NULL) -> str:
+    """Indented JSON (numpy values converted; NaN/Inf by the policy ``nan``, see jsonsafe) with a final newline."""
+    return json.dumps(json_safe(payload, nan), indent=2, sort_keys=sort_keys, allow_nan=False) + "\n"
 
 
-def write_json_atomic(path: str | os.PathLike, payload, *, sort_keys: bool = False,
+def write_json_atomic(path: str | os.PathLike, payload, *, nan: str = NAN_AS_NULL, sort_keys: bool = False,
                       only_if_changed: bool = False) -> bool:
-    """``payload`` as indented JSON to ``path``, atomically (see ``write_bytes_atomic``)."""
-    return write_bytes_atomic(path, json_text(payload, sort_keys=sort_keys).encode(), only_if_changed=only_if_changed)
+    """``payload`` as indented JSON to ``path``, atomically (see ``write_bytes_atomic``).
 
+    ``nan``: NAN_AS_NULL (NaN/Inf written as null) or NAN_IS_ERROR (ValueError, nothing written). The one
+    JSON-file writer of the tree: other modules call it with their policy rather than keeping a copy."""
+    text = json_text(payload, sort_keys=sort_keys, nan=nan)  # raises before anything is written
+    return write_bytes_atomic(path, text.encode(), only_if_changed=only_if_changed)

@@ -31,6 +31,7 @@ from seggaussian.build_config import ShardConfig
 from seggaussian.cameras import Camera
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.gaussians import Gaussians
+from seggaussian.jsonsafe import NAN_AS_NULL
 from seggaussian.shard_schema import (
     GAUSSIANS_SCHEMA,
     GAUSSIANS_TABLE,
@@ -242,8 +243,9 @@ def write_bytes_atomic(path: Path, data: bytes, *, only_if_changed: bool = True)
 
 
 def write_json_atomic(path: Path, payload) -> bool:
-    """Sorted, indented JSON through ``write_bytes_atomic`` (unchanged files left alone)."""
-    return atomic.write_json_atomic(path, payload, sort_keys=True, only_if_changed=True)
+    """The dataset's JSON files (manifest, splits, cache records): ``atomic.write_json_atomic`` with keys sorted,
+    unchanged files left alone and NaN/Inf written as null."""
+    return atomic.write_json_atomic(path, payload, nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
 
 
 def footer_metadata(table: str, split: str | None, class_names, config_hash: str) -> dict[bytes, bytes]:
