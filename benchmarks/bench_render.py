@@ -131,7 +131,7 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
 
     from seggaussian.render import rasterize
     from seggaussian.render.rasterize_numba import blend_fast
-    from seggaussian.render.fast_projection import project_gaussians_fast
+    from seggaussian.render.projection_numba import project_gaussians_fast
     from seggaussian.render.sh import sh_to_colors
     from seggaussian.render.tiles import bin_gaussians
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from seggaussian.constants import SH_C0
-from seggaussian.render.fast_projection import project_gaussians_fast
+from seggaussian.render.projection_numba import project_gaussians_fast
 from seggaussian.render.projection import project_gaussians
 from seggaussian.render.sh import sh_to_colors
 from test_render_common import HEIGHT, WIDTH, camera, random_scene

@@ -11,9 +11,9 @@ import torch
 from torch import Tensor
 
 from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TRANSMITTANCE_MIN
-from seggaussian.render.fast_projection import project_gaussians_fast
 from seggaussian.render.inputs import check_inputs
 from seggaussian.render.projection import project_gaussians
+from seggaussian.render.projection_numba import project_gaussians_fast
 from seggaussian.render.rasterize_numba import blend_weights_fast
 from seggaussian.render.reference import depth_order
 from seggaussian.render.results import BlendWeights

@@ -29,8 +29,8 @@ from torch import Tensor
 
 from seggaussian.constants import TILE_SIZE
 from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights
-from seggaussian.render.fast_projection import project_gaussians_fast
 from seggaussian.render.inputs import check_inputs
+from seggaussian.render.projection_numba import project_gaussians_fast
 from seggaussian.render.rasterize_numba import (
     _ALPHA_MAX, _ALPHA_MIN, _CUTOFF, _DONE_CHECK_EVERY, _HALF, _JIT, _ONE, _T_MIN, _TWO, _ZERO, _exp_neg, _f32,
     run_parallel,

@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from seggaussian.render.fast_projection import project_gaussians_fast
 from seggaussian.render.gsplat_backend import rasterize_gsplat
 from seggaussian.render.inputs import check_finite, check_inputs
 from seggaussian.render.projection import Projection, project_gaussians
+from seggaussian.render.projection_numba import project_gaussians_fast
 from seggaussian.render.rasterize_numba import blend_fast
 from seggaussian.render.reference import blend_reference
 from seggaussian.render.results import RenderOutput
