@@ -25,6 +25,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
+from seggaussian.atomic import atomic_path, write_json_atomic
 from seggaussian.constants import IGNORE_LABEL, SH_C0
 from seggaussian.gaussians import Gaussians
 
@@ -160,8 +161,6 @@ def legend_image(legend: Legend, rows: int = LEGEND_PNG_ROWS) -> np.ndarray:
 def write_legend(out: str | os.PathLike, legend: Legend) -> tuple[Path, Path]:
     """Write the legend JSON and PNG beside ``out``, atomically -> their paths."""
     import cv2
-
-    from seggaussian.atomic import atomic_path, write_json_atomic
 
     json_path, png_path = legend_paths(out)
     write_json_atomic(json_path, legend.to_dict())

@@ -38,7 +38,7 @@ import numpy as np
 
 from seggaussian.constants import SH_C0
 from seggaussian.gaussians import Gaussians, sh_degree_from_coeffs
-from seggaussian.io.ply import PlyElement, PlyHeader, read_ply_header
+from seggaussian.io.ply import PlyElement, PlyHeader, read_ply_header, write_atomic
 from seggaussian.io.splat_common import SplatFormatError, dc_from_rgb, logit_from_unit, unit_from_logit
 
 __all__ = ["CHUNK_SIZE", "is_compressed_ply_header", "read_compressed_ply", "encode_compressed_ply",
@@ -286,8 +286,6 @@ def encode_compressed_ply(gaussians: Gaussians) -> tuple[bytes, list[np.ndarray]
 
 def write_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     """Write ``gaussians`` as a compressed PLY, atomically (extras dropped)."""
-    from seggaussian.io.ply import write_atomic
-
     sh_degree_from_coeffs(gaussians.num_sh_coeffs)
     header, body = encode_compressed_ply(gaussians)
     write_atomic(Path(path), [header, *body])

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from seggaussian.gaussians import Gaussians
+from seggaussian.io.ply import write_atomic
 from seggaussian.io.splat_common import (
     SplatFormatError,
     dc_from_rgb,
@@ -123,6 +124,4 @@ def encode_splat(gaussians: Gaussians) -> np.ndarray:
 
 def write_splat(path: str | os.PathLike, gaussians: Gaussians) -> None:
     """Write ``gaussians`` as a ``.splat`` file, atomically (DC colour only; extras dropped)."""
-    from seggaussian.io.ply import write_atomic
-
     write_atomic(path, [encode_splat(gaussians)])

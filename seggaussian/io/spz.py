@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seggaussian.atomic import write_bytes_atomic
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.splat_common import SplatFormatError, logit_from_unit, read_file_bytes, unit_from_logit
 
@@ -304,6 +305,4 @@ def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
 
 def write_spz(path: str | os.PathLike, gaussians: Gaussians, version: int = 4) -> None:
     """Write ``gaussians`` as an SPZ file of ``version``, atomically (extras dropped)."""
-    from seggaussian.atomic import write_bytes_atomic
-
     write_bytes_atomic(path, encode_spz(gaussians, version))

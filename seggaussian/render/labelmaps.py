@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from seggaussian.constants import IGNORE_LABEL
-from seggaussian.render.blend import BlendWeights
+from seggaussian.render.results import BlendWeights
 
 #: A pixel whose accumulated alpha (all contributors, captured or residual) is below this gets
 #: IGNORE_LABEL: it shows mostly background, so no Gaussian label is trustworthy there.
