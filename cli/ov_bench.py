@@ -6,34 +6,31 @@ from pathlib import Path
 
 import click
 
+from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
 from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
 
 
 @click.command("bench")
-@click.option("--data", "dataset", type=click.Path(path_type=Path, file_okay=False), required=True,
-              help="Dataset folder (seggaussian build + split).")
-@click.option("--run", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Run folder of ovgaussian train (needed for --predictor model).")
-@click.option("--checkpoint", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="A checkpoint folder RUN/checkpoints/epoch-XXXX (default: the latest).")
-@click.option("--predictor", type=click.Choice(["model", "majority", "nearest-colour"]), default="model",
-              show_default=True, help="Score the model or a non-learned baseline fitted on the train split.")
+@config_option(BenchConfig, "dataset", "--data", "dataset", type=click.Path(path_type=Path, file_okay=False), required=True)
+@config_option(BenchConfig, "run", "--run", type=click.Path(path_type=Path, file_okay=False), default=None)
+@config_option(BenchConfig, "checkpoint", "--checkpoint", type=click.Path(path_type=Path, file_okay=False), default=None)
+@config_option(BenchConfig, "predictor", "--predictor", type=click.Choice(["model", "majority", "nearest-colour"]),
+               default="model", show_default=True)
 @click.option("--metric", "metric", type=click.Choice([*METRICS, "all"], case_sensitive=False), default="all",
               show_default=True, help="Metric to compute.")
-@click.option("--classes", "num_classes", type=click.Choice(["20", "50", "100"]), default="20", show_default=True,
-              help="Vocabulary size K.")
+@config_option(BenchConfig, "num_classes", "--classes", "num_classes", type=click.Choice(["20", "50", "100"]),
+               default="20", show_default=True)
 @click.option("--dim", type=click.Choice(["3d", "2d", "both"]), default="both", show_default=True,
               help="Score on the Gaussians (3d), on rendered label maps (2d), or both.")
-@click.option("--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True,
-              help="Rendered pixels with less accumulated alpha get no prediction.")
-@click.option("--max-views", type=int, default=None, help="Score at most this many views per scene (first by name).")
-@click.option("--max-scenes", type=int, default=None, help="Score at most this many scenes per split (first by id).")
+@config_option(BenchConfig, "min_alpha", "--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True)
+@config_option(BenchConfig, "max_views_per_scene", "--max-views", type=int, default=None)
+@config_option(BenchConfig, "max_scenes", "--max-scenes", type=int, default=None)
 @click.option("--out", "out", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="JSON report path (default: RUN/bench-K<classes>.json, or DATA/bench-<predictor>-K<classes>.json).")
 @click.option("--label", default=None, help="Row label of the printed table (default: the run folder or predictor).")
-@click.option("--verify", is_flag=True, help="Check every shard's sha256 against the manifest (sizes always).")
-@click.option("--progress/--no-progress", default=True, show_default=True, help="Progress bar over scenes.")
+@config_option(BenchConfig, "verify", "--verify", is_flag=True)
+@config_option(BenchConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
 def command(dataset, run, checkpoint, predictor, metric, num_classes, dim, min_alpha, max_views, max_scenes,

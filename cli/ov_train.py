@@ -6,42 +6,41 @@ from pathlib import Path
 
 import click
 
+from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from ovgaussian.train_config import (
-    DataConfig, LossConfig, OptimConfig, TeacherConfig, TextConfig, TrainConfig, field_help,
-)
-
-_T, _D, _X, _L, _O = (field_help(c) for c in (TrainConfig, DataConfig, TextConfig, LossConfig, OptimConfig))
+from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TeacherConfig, TextConfig, TrainConfig
 
 
 @click.command("train")
-@click.option("--data", "dataset", type=click.Path(path_type=Path, file_okay=False), required=True, help=_D["dataset"])
-@click.option("--out", type=click.Path(path_type=Path, file_okay=False), required=True, help=_T["out"])
-@click.option("--epochs", type=click.IntRange(min=1), default=TrainConfig.epochs, show_default=True, help=_T["epochs"])
-@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help=_T["device"])
-@click.option("--batch-scenes", type=click.IntRange(min=1), default=TrainConfig.batch_scenes, show_default=True,
-              help=_T["batch_scenes"])
-@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=OptimConfig.lr, show_default=True,
-              help=_O["lr"])
-@click.option("--schedule", type=click.Choice(["cosine", "poly", "constant"]), default=OptimConfig.schedule,
-              show_default=True, help=_O["schedule"])
-@click.option("--seed", type=int, default=TrainConfig.seed, show_default=True, help=_T["seed"])
-@click.option("--resume", is_flag=True, help=_T["resume"])
+@config_option(DataConfig, "dataset", "--data", "dataset", type=click.Path(path_type=Path, file_okay=False),
+               required=True)
+@config_option(TrainConfig, "out", "--out", type=click.Path(path_type=Path, file_okay=False), required=True)
+@config_option(TrainConfig, "epochs", "--epochs", type=click.IntRange(min=1), default=TrainConfig.epochs,
+               show_default=True)
+@config_option(TrainConfig, "device", "--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+@config_option(TrainConfig, "batch_scenes", "--batch-scenes", type=click.IntRange(min=1),
+               default=TrainConfig.batch_scenes, show_default=True)
+@config_option(OptimConfig, "lr", "--lr", type=click.FloatRange(min=0, min_open=True), default=OptimConfig.lr,
+               show_default=True)
+@config_option(OptimConfig, "schedule", "--schedule", type=click.Choice(["cosine", "poly", "constant"]),
+               default=OptimConfig.schedule, show_default=True)
+@config_option(TrainConfig, "seed", "--seed", type=int, default=TrainConfig.seed, show_default=True)
+@config_option(TrainConfig, "resume", "--resume", is_flag=True)
 @click.option("--no-adapter", is_flag=True, help="Ablation: train without the voxel-to-point adapter.")
-@click.option("--no-3dt-align", is_flag=True, help=_L["no_3dt_align"])
-@click.option("--no-vs-align", is_flag=True, help=_L["no_vs_align"])
-@click.option("--classes", "num_classes", type=click.Choice(["20", "50", "100"]), default="20", show_default=True,
-              help=_D["num_classes"])
-@click.option("--text-encoder", type=click.Choice(["minilm", "clip"]), default="minilm", show_default=True,
-              help=_X["encoder"])
-@click.option("--clip-model", type=click.Path(path_type=Path, file_okay=False), default=None, help=_X["clip_model"])
-@click.option("--model-preset", type=click.Choice(["default", "slim"]), default="default", show_default=True,
-              help=_T["model_preset"])
-@click.option("--pixels-per-view", type=click.IntRange(min=1), default=None, help=_D["pixels_per_view"])
-@click.option("--temperature", type=click.FloatRange(min=0, min_open=True), default=LossConfig.temperature,
-              show_default=True, help=_L["temperature"])
-@click.option("--verify", is_flag=True, help=_D["verify"])
-@click.option("--progress/--no-progress", default=True, show_default=True, help=_T["progress"])
+@config_option(LossConfig, "no_3dt_align", "--no-3dt-align", is_flag=True)
+@config_option(LossConfig, "no_vs_align", "--no-vs-align", is_flag=True)
+@config_option(DataConfig, "num_classes", "--classes", "num_classes", type=click.Choice(["20", "50", "100"]),
+               default="20", show_default=True)
+@config_option(TextConfig, "encoder", "--text-encoder", type=click.Choice(["minilm", "clip"]), default="minilm",
+               show_default=True)
+@config_option(TextConfig, "clip_model", "--clip-model", type=click.Path(path_type=Path, file_okay=False), default=None)
+@config_option(TrainConfig, "model_preset", "--model-preset", type=click.Choice(["default", "slim"]), default="default",
+               show_default=True)
+@config_option(DataConfig, "pixels_per_view", "--pixels-per-view", type=click.IntRange(min=1), default=None)
+@config_option(LossConfig, "temperature", "--temperature", type=click.FloatRange(min=0, min_open=True),
+               default=LossConfig.temperature, show_default=True)
+@config_option(DataConfig, "verify", "--verify", is_flag=True)
+@config_option(TrainConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,

@@ -11,7 +11,9 @@ from pathlib import Path
 
 import click
 
+from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
+from seggaussian.tools.sweep_config import STAGES, StageSweepConfig, quick_config, with_params
 
 STAGE_CHOICES = ("fit", "transfer", "render", "build", "all")
 
@@ -19,13 +21,11 @@ STAGE_CHOICES = ("fit", "transfer", "render", "build", "all")
 @click.command("bench")
 @click.option("--stage", "stages", multiple=True, type=click.Choice(STAGE_CHOICES),
               help="Stage to sweep (repeat for several; all = every stage).")
-@click.option("--data", type=click.Path(path_type=Path), default=None,
-              help="Raw tree (ScanNet++/Replica layout or a synthetic root). Default: the default synthetic set, "
-                   "synthesized once into --work-dir.")
-@click.option("--work-dir", type=click.Path(path_type=Path), default=Path("~/.cache/seggaussian-bench"),
-              show_default=True, help="Scratch folder (synthesized scenes, swept build datasets).")
+@config_option(StageSweepConfig, "data", "--data", type=click.Path(path_type=Path), default=None)
+@config_option(StageSweepConfig, "work_dir", "--work-dir", type=click.Path(path_type=Path),
+               default=StageSweepConfig.work_dir, show_default=True)
 @click.option("--scenes", type=int, default=None, help="Use at most this many scenes (default: all; quick: 1).")
-@click.option("--seed", type=int, default=0, show_default=True)
+@config_option(StageSweepConfig, "seed", "--seed", type=int, default=0, show_default=True)
 @click.option("--quick", is_flag=True, help="Tiny sweep on one tiny synthetic scene (seconds).")
 @click.option("--plot", type=click.Path(path_type=Path), default=None, help="Write a PNG plot (needs matplotlib).")
 @click.option("--markdown", type=click.Path(path_type=Path), default=None,
@@ -45,7 +45,6 @@ def command(stages, data, work_dir, scenes, seed, quick, plot, markdown, params,
     ovgaussian bench.)"""
     from seggaussian.tools.pareto import PARETO_TIME_TOLERANCE, QUALITY_TOLERANCE, StageSweepResult, mark_pareto
     from seggaussian.tools.stage_sweep import run_stage_sweep
-    from seggaussian.tools.sweep_config import STAGES, StageSweepConfig, quick_config, with_params
     from seggaussian.tools.sweep_report import default_verdict, format_table, plot_trials, write_markdown
 
     if not stages and not from_json:

@@ -7,40 +7,42 @@ from pathlib import Path
 
 import click
 
+from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
+from seggaussian.build_config import BuildConfig, OracleConfig, TransferConfig, ViewConfig
+from seggaussian.fit_config import FitConfig
 
 
 @click.command("build")
-@click.option("--source", type=click.Choice(["synthetic", "scannetpp", "replica", "ply"]), default="synthetic",
-              show_default=True, help="Raw tree kind. synthetic = ROOT/scannetpp + ROOT/replica from `seggaussian synth`.")
-@click.option("--root", type=click.Path(path_type=Path), required=True, help="Raw tree (read only).")
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Dataset folder to create or update.")
+@config_option(BuildConfig, "source", "--source", type=click.Choice(["synthetic", "scannetpp", "replica", "ply"]),
+               default="synthetic", show_default=True)
+@config_option(BuildConfig, "root", "--root", type=click.Path(path_type=Path), required=True)
+@config_option(BuildConfig, "out", "--out", type=click.Path(path_type=Path), required=True)
 @click.option("--scenes", multiple=True, help="Scene ids to build (repeat or comma-separate); default all.")
-@click.option("--jobs", type=int, default=1, show_default=True, help="Scenes built in parallel.")
-@click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True)
-@click.option("--address", default=None, help="Ray cluster address (with --executor ray).")
-@click.option("--fit", "fit_mode", type=click.Choice(["auto", "always", "never"]), default="auto", show_default=True,
-              help="auto: fit only scenes without a trained PLY.")
-@click.option("--gaussians", "gaussians_mode", type=click.Choice(["fit", "oracle"]), default="fit", show_default=True,
-              help="oracle: sample Gaussians on the labelled mesh (fast, exact geometry).")
-@click.option("--ply-dir", type=click.Path(path_type=Path), default=None,
-              help="Trained PLYs: <scene>.ply or <scene>/point_cloud/iteration_*/point_cloud.ply.")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--gate", type=float, default=None, help="Label-transfer distance gate in metres (default: 4 x point spacing).")
-@click.option("--oracle-gaussians", type=int, default=None, help="Gaussians per scene with --gaussians oracle.")
-@click.option("--fit-iterations", type=int, default=None, help="Fitting iterations per scene.")
-@click.option("--max-image-side", type=int, default=None, help="Longest side of stored views (pixels, 0 = source size).")
-@click.option("--view-stride", type=int, default=None, help="Keep every n-th train view (novel views always kept).")
+@config_option(BuildConfig, "jobs", "--jobs", type=int, default=1, show_default=True)
+@config_option(BuildConfig, "executor", "--executor", type=click.Choice(["local", "ray"]), default="local",
+               show_default=True)
+@config_option(BuildConfig, "address", "--address", default=None)
+@config_option(BuildConfig, "fit", "--fit", "fit_mode", type=click.Choice(["auto", "always", "never"]), default="auto",
+               show_default=True)
+@config_option(BuildConfig, "gaussians", "--gaussians", "gaussians_mode", type=click.Choice(["fit", "oracle"]),
+               default="fit", show_default=True)
+@config_option(BuildConfig, "ply_dir", "--ply-dir", type=click.Path(path_type=Path), default=None)
+@config_option(BuildConfig, "seed", "--seed", type=int, default=0, show_default=True)
+@config_option(TransferConfig, "max_distance", "--gate", type=float, default=None)
+@config_option(OracleConfig, "num_gaussians", "--oracle-gaussians", type=int, default=None)
+@config_option(FitConfig, "iterations", "--fit-iterations", type=int, default=None)
+@config_option(ViewConfig, "max_image_side", "--max-image-side", type=int, default=None)
+@config_option(ViewConfig, "view_stride", "--view-stride", type=int, default=None)
 @click.option("--keep-going", is_flag=True,
               help="Exit 0 even when scenes failed (a failed scene built before keeps its last good copy).")
-@click.option("--progress/--no-progress", default=True, show_default=True)
+@config_option(BuildConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
 def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussians_mode, ply_dir, seed, gate,
             oracle_gaussians, fit_iterations, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
     from seggaussian.build import build_dataset, summary_table
-    from seggaussian.build_config import BuildConfig
 
     config = BuildConfig(source=source, root=root, out=out, jobs=jobs, executor=executor, address=address,
                          fit=fit_mode, gaussians=gaussians_mode, ply_dir=ply_dir, seed=seed,

@@ -7,7 +7,9 @@ from pathlib import Path
 
 import click
 
+from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
+from seggaussian.fit_config import FitConfig
 
 
 @click.command("fit")
@@ -18,20 +20,21 @@ from cli._output import finish, guarded, json_option
 @click.option("--scene", "scene_id", required=True, help="Scene id.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="PLY to write; metrics go to SCENE.fit.json next to it.")
-@click.option("--iterations", type=int, default=None, help="Optimization steps (default: FitConfig); the densification/reset schedule scales with it.")
-@click.option("--downscale", type=float, default=None, help="Divide image size by this factor.")
-@click.option("--max-gaussians", type=int, default=None, help="Cap on the number of Gaussians.")
-@click.option("--sh-degree", type=int, default=None, help="Largest SH degree fitted.")
-@click.option("--time-budget", type=float, default=None, help="Stop after this many seconds.")
+@config_option(FitConfig, "iterations", "--iterations", type=int, default=None)
+@config_option(FitConfig, "downscale", "--downscale", type=float, default=None)
+@config_option(FitConfig, "max_gaussians", "--max-gaussians", type=int, default=None)
+@config_option(FitConfig, "sh_degree", "--sh-degree", type=int, default=None)
+@config_option(FitConfig, "time_budget_seconds", "--time-budget", type=float, default=None)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
 def command(source, root, scene_id, out, iterations, downscale, max_gaussians, sh_degree, time_budget, seed, progress,
             as_json) -> None:
-    """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json."""
+    """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json.
+
+    Unset options keep the FitConfig default; --iterations scales the densification/reset schedule with it."""
     from seggaussian.fit import fit_to_ply, metrics_path
-    from seggaussian.fit_config import FitConfig
 
     overrides = {"downscale": downscale, "max_gaussians": max_gaussians, "sh_degree": sh_degree,
                  "time_budget_seconds": time_budget}

@@ -1,4 +1,5 @@
-"""Configuration of ``ovgaussian bench`` and ``ovgaussian predict``: frozen dataclasses, no code.
+"""Configuration of ``ovgaussian bench`` (``PredictConfig`` of ``ovgaussian predict`` is in predict_config.py):
+frozen dataclasses and the protocol constants, no code.
 
 The protocol these settings drive is written down in ``data_specs/BENCHMARK.md``.
 """
@@ -62,38 +63,3 @@ class BenchConfig:
     """Show a progress bar over scenes."""
     verify: bool = False
     """Check every shard read against the manifest's sha256 (sizes are always checked)."""
-
-
-@dataclass(frozen=True)
-class PredictConfig:
-    """One open-vocabulary query of a scene."""
-
-    run: Path = Path("run")
-    """Run folder of ``ovgaussian train``."""
-    checkpoint: Optional[Path] = None
-    """A checkpoint folder (RUN/checkpoints/epoch-XXXX); None takes the run's latest."""
-    vocabulary: tuple[str, ...] = ()
-    """Free-text class names the Gaussians are labelled with (label i = vocabulary[i])."""
-    colour_mode: Literal["f_dc", "rgb", "both"] = "both"
-    """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
-    red/green/blue properties, or both."""
-    color_by: Literal["semantic", "none"] = "semantic"
-    """``semantic``: paint each Gaussian in the fixed palette colour of its class (seggaussian.palette) and
-    write a legend (JSON + PNG) beside the output; ``none``: keep the scene's colours, add only the labels."""
-    output_format: Optional[Literal["ply", "compressed_ply", "splat", "spz"]] = None
-    """Format of the output file; None takes it from the name (.compressed.ply, .splat, .spz, else PLY).
-    Only PLY keeps the ``semantic`` property; the other formats carry the class colours alone."""
-    spz_version: Literal[2, 3, 4] = 4
-    """SPZ version written when the output is SPZ."""
-    min_alpha: float = DEFAULT_MIN_ALPHA
-    """Pixels of label-map PNGs whose accumulated alpha is below this are written as IGNORE (0 in the colour PNG)."""
-    blend_top_k: int = 16
-    """Contributors kept per pixel when rendering label maps."""
-    on_invalid: Literal["error", "drop", "repair"] = "error"
-    """What to do with invalid Gaussians in the input PLY (see seggaussian.io.ply.read_gaussians_ply)."""
-    chunk_rows: int = 65536
-    """Gaussians or pixels classified at once."""
-    band_rows: int = DEFAULT_BAND_ROWS
-    """Image rows of a label map whose blend weights are computed, rendered and classified at once."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Device of the model."""

@@ -18,7 +18,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from ovgaussian.bench_config import PredictConfig
+from ovgaussian.predict_config import PredictConfig
 from ovgaussian.view_labels import default_blend_functions, stream_view_labels
 from seggaussian.constants import IGNORE_LABEL, SH_C0, read_class_names
 

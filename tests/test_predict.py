@@ -93,7 +93,7 @@ def test_predict_real_file_cli(name, run_dir, tmp_path):
 
 
 def test_predict_is_deterministic_and_consistent_with_bench_predictor(run_dir, tmp_path):
-    from ovgaussian.bench_config import PredictConfig
+    from ovgaussian.predict_config import PredictConfig
     from ovgaussian.predict import label_gaussians, load_model_predictor
     from seggaussian.io.ply import read_gaussians_ply
 
@@ -158,7 +158,7 @@ def test_camera_file_errors_name_the_field(tmp_path):
 
 
 def test_refuses_to_overwrite_input(run_dir, tmp_path):
-    from ovgaussian.bench_config import PredictConfig
+    from ovgaussian.predict_config import PredictConfig
     from ovgaussian.predict import run_predict
 
     p = tmp_path / "x.ply"
