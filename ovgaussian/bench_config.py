@@ -44,7 +44,7 @@ class BenchConfig:
     dims: tuple[str, ...] = ("3d", "2d")
     """Dimensions to score: ``3d`` on the Gaussians, ``2d`` on rendered label maps."""
     num_classes: int = 20
-    """Vocabulary size K (20, 50 or 100): the 4 unseen classes plus the first K-4 other top-100 classes."""
+    """Vocabulary size (20, 50 or 100): the 4 unseen classes plus the first num_classes - 4 other top-100 classes."""
     min_alpha: float = DEFAULT_MIN_ALPHA
     """Rendered pixels whose accumulated alpha is below this get no prediction (counted as a miss)."""
     blend_top_k: int = 16

@@ -56,23 +56,25 @@ def unseen_class_ids(data_dir: Path | None = None) -> list[int]:
     return sorted(class_id(name, data_dir) for name in UNSEEN_CLASSES)
 
 
-def benchmark_vocabulary_names(k: int, data_dir: Path | None = None) -> list[str]:
-    """Class names of the K-class benchmark vocabulary, in top100.txt order (from vocabularies.json)."""
+def benchmark_vocabulary_names(num_classes: int, data_dir: Path | None = None) -> list[str]:
+    """Class names of the ``num_classes``-class benchmark vocabulary, in top100.txt order (from vocabularies.json)."""
     doc = _read_json("vocabularies.json", data_dir)
     vocabularies = doc.get("vocabularies", {})
-    if str(k) not in vocabularies:
-        raise ValueError(f"no benchmark vocabulary of {k} classes; available: {sorted(map(int, vocabularies))}")
+    if str(num_classes) not in vocabularies:
+        raise ValueError(f"no benchmark vocabulary of {num_classes} classes; available: {sorted(map(int, vocabularies))}")
     if tuple(doc.get("unseen", ())) != UNSEEN_CLASSES:
         raise ValueError(f"vocabularies.json: unseen classes {doc.get('unseen')} differ from {UNSEEN_CLASSES}")
-    names = list(vocabularies[str(k)])
-    if len(names) != k or len(set(names)) != k:
-        raise ValueError(f"vocabularies.json: vocabulary {k} has {len(set(names))} distinct names, expected {k}")
+    names = list(vocabularies[str(num_classes)])
+    if len(names) != num_classes or len(set(names)) != num_classes:
+        raise ValueError(f"vocabularies.json: vocabulary {num_classes} has {len(set(names))} distinct names, "
+                         f"expected {num_classes}")
     return names
 
 
-def benchmark_vocabulary(k: int, data_dir: Path | None = None) -> list[int]:
-    """Class ids (ascending) of the K-class vocabulary: the 4 unseen classes + the K-4 first others."""
-    names = benchmark_vocabulary_names(k, data_dir)
+def benchmark_vocabulary(num_classes: int, data_dir: Path | None = None) -> list[int]:
+    """Class ids (ascending) of the ``num_classes``-class vocabulary: the 4 unseen classes + the
+    ``num_classes - 4`` first others."""
+    names = benchmark_vocabulary_names(num_classes, data_dir)
     ids = sorted(class_id(name, data_dir) for name in names)
     return ids
 

@@ -66,7 +66,7 @@ class Gaussians:
             if array.dtype != np.float32:
                 raise TypeError(f"Gaussians.{name} has dtype {array.dtype}, expected float32")
         if not isinstance(self.sh, np.ndarray) or self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
-            raise ValueError(f"Gaussians.sh has shape {getattr(self.sh, 'shape', None)}, expected ({n}, K, 3)")
+            raise ValueError(f"Gaussians.sh has shape {getattr(self.sh, 'shape', None)}, expected ({n}, num_sh_coeffs, 3)")
         if self.sh.dtype != np.float32:
             raise TypeError(f"Gaussians.sh has dtype {self.sh.dtype}, expected float32")
         sh_degree_from_coeffs(self.sh.shape[1])

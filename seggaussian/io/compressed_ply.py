@@ -197,7 +197,7 @@ def _decode(chunk: np.ndarray, vertex: np.ndarray, sh_rows: np.ndarray | None, h
     if num_rest:
         raw = sh_rows.view(np.uint8).reshape(n, num_rest)
         k = num_rest // 3
-        sh[:, 1:, :] = SH_DECODE[raw.reshape(n, 3, k).transpose(0, 2, 1)]   # channel-major bytes -> [N, K-1, 3]
+        sh[:, 1:, :] = SH_DECODE[raw.reshape(n, 3, k).transpose(0, 2, 1)]   # channel-major bytes -> [N, num_sh_coeffs-1, 3]
     return Gaussians(means, quats, log_scales, opacity_logits, sh)
 
 

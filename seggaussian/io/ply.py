@@ -5,9 +5,9 @@ Layout of the ``vertex`` element, in this order when we write it::
     x, y, z, [nx, ny, nz], f_dc_0..2, f_rest_0..M-1, opacity, scale_0..2, rot_0..3, [extras...]
 
 * SH degree d in 0..3 is inferred from M = 3 * ((d + 1)^2 - 1) (0, 9, 24 or 45); any other M is an error.
-* ``f_rest`` is channel-major: the (K - 1) higher-order coefficients of R, then of G, then of B.
-  In memory ``Gaussians.sh`` is ``[N, K, 3]`` with ``sh[:, 0] = f_dc`` and
-  ``sh[:, k, c] = f_rest[c * (K - 1) + k - 1]`` for k >= 1.
+* ``f_rest`` is channel-major: the (num_sh_coeffs - 1) higher-order coefficients of R, then of G, then of B.
+  In memory ``Gaussians.sh`` is ``[N, num_sh_coeffs, 3]`` with ``sh[:, 0] = f_dc`` and
+  ``sh[:, k, c] = f_rest[c * (num_sh_coeffs - 1) + k - 1]`` for k >= 1.
 * Normals (always zero in Inria files) are optional. On read, all-zero normals are dropped; normals
   holding any non-zero value are kept as extras ``nx, ny, nz`` and written back in the normal slot.
 * Any other scalar vertex property becomes ``Gaussians.extras[name]`` with its file dtype
@@ -501,7 +501,7 @@ def vertex_table_to_gaussians(table: np.ndarray, source: str | os.PathLike = "<t
     n = table.shape[0]
     colour_names = standard[3: 6 + 3 * (k - 1)]
     colours = _columns_f32(table, colour_names)                       # [N, 3K]: f_dc, then f_rest
-    # gather [N, 3K] (f_dc_0..2, then f_rest channel-major) into [N, K, 3] in one np.take per row
+    # gather [N, 3 num_sh_coeffs] (f_dc_0..2, then f_rest channel-major) into [N, num_sh_coeffs, 3] in one np.take per row
     order = np.empty((k, 3), dtype=np.intp)
     order[0] = np.arange(3)
     order[1:] = 3 + np.arange(3)[None, :] * (k - 1) + np.arange(k - 1)[:, None]
@@ -607,7 +607,7 @@ def gaussians_to_vertex_table(gaussians: Gaussians, *, normals: bool = True, byt
         raise ValueError(f"duplicate PLY property names among the extras: {names}")
     table = np.empty(n, dtype=np.dtype(fields))
 
-    # f_rest is channel-major on disk: [N, K-1, 3] -> [N, 3, K-1] -> [N, 3(K-1)]
+    # f_rest is channel-major on disk: [N, num_sh_coeffs-1, 3] -> [N, 3, num_sh_coeffs-1] -> [N, 3(num_sh_coeffs-1)]
     f_rest = gaussians.sh[:, 1:, :].transpose(0, 2, 1)
     blocks = [("x", gaussians.means), ("f_dc_0", gaussians.sh[:, 0, :]), ("f_rest_0", f_rest),
               ("opacity", gaussians.opacity_logits[:, None]), ("scale_0", gaussians.log_scales),

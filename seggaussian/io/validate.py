@@ -93,13 +93,13 @@ class ValidationReport(NamedTuple):
         return {**self._asdict(), "ok": self.ok}
 
 
-def _sh_property_names(k: int) -> np.ndarray:
-    """``[K, 3]`` PLY names of ``sh[:, k, c]`` (channel-major ``f_rest``)."""
-    names = np.empty((k, 3), dtype=object)
+def _sh_property_names(num_sh_coeffs: int) -> np.ndarray:
+    """``[num_sh_coeffs, 3]`` PLY names of ``sh[:, j, c]`` (channel-major ``f_rest``)."""
+    names = np.empty((num_sh_coeffs, 3), dtype=object)
     for c in range(3):
         names[0, c] = f"f_dc_{c}"
-        for j in range(1, k):
-            names[j, c] = f"f_rest_{c * (k - 1) + j - 1}"
+        for j in range(1, num_sh_coeffs):
+            names[j, c] = f"f_rest_{c * (num_sh_coeffs - 1) + j - 1}"
     return names
 
 
@@ -138,7 +138,7 @@ def validate_gaussians(gaussians: Gaussians, on_invalid: str = "error", source: 
     scales_inf = np.isinf(g.log_scales)
     opacity_nan = np.isnan(g.opacity_logits)                             # [N]
     opacity_inf = np.isinf(g.opacity_logits)
-    # [N, K, 3]; the SH block is most of the data: a one-pass sum proves "all finite" in the common case
+    # [N, num_sh_coeffs, 3]; the SH block is most of the data: a one-pass sum proves "all finite" in the common case
     # (a non-finite sum, including an overflow of large finite values, falls back to the exact mask)
     with np.errstate(over="ignore", invalid="ignore"):
         sh_all_finite = bool(np.isfinite(g.sh.sum()))

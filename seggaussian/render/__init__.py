@@ -3,7 +3,7 @@
 Public API (torch tensors in and out; see docs/INTERFACES.md):
 
 - ``rasterize(...) -> RenderOutput(image, alpha, depth)``: differentiable in every Gaussian input.
-- ``compute_blend_weights(...) -> BlendWeights(ids, weights, residual_alpha)``: K front-most contributors.
+- ``compute_blend_weights(...) -> BlendWeights(ids, weights, residual_alpha)``: top_k front-most contributors.
 - ``render_features(blend, features) -> [H, W, D]``: M = W S, differentiable in features.
 - ``render_label_maps(blend, semantic, instance, num_classes) -> LabelMaps(semantic, instance, soft)``.
 - ``render_gaussians(gaussians, camera, ...)``: the numpy ``Gaussians`` / ``Camera`` convenience.

@@ -40,7 +40,7 @@ class LabelMaps(NamedTuple):
 
 
 def _majority(labels: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
-    """Per pixel, the label whose slots carry the most weight. labels/weights: [H, W, K].
+    """Per pixel, the label whose slots carry the most weight. labels/weights: [H, W, top_k].
 
     IGNORE_LABEL slots vote like any label. Slots with weight 0 (unused) never win; ties go to the
     earlier (front-most) slot.
@@ -105,7 +105,7 @@ def render_label_maps(
     min_alpha: float = LABEL_MIN_ALPHA,
     backend: str = "auto",
 ) -> LabelMaps:
-    """Each pixel takes the label with the largest accumulated blend weight among its K contributors,
+    """Each pixel takes the label with the largest accumulated blend weight among its top_k contributors,
     IGNORE_LABEL counted as a label of its own (unlabelled Gaussians occlude).
 
     IGNORE_LABEL where ignore wins, where the pixel's accumulated alpha (``weights.sum + residual_alpha``)

@@ -40,12 +40,12 @@ from seggaussian.render.tiles import bin_gaussians
 
 
 class PixelBlendWeights(NamedTuple):
-    """The K front-most contributors of P requested pixels (no gradient).
+    """The top_k front-most contributors of P requested pixels (no gradient).
 
     Fields:
-        ids: ``[P, K]`` int64 Gaussian indices in blending order, -1 for unused slots.
-        weights: ``[P, K]`` float32 blend weights ``alpha_i T_i`` (0 for unused slots).
-        residual_alpha: ``[P]`` float32 accumulated alpha of contributors beyond the first K.
+        ids: ``[P, top_k]`` int64 Gaussian indices in blending order, -1 for unused slots.
+        weights: ``[P, top_k]`` float32 blend weights ``alpha_i T_i`` (0 for unused slots).
+        residual_alpha: ``[P]`` float32 accumulated alpha of contributors beyond the first top_k.
     """
 
     ids: Tensor
@@ -198,12 +198,12 @@ class ViewBlender:
             self.bins = bin_gaussians(projection, self.width, self.height, self.opacities)
 
     def at_pixels(self, pixels: Tensor) -> PixelBlendWeights:  # pixels: [P, 2] int (u, v)
-        """Blend weights of the requested pixels (``[P, K]``)."""
+        """Blend weights of the requested pixels (``[P, top_k]``)."""
         pixels = check_pixels(pixels.detach().cpu(), self.width, self.height)
         return blend_weights_at_pixels_fast(self.means2d, self.conics, self.opacities, self.bins, pixels, self.top_k)
 
     def rows(self, row_start: int, row_stop: int) -> BlendWeights:
-        """Blend weights of the rows ``row_start:row_stop`` as an image ``[rows, W, K]``."""
+        """Blend weights of the rows ``row_start:row_stop`` as an image ``[rows, W, top_k]``."""
         if not 0 <= row_start < row_stop <= self.height:
             raise ValueError(f"rows {row_start}:{row_stop} are not a non-empty band of the {self.height} rows")
         v, u = torch.meshgrid(torch.arange(row_start, row_stop), torch.arange(self.width), indexing="ij")
@@ -256,8 +256,8 @@ def _render_kernel(ids, weights, features, out):
 
 
 def render_features_no_grad(
-    ids: np.ndarray,  # [..., K] int Gaussian ids (-1 unused)
-    weights: np.ndarray,  # [..., K] float32 blend weights
+    ids: np.ndarray,  # [..., top_k] int Gaussian ids (-1 unused)
+    weights: np.ndarray,  # [..., top_k] float32 blend weights
     features: np.ndarray,  # [N, D] float32
 ) -> np.ndarray:  # [..., D] float32
     """``M = W S`` without autograd (evaluation): ``blend.render_features``' sum, compiled and parallel."""

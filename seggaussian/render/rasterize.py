@@ -46,7 +46,7 @@ def resolve_colors(
         return features
     if sh is not None:
         if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3:
-            raise ValueError(f"rasterize: sh has shape {tuple(sh.shape)}, expected ({n}, K, 3)")
+            raise ValueError(f"rasterize: sh has shape {tuple(sh.shape)}, expected ({n}, num_sh_coeffs, 3)")
         check_finite("sh", sh)
         return sh_to_colors(sh, projection.view_dirs, sh_degree)
     return torch.zeros(n, 0, dtype=dtype)
@@ -81,7 +81,7 @@ def rasterize(
     height: int,
     *,
     features: Tensor | None = None,  # [N, D]
-    sh: Tensor | None = None,  # [N, K, 3]
+    sh: Tensor | None = None,  # [N, num_sh_coeffs, 3]
     sh_degree: int | None = None,
     background: Tensor | None = None,  # [D]
     backend: str = "auto",

@@ -51,12 +51,12 @@ class TileBins(NamedTuple):
 
 
 class BlendWeights(NamedTuple):
-    """The K front-most contributors of every pixel of one view (no gradient).
+    """The top_k front-most contributors of every pixel of one view (no gradient).
 
     Fields:
-        ids: ``[H, W, K]`` int64 Gaussian indices in blending order, -1 for unused slots.
-        weights: ``[H, W, K]`` float32 blend weights ``alpha_i T_i`` (0 for unused slots).
-        residual_alpha: ``[H, W]`` float32 accumulated alpha of contributors beyond the first K
+        ids: ``[H, W, top_k]`` int64 Gaussian indices in blending order, -1 for unused slots.
+        weights: ``[H, W, top_k]`` float32 blend weights ``alpha_i T_i`` (0 for unused slots).
+        residual_alpha: ``[H, W]`` float32 accumulated alpha of contributors beyond the first top_k
             (total accumulated alpha = weights.sum(-1) + residual_alpha).
     """
 

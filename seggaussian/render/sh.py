@@ -15,7 +15,7 @@ SH_C3 = (
 )
 
 
-def sh_degree_of(sh: Tensor) -> int:  # sh: [N, K, 3]
+def sh_degree_of(sh: Tensor) -> int:  # sh: [N, num_sh_coeffs, 3]
     k = sh.shape[1]
     degree = int(round(k**0.5)) - 1
     if (degree + 1) ** 2 != k or not 0 <= degree <= MAX_SH_DEGREE:
@@ -24,7 +24,7 @@ def sh_degree_of(sh: Tensor) -> int:  # sh: [N, K, 3]
 
 
 def evaluate_sh(
-    sh: Tensor,  # [N, K, 3]
+    sh: Tensor,  # [N, num_sh_coeffs, 3]
     dirs: Tensor,  # [N, 3] unit view directions (camera centre -> mean)
     degree: int,
 ) -> Tensor:  # [N, 3]
@@ -60,7 +60,7 @@ def evaluate_sh(
 
 
 def sh_to_colors(
-    sh: Tensor,  # [N, K, 3]
+    sh: Tensor,  # [N, num_sh_coeffs, 3]
     view_dirs: Tensor,  # [N, 3]
     sh_degree: int | None = None,
 ) -> Tensor:  # [N, 3]
