@@ -10,12 +10,7 @@ from seggaussian.render import BlendWeights, compute_blend_weights, rasterize, r
 from test_render_common import GEOMETRY, HEIGHT, WIDTH, camera, random_scene
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def weights_of(scene, top_k, backend="auto"):

@@ -11,12 +11,7 @@ from seggaussian.render import compute_blend_weights, rasterize
 from test_render_common import GEOMETRY, HEIGHT, WIDTH, camera, random_scene
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def camera_centre(viewmat: torch.Tensor) -> torch.Tensor:

@@ -14,12 +14,7 @@ from seggaussian.render.sh import sh_to_colors
 from test_render_common import HEIGHT, WIDTH, camera, random_scene
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def degenerate_scene():

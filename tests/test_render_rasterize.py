@@ -13,13 +13,7 @@ from seggaussian.render.reference import blend_reference
 from test_render_common import GEOMETRY, HEIGHT, WIDTH, camera, random_scene
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Tiny tensors: one thread is faster and immune to the shared machine's load."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def render_with_grads(scene, backend, *, use_sh=True, sh_degree=None, background=None, seed=7, **cam):
