@@ -6,7 +6,8 @@ Flow, one scene at a time (memory bounded):
    labels, marks scenes that are empty or all-ignore as skipped (counted, never silently
    dropped) and computes a data fingerprint.
 2. :class:`TrainingData` prepares a scene on demand (in-memory LRU of ``scene_cache_size``): means
-   recentred on the bounding-box centre (float64 subtraction, then float32), unit quaternions,
+   recentred on the bounding-box centre (float64 subtraction, then float32), unit quaternions (their
+   sign is made canonical by ``ovgaussian.model.gaussian_attributes``, as on every path),
    colours, labels mapped from top-100 class ids to the *seen-class index* (0..C_seen-1) with
    unseen and out-of-vocabulary classes set to ``IGNORE_LABEL``, in 3D and in the 2D label maps.
 3. For a view it keeps the label map and the MaskCLIP patch features (computed once, cached on
@@ -66,7 +67,10 @@ QUAT_FROM_MATRIX_EPS = 1e-12
 
 
 def rotmats_to_quats(rotmats: np.ndarray) -> np.ndarray:
-    """``[N, 3, 3]`` rotation matrices -> ``[N, 4]`` unit quaternions (w, x, y, z), w >= 0 (Shepperd)."""
+    """``[N, 3, 3]`` rotation matrices -> ``[N, 4]`` unit quaternions (w, x, y, z) (Shepperd).
+
+    The sign of each row is whatever the method gives; the network's inputs are made sign-canonical in
+    one place for every path, ``ovgaussian.model.gaussian_attributes``."""
     r = np.asarray(rotmats, dtype=np.float64)
     trace = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
     candidates = np.stack([trace, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
@@ -93,7 +97,6 @@ def rotmats_to_quats(rotmats: np.ndarray) -> np.ndarray:
             s = np.sqrt(np.maximum(1.0 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1], QUAT_FROM_MATRIX_EPS)) * 2.0
             q[rows] = np.stack([(m[:, 1, 0] - m[:, 0, 1]) / s, (m[:, 0, 2] + m[:, 2, 0]) / s,
                                 (m[:, 1, 2] + m[:, 2, 1]) / s, 0.25 * s], axis=1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 

@@ -62,13 +62,26 @@ def checkpointed_rows(fn, *tensors: Tensor, chunk_rows: int | None = None) -> li
             for start in range(0, rows, chunk_rows)]
 
 
+def canonical_quat_sign(quats: Tensor) -> Tensor:  # [N, 4] -> [N, 4]
+    """``quats`` with each row's sign chosen so that its first non-zero component is positive (``w > 0``
+    unless ``w == 0``, then ``x > 0``, ...). ``q`` and ``-q`` map to bitwise the same row (negation is exact
+    and ``-0.0`` counts as zero); an all-zero row stays zero."""
+    nonzero = quats != 0
+    first = nonzero.to(torch.int8).argmax(dim=1, keepdim=True)  # index of the first non-zero component
+    leading = quats.gather(1, first)
+    return torch.where(leading < 0, -quats, quats)
+
+
 def gaussian_attributes(gaussians: "Mapping[str, Tensor] | object") -> Tensor:
     """``[N, 11]`` float32 network inputs, columns in this order:
 
     0-2 ``colour``: DC colour ``0.5 + SH_C0 * f_dc`` (not clamped);
     3 ``opacity``: ``sigmoid(opacity_logits)``;
     4-6 ``scales``: ``exp(log_scales)`` in metres (log-scales clamped at ``LOG_SCALE_FLOAT32_MAX``);
-    7-10 ``quats``: unit quaternions ``w, x, y, z`` (zero-norm rows become the identity).
+    7-10 ``quats``: unit quaternions ``w, x, y, z`` (zero-norm rows become the identity), sign-canonical
+    (:func:`canonical_quat_sign`): ``q`` and ``-q``, the same rotation, give the same row. Every path into
+    the network (training, ``predict``, ``bench``) builds its inputs here, so this is the one place the
+    sign is fixed.
 
     Args:
         gaussians: a ``seggaussian.gaussians.Gaussians`` or the mapping of its ``to_torch()``
@@ -87,7 +100,7 @@ def gaussian_attributes(gaussians: "Mapping[str, Tensor] | object") -> Tensor:
     quats = tensors["quats"]
     norms = quats.norm(dim=1, keepdim=True)
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=quats.device).expand_as(quats)
-    unit = torch.where(norms > QUAT_NORM_EPS, quats / norms.clamp_min(QUAT_NORM_EPS), identity)
+    unit = canonical_quat_sign(torch.where(norms > QUAT_NORM_EPS, quats / norms.clamp_min(QUAT_NORM_EPS), identity))
     colour = 0.5 + SH_C0 * tensors["sh"][:, 0, :]
     opacity = torch.sigmoid(tensors["opacity_logits"].reshape(-1, 1))
     scales = torch.exp(tensors["log_scales"].clamp(max=LOG_SCALE_FLOAT32_MAX))
@@ -290,5 +303,5 @@ class OVGaussianNet(nn.Module):
 
 __all__ = [
     "ATTRIBUTE_GROUPS", "OVGaussianNet", "OVGaussianNetConfig", "SparseUNet", "VoxelToPointAdapter",
-    "VoxelSites", "gaussian_attributes", "normalized_coordinates",
+    "VoxelSites", "canonical_quat_sign", "gaussian_attributes", "normalized_coordinates",
 ]
