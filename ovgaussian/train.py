@@ -128,6 +128,26 @@ def make_model_config(config: TrainConfig, text_width: int):
     raise ValueError(f"unknown model preset {config.model_preset!r} (default or slim)")
 
 
+def check_text_space(config: TrainConfig) -> None:
+    """ValueError (one line) when the teacher and the text encoder would live in two embedding spaces.
+
+    The cosine loss trains psi towards the teacher's CLIP image space while phi, the head that scores,
+    is trained against the text embeddings: open-vocabulary transfer from the teacher needs both to be
+    the same CLIP's. A teacher (``teacher.clip_model`` with the loss on) therefore requires
+    ``text.encoder == "clip"`` with the same ``clip_model``.
+    """
+    teacher_model = config.teacher.clip_model
+    if teacher_model is None or config.loss.no_vs_align:
+        return
+    if config.text.encoder != "clip":
+        raise ValueError(f"the MaskCLIP teacher ({teacher_model}) is in CLIP space but the class names would be "
+                         f"encoded by {config.text.encoder!r}: pass --text-encoder clip (same --clip-model) "
+                         "or --no-vs-align")
+    if config.text.clip_model is None or Path(config.text.clip_model) != Path(teacher_model):
+        raise ValueError(f"the MaskCLIP teacher ({teacher_model}) and the CLIP text encoder "
+                         f"({config.text.clip_model}) must be the same model")
+
+
 # --- losses of one step ----------------------------------------------------------------------------
 
 
@@ -444,6 +464,7 @@ def train_in_process_group(
 
     from ovgaussian.text import load_or_encode_texts
 
+    check_text_space(config)
     group = init_process_group(config.device)
     device = torch.device(config.device)
     if config.device == "cuda" and group.world_size > 1:

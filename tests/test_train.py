@@ -554,3 +554,32 @@ def test_decoded_text_logits_equal_the_direct_expression_forward_and_backward():
                                compute_text_logits(phi32(s32), t32, 0.07), rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="temperature"):
         decoded_text_logits(phi32, s32, t32, 0.0)
+
+
+def test_teacher_with_another_text_space_is_refused_before_any_work(scenes, tmp_path):
+    """A teacher (--clip-model) trains psi in CLIP space: the text encoder must be that CLIP's (issue 16)."""
+    from click.testing import CliRunner
+
+    from cli.ovgaussian_cli import main
+    from ovgaussian.train import check_text_space, train
+    from ovgaussian.train_config import TextConfig
+
+    clip = tmp_path / "clip"
+    mismatch = tiny_config(tmp_path / "run", 1, teacher=TeacherConfig(clip_model=clip))
+    with pytest.raises(ValueError, match="--text-encoder clip") as error:
+        train(mismatch, source=D.InMemorySource(scenes), model_config=tiny_model_config(12), text_embeddings=text_stub())
+    assert "\n" not in str(error.value) and not (tmp_path / "run").exists()
+    other = tiny_config(tmp_path / "run", 1, teacher=TeacherConfig(clip_model=clip),
+                        text=TextConfig(encoder="clip", clip_model=tmp_path / "other"))
+    with pytest.raises(ValueError, match="same model"):
+        check_text_space(other)
+    check_text_space(tiny_config(tmp_path, 1, teacher=TeacherConfig(clip_model=clip),
+                                 text=TextConfig(encoder="clip", clip_model=clip)))  # one space: accepted
+    check_text_space(tiny_config(tmp_path, 1, teacher=TeacherConfig(clip_model=clip),
+                                 loss=LossConfig(no_vs_align=True)))  # teacher off: MiniLM is fine
+    clip.mkdir()
+    (tmp_path / "data").mkdir()
+    result = CliRunner().invoke(main, ["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "cli"),
+                                       "--clip-model", str(clip), "--text-encoder", "minilm"])
+    assert result.exit_code != 0 and "--text-encoder clip" in result.output
+    assert "Traceback" not in result.output and len(result.output.strip().splitlines()) == 1, result.output
