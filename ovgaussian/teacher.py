@@ -21,6 +21,7 @@ Computed once per view and cached on disk (safetensors) by :meth:`DenseTeacher.c
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import os
 from pathlib import Path
@@ -74,12 +75,24 @@ def preprocess_image(rgb: np.ndarray, height: int, width: int) -> "torch.Tensor"
     return (image - mean) / std
 
 
+def encoder_layer_masks(layer) -> dict:
+    """No-mask keyword arguments of a transformers ``CLIPEncoderLayer.forward`` (vision: no padding, no
+    causal mask). transformers 4.x takes ``(hidden_states, attention_mask, causal_attention_mask,
+    output_attentions=False)`` with both masks required; 5.x takes ``(hidden_states, attention_mask,
+    **kwargs)``. Both are passed by name, the causal one only where the signature has it."""
+    parameters = inspect.signature(layer.forward).parameters
+    masks = {"attention_mask": None}
+    if "causal_attention_mask" in parameters:
+        masks["causal_attention_mask"] = None
+    return masks
+
+
 def maskclip_tokens(vision_model, projection, pixel_values: "torch.Tensor", residual_mlp: bool) -> "torch.Tensor":
     """MaskCLIP tokens ``[B, 1 + h*w, D]`` of a transformers CLIP vision tower (see module doc)."""
     hidden = vision_model.pre_layrnorm(vision_model.embeddings(pixel_values, interpolate_pos_encoding=True))
     layers = vision_model.encoder.layers
     for layer in layers[:-1]:
-        hidden = layer(hidden, None)
+        hidden = layer(hidden, **encoder_layer_masks(layer))
         hidden = hidden[0] if isinstance(hidden, tuple) else hidden
     last = layers[-1]
     value = last.self_attn.out_proj(last.self_attn.v_proj(last.layer_norm1(hidden)))

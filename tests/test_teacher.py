@@ -131,3 +131,50 @@ def test_from_config_loads_a_saved_model(clip_model, tmp_path):
     torch.testing.assert_close(teacher.compute_patch_features(rgb).patch_features,
                                direct.compute_patch_features(rgb).patch_features)
     assert teacher.feature_dim == 24
+
+
+class _Layer4x(torch.nn.Module):
+    """The transformers 4.x ``CLIPEncoderLayer.forward`` signature (both masks required, tuple out)."""
+
+    def forward(self, hidden_states, attention_mask, causal_attention_mask, output_attentions=False):
+        assert attention_mask is None and causal_attention_mask is None
+        return (hidden_states + 1.0,)
+
+
+class _Layer5x(torch.nn.Module):
+    """The transformers 5.x signature (``attention_mask`` plus keyword arguments, tensor out)."""
+
+    def forward(self, hidden_states, attention_mask, **kwargs):
+        assert attention_mask is None and not kwargs
+        return hidden_states + 1.0
+
+
+def test_encoder_layer_masks_fit_both_transformers_signatures():
+    assert TT.encoder_layer_masks(_Layer4x()) == {"attention_mask": None, "causal_attention_mask": None}
+    assert TT.encoder_layer_masks(_Layer5x()) == {"attention_mask": None}
+    x = torch.zeros(1, 3, 2)
+    for layer in (_Layer4x(), _Layer5x()):
+        out = layer(x, **TT.encoder_layer_masks(layer))
+        assert torch.equal(out[0] if isinstance(out, tuple) else out, x + 1.0)
+
+
+def test_layer_loop_of_a_tiny_clip_vision_model_equals_its_own_forward():
+    """The teacher's layer loop on the installed transformers' CLIPVisionModel (random weights, no
+    download) gives the hidden states of the model's own forward, layer by layer."""
+    from transformers import CLIPVisionConfig, CLIPVisionModel
+
+    torch.manual_seed(1)
+    model = CLIPVisionModel(CLIPVisionConfig(hidden_size=16, intermediate_size=24, num_hidden_layers=3,
+                                             num_attention_heads=2, image_size=16, patch_size=8)).eval()
+    vision = getattr(model, "vision_model", model)  # 4.x wraps the tower, 5.x is flat
+    pixels = TT.preprocess_image(rgb_image(16, 24), 16, 24)
+    with torch.no_grad():
+        own = vision(pixel_values=pixels, interpolate_pos_encoding=True, output_hidden_states=True).hidden_states
+        hidden = vision.pre_layrnorm(vision.embeddings(pixels, interpolate_pos_encoding=True))
+        torch.testing.assert_close(hidden, own[0])
+        for i, layer in enumerate(vision.encoder.layers):
+            hidden = layer(hidden, **TT.encoder_layer_masks(layer))
+            hidden = hidden[0] if isinstance(hidden, tuple) else hidden
+            torch.testing.assert_close(hidden, own[i + 1], atol=1e-6, rtol=1e-5)
+        tokens = TT.maskclip_tokens(vision, torch.nn.Linear(16, 5, bias=False), pixels, residual_mlp=True)
+    assert tokens.shape == (1, 1 + 2 * 3, 5) and torch.isfinite(tokens).all()
