@@ -460,14 +460,13 @@ class TrainingData:
     # views ----------------------------------------------------------------------------------
     def pixel_blend_weights(self, scene_id: str, view: PreparedView, pixels: "torch.Tensor"):
         """``(ids [P, K], weights [P, K])`` of the view at ``pixels [P, 2]`` (u, v), on the stored geometry."""
-        import torch
+        from seggaussian.render.rasterize import camera_tensors
 
         geometry = self._record_and_scene(scene_id)[2]
         cam = view.camera
-        blend = self.pixel_blend_function(
-            *geometry, torch.as_tensor(cam.viewmat, dtype=torch.float64), torch.as_tensor(cam.K, dtype=torch.float64),
-            cam.width, cam.height, pixels, top_k=self.config.blend_top_k,
-        )
+        viewmat, K = camera_tensors(cam)  # float64, as the benchmark's and the build's blend weights
+        blend = self.pixel_blend_function(*geometry, viewmat, K, cam.width, cam.height, pixels,
+                                          top_k=self.config.blend_top_k)
         self.blend_computations += 1
         return blend.ids.long(), blend.weights.float()
 

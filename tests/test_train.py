@@ -583,3 +583,22 @@ def test_teacher_with_another_text_space_is_refused_before_any_work(scenes, tmp_
                                        "--clip-model", str(clip), "--text-encoder", "minilm"])
     assert result.exit_code != 0 and "--text-encoder clip" in result.output
     assert "Traceback" not in result.output and len(result.output.strip().splitlines()) == 1, result.output
+
+
+def test_training_bench_and_build_blend_weights_use_float64_cameras(scenes, monkeypatch):
+    """One camera dtype for W everywhere (issue 16): the training data path passes float64 cameras to the
+    blend function, and ``camera_tensors``, which it shares with the benchmark and the build, gives float64."""
+    from seggaussian.render.rasterize import camera_tensors
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append((args[4].dtype, args[5].dtype))
+        return D.default_pixel_blend_function()(*args, **kwargs)
+
+    data = D.TrainingData(D.InMemorySource(scenes[:1]), DataConfig(blend_top_k=8, pixels_per_view=64),
+                          D.make_vocabulary(20), pixel_blend_function=spy)
+    data.sample("scene00", np.random.default_rng(0))
+    assert seen == [(torch.float64, torch.float64)]
+    viewmat, K = camera_tensors(scenes[0].views[0].camera)
+    assert viewmat.dtype == K.dtype == torch.float64
