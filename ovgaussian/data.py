@@ -49,6 +49,7 @@ from seggaussian import shards
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.gaussians import quats_to_rotmats
 from seggaussian.render.pixel_blend import compute_pixel_blend_weights
+from seggaussian.render.rasterize import camera_tensors
 
 if TYPE_CHECKING:
     import torch
@@ -460,8 +461,6 @@ class TrainingData:
     # views ----------------------------------------------------------------------------------
     def pixel_blend_weights(self, scene_id: str, view: PreparedView, pixels: "torch.Tensor"):
         """``(ids [P, K], weights [P, K])`` of the view at ``pixels [P, 2]`` (u, v), on the stored geometry."""
-        from seggaussian.render.rasterize import camera_tensors
-
         geometry = self._record_and_scene(scene_id)[2]
         cam = view.camera
         viewmat, K = camera_tensors(cam)  # float64, as the benchmark's and the build's blend weights

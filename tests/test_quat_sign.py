@@ -63,7 +63,7 @@ def test_training_path_outputs_are_invariant_under_quaternion_sign(tmp_path):
     scenes = [make_scene(s) for s in (0, 1)]
     other = [r._replace(gaussians=flipped(r.gaussians, random_subset(len(r.gaussians), 7 + i)))
              for i, r in enumerate(scenes)]
-    voc = D.make_vocabulary(20)
+    voc = D.training_vocabulary(20)
     for augment in (False, True):
         config = DataConfig(blend_top_k=8, pixels_per_view=200, augment=augment)
         outputs = []
