@@ -597,7 +597,7 @@ def test_training_bench_and_build_blend_weights_use_float64_cameras(scenes, monk
         return D.default_pixel_blend_function()(*args, **kwargs)
 
     data = D.TrainingData(D.InMemorySource(scenes[:1]), DataConfig(blend_top_k=8, pixels_per_view=64),
-                          D.make_vocabulary(20), pixel_blend_function=spy)
+                          D.training_vocabulary(20), pixel_blend_function=spy)
     data.sample("scene00", np.random.default_rng(0))
     assert seen == [(torch.float64, torch.float64)]
     viewmat, K = camera_tensors(scenes[0].views[0].camera)
