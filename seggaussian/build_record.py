@@ -15,7 +15,9 @@ from seggaussian.build_cache import code_digest, sha256_json
 from seggaussian.build_config import BuildConfig, ShardConfig, SplitConfig, config_dict
 from seggaussian.build_types import SceneOutcome
 from seggaussian.constants import read_class_names
-from seggaussian.shards import MANIFEST_NAME, SPLITS_NAME, sha256_file, write_dataset, write_json_atomic
+from seggaussian.shards.files import sha256_file, write_json_atomic
+from seggaussian.shards.layout import MANIFEST_NAME, SPLITS_NAME
+from seggaussian.shards.writer import write_dataset
 from seggaussian.split import SceneSplitInfo, assign_splits, read_splits, splits_payload
 
 CACHE_DIR = ".build"

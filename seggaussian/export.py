@@ -10,7 +10,7 @@ from seggaussian.constants import IGNORE_LABEL, read_class_names
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.ply import write_gaussians_ply
 from seggaussian.palette import build_legend, colour_by_labels, write_legend
-from seggaussian.shards import find_split, read_scene
+from seggaussian.shards.read import find_split, read_scene
 
 
 def export_scene_ply(dataset: Path, scene_id: str, out: Path, color_by: str | None = None) -> dict:

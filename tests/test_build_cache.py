@@ -27,8 +27,8 @@ def test_closures_hold_what_each_stage_runs_and_nothing_else():
     views = _short(build_cache.module_closure(STAGE_MODULES["views"]))
     transfer = _short(build_cache.module_closure(STAGE_MODULES["transfer"]))
     oracle = _short(build_cache.module_closure(GAUSSIANS_MODES["oracle"].__name__))
-    assert {"stages.views", "render", "render.labelmaps", "render.blend", "shards", "shard_schema"} <= views
-    assert {"stages.transfer", "transfer", "shards", "shard_schema"} <= transfer
+    assert {"stages.views", "render", "render.labelmaps", "render.blend", "shards", "shards.schema"} <= views
+    assert {"stages.transfer", "transfer", "shards", "shards.schema"} <= transfer
     assert {"stages.gaussians_oracle", "oracle", "stages.gaussians", "seeds"} <= oracle
     assert "transfer" not in views and "oracle" not in views
     assert not any(m.startswith("render") for m in transfer | oracle) and "fit" not in oracle

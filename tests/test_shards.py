@@ -14,7 +14,8 @@ from seggaussian.build_config import ShardConfig
 from seggaussian.cameras import Camera, intrinsics, look_at
 from seggaussian.constants import IGNORE_LABEL, read_class_names
 from seggaussian.gaussians import Gaussians
-from seggaussian.shard_schema import SCHEMA_VERSION
+from seggaussian.shards import read as shard_read
+from seggaussian.shards.schema import SCHEMA_VERSION
 
 
 def _gaussians(rng, n, degree=0):
@@ -115,7 +116,7 @@ def test_row_groups_never_span_scenes_and_are_sized_in_bytes(tmp_path):
         assert len(ids) == 1
         seen.append(ids.pop())
     assert seen == sorted(seen)
-    assert shards._scene_row_groups(pf, "b", ds) == [i for i, s in enumerate(seen) if s == "b"]
+    assert shard_read._scene_row_groups(pf, "b", ds) == [i for i, s in enumerate(seen) if s == "b"]
 
 
 def test_shards_split_by_bytes_and_stale_files_removed(tmp_path):
@@ -240,7 +241,7 @@ def corrupted_dataset(tmp_path, request):
 
     dataset = _write_tiny_dataset(tmp_path / "tiny")
     rel, scenes = _corrupt(dataset, request.param)
-    shards._VERIFIED.clear()
+    shard_read._VERIFIED.clear()
     return dataset, rel, scenes, request.param
 
 
@@ -265,7 +266,7 @@ def test_corrupted_shard_is_named_by_inspect_train_and_bench(corrupted_dataset, 
     # the read API: the file and the scene are named, with and without --verify
     # (a flip that still decodes to finite values is only caught by the checksum)
     for verify in (False, True):
-        shards._VERIFIED.clear()
+        shard_read._VERIFIED.clear()
         try:
             shards.read_scene(dataset, "train", scenes[0], verify=verify)
         except shards.ShardError as exc:
@@ -277,7 +278,7 @@ def test_corrupted_shard_is_named_by_inspect_train_and_bench(corrupted_dataset, 
                                  "--model-preset", "slim", "--verify", "--no-progress"]),
                       (ov_main, ["bench", "--data", str(dataset), "--predictor", "majority", "--verify",
                                  "--out", str(tmp_path / "b.json"), "--no-progress"])):
-        shards._VERIFIED.clear()
+        shard_read._VERIFIED.clear()
         result = CliRunner().invoke(cli, argv)
         assert result.exit_code == 1 and "Traceback" not in result.output, result.output
         assert str(dataset / rel) in result.output and scenes[0] in result.output, result.output

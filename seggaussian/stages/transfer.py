@@ -15,7 +15,8 @@ from seggaussian.build_config import BuildConfig, ShardConfig
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.gaussians import Gaussians
 from seggaussian.scene import Scene
-from seggaussian.shards import gaussians_table, write_parquet_atomic
+from seggaussian.shards.files import write_parquet_atomic
+from seggaussian.shards.tables import gaussians_table
 from seggaussian.stages.gaussians import save_npz
 from seggaussian.transfer import densify_labelled_mesh, label_accuracy, surface_labels, transfer_labels
 

@@ -18,7 +18,10 @@ from seggaussian.gaussians import Gaussians
 from seggaussian.render import compute_blend_weights, render_gaussians, render_label_maps
 from seggaussian.render.rasterize import camera_tensors
 from seggaussian.scene import Scene
-from seggaussian.shards import ViewRow, encode_label_map, encode_rgb, image_format, views_table, write_parquet_atomic
+from seggaussian.shards.files import write_parquet_atomic
+from seggaussian.shards.images import encode_label_map, encode_rgb, image_format
+from seggaussian.shards.records import ViewRow
+from seggaussian.shards.tables import views_table
 from seggaussian.sources._common import read_valid_mask
 
 #: Files the stage writes into the scene's cache folder.
