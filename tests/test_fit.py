@@ -11,16 +11,11 @@ import torch
 
 from seggaussian.cameras import Camera, intrinsics, look_at
 from seggaussian.constants import SH_C0
-from seggaussian.fit import (
-    FitInputError,
-    GaussianParameters,
-    densify_and_prune,
-    fit_scene,
-    initialize_gaussians,
-    needs_fit,
-    reset_opacity,
-    voxel_downsample,
-)
+from seggaussian.fit import fit_scene, needs_fit
+from seggaussian.fit_densify import densify_and_prune, reset_opacity
+from seggaussian.fit_init import initialize_gaussians, voxel_downsample
+from seggaussian.fit_params import GaussianParameters
+from seggaussian.fit_views import FitInputError
 from seggaussian.fit_config import FitConfig
 from seggaussian.gaussians import Gaussians
 from seggaussian.losses import fitting_loss, l1_loss, psnr, ssim, ssim_reference
@@ -141,7 +136,8 @@ def test_ssim_and_psnr_values():
 def test_view_space_gradient_matches_projected_centre_gradient():
     """Recovered from the 3D means' gradient, the NDC gradient equals the true gradient w.r.t. the
     projected centres (rasterizer projection) when the loss depends on the centres only."""
-    from seggaussian.fit import ViewData, view_space_stats
+    from seggaussian.fit_densify import view_space_stats
+    from seggaussian.fit_views import ViewData
     from seggaussian.render import project_gaussians
 
     cam = _cameras(3)[1]

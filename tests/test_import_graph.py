@@ -22,9 +22,8 @@ FUNCTION_LEVEL_ALLOWED = {
     # Every command module: the CLI lists and helps all commands, so a command imports its library code
     # (torch, numba, open3d behind it) only when it runs; `seggaussian --help` stays fast.
     **{f"cli.{p.stem}": "command body imported on run" for p in (ROOT / "cli").glob("*.py") if p.stem != "__init__"},
-    # Modules edited in parallel right now (issues 15, 16, 19 part B); their function-level imports move to
+    # Modules edited in parallel right now (issues 15, 16); their function-level imports move to
     # the top when those branches land, and each line here goes with them.
-    "seggaussian.fit": "issue 19 part B edits this module",
     "ovgaussian.train": "issue 16 edits this module",
     "ovgaussian.teacher": "issue 16 edits this module",
     "ovgaussian.text": "issue 16 edits this module",

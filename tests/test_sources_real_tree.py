@@ -19,7 +19,7 @@ from seggaussian.build import build_dataset
 from seggaussian import shards
 from seggaussian.build_config import BuildConfig, OracleConfig
 from seggaussian.constants import IGNORE_LABEL
-from seggaussian.fit import load_views, masked_render
+from seggaussian.fit_views import load_views, masked_render
 from seggaussian.losses import fitting_loss
 from seggaussian.sources import replica, scannetpp, synth_scannetpp, synthetic
 from seggaussian.sources._common import SourceError, atomic_write_image, read_image, read_valid_mask

@@ -13,8 +13,10 @@ import numpy as np
 import torch
 
 from seggaussian.seeds import scene_seed
-from seggaussian.fit import GaussianParameters, evaluate, fit_scene, load_views
+from seggaussian.fit import evaluate, fit_scene
 from seggaussian.fit_config import FitConfig
+from seggaussian.fit_params import GaussianParameters
+from seggaussian.fit_views import load_views
 from seggaussian.render.rasterize import default_backend
 from seggaussian.tools.pareto import Trial, one_at_a_time
 from seggaussian.tools.sweep_config import StageSweepConfig

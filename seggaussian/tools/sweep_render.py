@@ -19,7 +19,7 @@ import torch
 from seggaussian.stages.views import view_scale
 from seggaussian.build_config import ViewConfig
 from seggaussian.constants import IGNORE_LABEL, read_class_names
-from seggaussian.fit import evenly_spaced
+from seggaussian.fit_views import evenly_spaced
 from seggaussian.render import compute_blend_weights, rasterize, render_features, render_label_maps
 from seggaussian.render.results import BlendWeights
 from seggaussian.render.rasterize import camera_tensors, default_backend
