@@ -32,7 +32,7 @@ from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights
 from seggaussian.render.inputs import check_inputs
 from seggaussian.render.projection_numba import project_gaussians_fast
 from seggaussian.render.rasterize_numba import (
-    _ALPHA_MAX, _ALPHA_MIN, _CUTOFF, _DONE_CHECK_EVERY, _HALF, _JIT, _ONE, _T_MIN, _TWO, _ZERO, _exp_neg, _f32,
+    _DONE_CHECK_EVERY, _HALF, _JIT, _TWO, _ZERO, _blend_step, _f32,
     run_parallel,
 )
 from seggaussian.render.results import BlendWeights, TileBins
@@ -111,19 +111,7 @@ def _pixel_weights_kernel(means2d, conics, opacities, offsets, gids, pix_u, pix_
             ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
             op = opacities[g]
             for i in range(lanes):
-                dx = px[i] - mx
-                dy = py[i] - my
-                s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
-                inside = _f32(s <= _CUTOFF)
-                s_pos = s * _f32(s > _ZERO) * inside
-                alpha = op * _exp_neg(-_HALF * s_pos)
-                over = _f32(alpha > _ALPHA_MAX)
-                alpha = alpha + over * (_ALPHA_MAX - alpha)
-                m = inside * _f32(alpha >= _ALPHA_MIN) * active[i]
-                stop = m * _f32(tr[i] * (_ONE - alpha) < _T_MIN)
-                m = m - stop
-                weight[i] = m * alpha * tr[i]
-                tr[i] = tr[i] * (_ONE - m * alpha)
+                weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
                 active[i] = active[i] - stop
             for i in range(lanes):
                 if weight[i] > _ZERO:

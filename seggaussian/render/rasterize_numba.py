@@ -63,6 +63,28 @@ def _exp_neg(x):
     return p * p
 
 
+@numba.njit(inline="always", **_JIT)
+def _blend_step(dx, dy, ca, cb2, cc, op, tr, active):
+    """One Gaussian at one pixel under the 3DGS blending rule (3-sigma cut, alpha clamp, alpha skip, early stop).
+
+    ``(dx, dy)``: pixel centre minus the projected mean; ``(ca, cb2, cc)``: conic with the doubled off-diagonal;
+    ``op``: opacity; ``tr``: transmittance before this Gaussian; ``active``: 1 while the pixel still blends.
+    Returns ``(weight, tr_after, stop)``: the blend weight ``alpha * tr`` (0 when skipped), the transmittance after
+    it, and 1 where this Gaussian would push the transmittance below ``TRANSMITTANCE_MIN`` (the pixel stops before
+    it). The one copy of the rule for every blending kernel, so their weights agree bit for bit.
+    """
+    s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+    inside = _f32(s <= _CUTOFF)
+    s_pos = s * _f32(s > _ZERO) * inside  # in [0, cutoff] wherever it matters
+    alpha = op * _exp_neg(-_HALF * s_pos)
+    over = _f32(alpha > _ALPHA_MAX)
+    alpha = alpha + over * (_ALPHA_MAX - alpha)
+    m = inside * _f32(alpha >= _ALPHA_MIN) * active
+    stop = m * _f32(tr * (_ONE - alpha) < _T_MIN)
+    m = m - stop
+    return m * alpha * tr, tr * (_ONE - m * alpha), stop
+
+
 @numba.njit(parallel=True, **_JIT)
 def _gather_tile_boxes(order, pixel_box, tile_size):
     """Tile boxes of the Gaussians in ``order`` (one random read per Gaussian, in parallel)."""
@@ -150,19 +172,7 @@ def _forward_kernel(means2d, conics, opacities, colors, offsets, gids, tiles_x, 
             op = opacities[g]
             kl = _f32(k - start)
             for i in range(_TILE_PIXELS):
-                dx = px[i] - mx
-                dy = py[i] - my
-                s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
-                inside = _f32(s <= _CUTOFF)
-                s_pos = s * _f32(s > _ZERO) * inside  # in [0, cutoff] wherever it matters
-                alpha = op * _exp_neg(-_HALF * s_pos)
-                over = _f32(alpha > _ALPHA_MAX)
-                alpha = alpha + over * (_ALPHA_MAX - alpha)
-                m = inside * _f32(alpha >= _ALPHA_MIN) * active[i]
-                stop = m * _f32(tr[i] * (_ONE - alpha) < _T_MIN)
-                m = m - stop
-                weight[i] = m * alpha * tr[i]
-                tr[i] = tr[i] * (_ONE - m * alpha)
+                weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
                 active[i] = active[i] - stop
                 stop_k[i] = stop_k[i] + stop * (kl - stop_k[i])
             for ch in range(dim):
@@ -314,19 +324,7 @@ def _weights_kernel(means2d, conics, opacities, offsets, gids, tiles_x, width, h
             ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
             op = opacities[g]
             for i in range(_TILE_PIXELS):
-                dx = px[i] - mx
-                dy = py[i] - my
-                s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
-                inside = _f32(s <= _CUTOFF)
-                s_pos = s * _f32(s > _ZERO) * inside
-                alpha = op * _exp_neg(-_HALF * s_pos)
-                over = _f32(alpha > _ALPHA_MAX)
-                alpha = alpha + over * (_ALPHA_MAX - alpha)
-                m = inside * _f32(alpha >= _ALPHA_MIN) * active[i]
-                stop = m * _f32(tr[i] * (_ONE - alpha) < _T_MIN)
-                m = m - stop
-                weight[i] = m * alpha * tr[i]
-                tr[i] = tr[i] * (_ONE - m * alpha)
+                weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
                 active[i] = active[i] - stop
             for i in range(_TILE_PIXELS):
                 if weight[i] > _ZERO:
