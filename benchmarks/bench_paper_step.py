@@ -103,16 +103,8 @@ class PhaseTimer:
     def wrap(self, phase: str, fn):
         @functools.wraps(fn)
         def timed(*args, **kwargs):
-            self._stack.append([phase, 0.0])
-            t0 = time.perf_counter()
-            try:
+            with self.measure(phase):
                 return fn(*args, **kwargs)
-            finally:
-                elapsed = time.perf_counter() - t0
-                _, nested = self._stack.pop()
-                self.seconds[phase] += elapsed - nested
-                if self._stack:
-                    self._stack[-1][1] += elapsed
         return timed
 
     def measure(self, phase: str):
