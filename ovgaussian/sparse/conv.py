@@ -57,11 +57,8 @@ def numba_row_ops() -> RowOps:
 
 
 def default_row_ops() -> RowOps:
-    """Numba row ops when numba imports, else torch (CPU tensors; other devices use :func:`torch_row_ops`)."""
-    try:
-        return numba_row_ops()
-    except ImportError:
-        return torch_row_ops()
+    """Numba row ops (CPU tensors; other devices use :func:`torch_row_ops`)."""
+    return numba_row_ops()
 
 
 class _SparseConvFunction(torch.autograd.Function):

@@ -330,15 +330,9 @@ def _torch_block_ops() -> _BlockOps:
 
 
 def _resolve_backend(backend: str, x: Tensor) -> str:
-    """``"numba"`` or ``"torch"``; ``"auto"`` is numba for CPU tensors when numba imports."""
+    """``"numba"`` or ``"torch"``; ``"auto"`` is numba for CPU tensors (numba is a required dependency)."""
     if backend == "auto":
-        if x.device.type != "cpu":
-            return "torch"
-        try:
-            import numba  # noqa: F401
-        except ImportError:
-            return "torch"
-        return "numba"
+        return "numba" if x.device.type == "cpu" else "torch"
     if backend not in ("numba", "torch"):
         raise ValueError(f"backend must be 'auto', 'numba' or 'torch', got {backend!r}")
     return backend

@@ -104,14 +104,6 @@ def merge_lookup_pairs(sorted_keys: Tensor, deltas: list[int]) -> list[tuple[Ten
     return out
 
 
-def _numba_available() -> bool:
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def build_submanifold_map(sorted_keys: Tensor, kernel_size: int, method: str = "auto") -> KernelMap:
     """Map of a submanifold conv: output sites = input sites = ``sorted_keys``.
 
@@ -128,7 +120,7 @@ def build_submanifold_map(sorted_keys: Tensor, kernel_size: int, method: str = "
     arange = torch.arange(m, dtype=torch.int64, device=sorted_keys.device)
     in_idx[center], out_idx[center], identity[center] = arange, arange, True
     if method == "auto":
-        method = "merge" if sorted_keys.device.type == "cpu" and _numba_available() else "search"
+        method = "merge" if sorted_keys.device.type == "cpu" else "search"
     if method not in ("merge", "search"):
         raise ValueError(f"method must be 'auto', 'merge' or 'search', got {method!r}")
     deltas = [offset_key_delta(offsets[k]) for k in range(center)]
