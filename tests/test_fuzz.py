@@ -1,4 +1,4 @@
-"""Seeded fuzzing of the splat readers (seggaussian.fuzz) and the PLY strictness it enforces."""
+"""Seeded fuzzing of the splat readers (seggaussian.tools.fuzz) and the PLY strictness it enforces."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seggaussian import fuzz
+from seggaussian.tools import fuzz
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.ply import (
     PlyFormatError, read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile, write_gaussians_ply,

@@ -152,7 +152,7 @@ def test_fuzz_gives_clear_errors_only(name, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# the same formats through the shared harness (seggaussian.fuzz: own-code, one-line and hang checks)
+# the same formats through the shared harness (seggaussian.tools.fuzz: own-code, one-line and hang checks)
 # ---------------------------------------------------------------------------------------------
 #: Mutants per format through the harness.
 HARNESS_MUTANTS = 400
@@ -160,8 +160,8 @@ HARNESS_MUTANTS = 400
 
 @pytest.mark.parametrize("index", range(7))
 def test_splat_formats_in_the_shared_fuzz_harness(index, tmp_path):
-    from seggaussian import fuzz
-    from seggaussian.fuzz_splat import splat_targets
+    from seggaussian.tools import fuzz
+    from seggaussian.tools.fuzz_splat import splat_targets
 
     target = splat_targets(seed=0)[index]
     report = fuzz.run_fuzz(target, HARNESS_MUTANTS, seed=15, workdir=tmp_path)

@@ -1,4 +1,4 @@
-"""Fuzz targets of the non-PLY splat formats for the shared harness in ``seggaussian.fuzz``.
+"""Fuzz targets of the non-PLY splat formats for the shared harness in ``seggaussian.tools.fuzz``.
 
 One ``FuzzTarget`` per format (``.splat``, compressed PLY, SPZ v1-v4 gzip-wrapped and raw), all read through
 ``seggaussian.io.formats.read_gaussians`` (content detection + decode + validation, what every command runs).
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.fuzz import BYTE_MUTATORS, PLY_MUTATORS, FuzzTarget, Mutator
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians, write_gaussians
+from seggaussian.tools.fuzz import BYTE_MUTATORS, PLY_MUTATORS, FuzzTarget, Mutator
 from seggaussian.io.ply import PlyFormatError
 from seggaussian.io.spz import GZIP_MAGIC, encode_spz
 
