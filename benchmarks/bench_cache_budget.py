@@ -53,9 +53,11 @@ def measure_paper_scene(num_gaussians: int, num_views: int, workdir: Path) -> di
 
     from bench_paper_step import HEIGHT, WIDTH, make_room
     from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, folder_bytes
-    from ovgaussian.data import InMemorySource, TrainingData, training_vocabulary
+    from ovgaussian.data import TrainingData
+    from ovgaussian.scene_source import InMemorySource
     from ovgaussian.teacher import DenseTeacher
     from ovgaussian.train_config import DataConfig, TeacherConfig
+    from ovgaussian.vocabulary import training_vocabulary
     from seggaussian import shards
     from seggaussian.build_config import ShardConfig
     from seggaussian.gaussians import Gaussians

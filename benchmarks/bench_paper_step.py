@@ -130,7 +130,7 @@ def instrument(timer: PhaseTimer, data, net) -> None:
     import ovgaussian.model as model_module
     import ovgaussian.sparse.gather_gemm as gather_gemm
     import ovgaussian.sparse.kernel_map as kernel_map
-    import ovgaussian.train as train_module
+    import ovgaussian.train_losses as train_losses
 
     voxelize = model_module.voxelize_points
 
@@ -143,7 +143,7 @@ def instrument(timer: PhaseTimer, data, net) -> None:
     kernel_map.build_submanifold_map = timer.wrap("kernel_maps", kernel_map.build_submanifold_map)
     kernel_map.build_downsample_map = timer.wrap("kernel_maps", kernel_map.build_downsample_map)
     gather_gemm.gather_plans = timer.wrap("kernel_maps", gather_gemm.gather_plans)
-    train_module.render_pixels = timer.wrap("render", train_module.render_pixels)
+    train_losses.render_pixels = timer.wrap("render", train_losses.render_pixels)
     data.pixel_blend_weights = timer.wrap("blend", data.pixel_blend_weights)
     data.sample = timer.wrap("sample", data.sample)
     net.forward = timer.wrap("network", net.forward)
@@ -154,9 +154,12 @@ def run(args) -> dict:
     import torch
 
     from ovgaussian.checkpoint import build_network
-    from ovgaussian.data import InMemorySource, TrainingData, training_vocabulary
-    from ovgaussian.train import batch_losses, make_model_config
+    from ovgaussian.data import TrainingData
+    from ovgaussian.scene_source import InMemorySource
+    from ovgaussian.train import make_model_config
     from ovgaussian.train_config import DataConfig, TrainConfig
+    from ovgaussian.train_losses import batch_losses
+    from ovgaussian.vocabulary import training_vocabulary
 
     t_setup = time.perf_counter()
     config = TrainConfig(model_preset=args.preset, data=DataConfig(pixels_per_view=args.pixels))
@@ -215,7 +218,7 @@ def compare_text_loss(rows: int, repeats: int) -> dict:
 
     from ovgaussian.losses import compute_text_logits, masked_cross_entropy
     from ovgaussian.model import OVGaussianNet
-    from ovgaussian.train import decoded_text_logits
+    from ovgaussian.train_losses import decoded_text_logits
 
     torch.manual_seed(0)
     phi = OVGaussianNet().phi  # 16 -> 128 -> 512 (CLIP width); the MiniLM run uses 384

@@ -71,9 +71,12 @@ def run_one(preset: str, pixels: int | None, steps: int) -> dict:
     import torch
 
     from ovgaussian.checkpoint import build_network
-    from ovgaussian.data import InMemorySource, TrainingData, training_vocabulary
-    from ovgaussian.train import batch_losses, make_model_config
+    from ovgaussian.data import TrainingData
+    from ovgaussian.scene_source import InMemorySource
+    from ovgaussian.train import make_model_config
     from ovgaussian.train_config import DataConfig, TrainConfig
+    from ovgaussian.train_losses import batch_losses
+    from ovgaussian.vocabulary import training_vocabulary
 
     config = TrainConfig(model_preset=preset, data=DataConfig(pixels_per_view=pixels))
     vocabulary = training_vocabulary(20)

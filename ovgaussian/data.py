@@ -1,10 +1,9 @@
-"""Training data of OVGaussian: split shards -> per-step batches of (scene, one view) samples.
+"""Training data of OVGaussian: the scenes of a split prepared on demand, and one (scene, view) sample per step.
 
 Flow, one scene at a time (memory bounded):
 
-1. :func:`scan_scenes` reads every scene of the split once: counts Gaussians, train views and
-   labels, marks scenes that are empty or all-ignore as skipped (counted, never silently
-   dropped) and computes a data fingerprint.
+1. The split's scenes come from a ``scene_source.SceneSource``, scanned once by ``scene_source.scan_scenes``
+   (skipped scenes counted, a data fingerprint).
 2. :class:`TrainingData` prepares a scene on demand (in-memory LRU of ``scene_cache_size``): means
    recentred on the bounding-box centre (float64 subtraction, then float32), unit quaternions (their
    sign is made canonical by ``ovgaussian.model.gaussian_attributes``, as on every path),
@@ -12,274 +11,40 @@ Flow, one scene at a time (memory bounded):
    unseen and out-of-vocabulary classes set to ``IGNORE_LABEL``, in 3D and in the 2D label maps.
 3. For a view it keeps the label map and the MaskCLIP patch features (computed once, cached on
    disk at patch resolution in the run's cache folder) in a view LRU of ``view_cache_size``.
-4. :meth:`TrainingData.sample` draws, from a generator seeded by (seed, epoch, step, scene), one
-   train view, an augmentation and the pixels of the 2D losses, and computes the blend weights W
+4. :meth:`TrainingData.sample` draws, from a generator seeded by (seed, epoch, step, scene)
+   (``schedule.sample_seed``), one train view, an augmentation (``augmentation``: a similarity applied to
+   the network input only) and the pixels of the 2D losses, and computes the blend weights W
    (top ``blend_top_k`` contributors, on the stored, un-augmented geometry, float64 camera) at those
    pixels only (``seggaussian.render.pixel_blend``): bit-identical to the whole view's weights at
    those pixels, and nothing per pixel is stored on disk.
-
-Augmentation (random uniform scale, rotation about the up axis z, mirror of x and/or y) is a
-similarity ``A`` applied to the network input only: means ``A x``, covariances ``A Sigma A^T``
-(quaternions and log-scales updated). Applying the same ``A`` to the camera would leave the
-rendered image unchanged (a similarity of scene and camera together does not change any pixel),
-so the blend weights computed once on the stored geometry stay exact and ``M = W S`` needs no
-re-rasterization.
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
 from collections import OrderedDict
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
+import torch
 
+from ovgaussian.augmentation import augment_gaussians, sample_augmentation
 from ovgaussian.cache_budget import folder_bytes
+from ovgaussian.scene_source import ScanResult, SceneSource, scan_scenes
 from ovgaussian.teacher import sample_patch_features
 from ovgaussian.train_config import DataConfig
-from ovgaussian.vocabulary import (  # noqa: F401  (re-exported: the training data's API)
-    Vocabulary,
-    benchmark_class_ids,
-    map_labels,
-    training_vocabulary,
-)
-from seggaussian import shards
+from ovgaussian.vocabulary import Vocabulary, map_labels
 from seggaussian.constants import IGNORE_LABEL
-from seggaussian.gaussians import quats_to_rotmats
 from seggaussian.render.pixel_blend import compute_pixel_blend_weights
 from seggaussian.render.rasterize import camera_tensors
 
 if TYPE_CHECKING:
-    import torch
-
     from ovgaussian.teacher import DenseTeacher
 
 #: Bytes a safetensors file takes beyond its tensor data (JSON header with names, shapes, offsets); an
 #: upper bound used when checking the cache budget before writing.
 SAFETENSORS_HEADER_ALLOWANCE = 512
-#: Quaternions recovered from rotation matrices: the largest of the four candidates is at least 1/2, so
-#: this floor only protects against a non-orthonormal input.
-QUAT_FROM_MATRIX_EPS = 1e-12
-
-
-# --- geometry --------------------------------------------------------------------------------------
-
-
-def rotmats_to_quats(rotmats: np.ndarray) -> np.ndarray:
-    """``[N, 3, 3]`` rotation matrices -> ``[N, 4]`` unit quaternions (w, x, y, z) (Shepperd).
-
-    The sign of each row is whatever the method gives; the network's inputs are made sign-canonical in
-    one place for every path, ``ovgaussian.model.gaussian_attributes``."""
-    r = np.asarray(rotmats, dtype=np.float64)
-    trace = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
-    candidates = np.stack([trace, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
-    choice = np.argmax(candidates, axis=1)
-    q = np.empty((r.shape[0], 4), dtype=np.float64)
-    for k in range(4):
-        rows = choice == k
-        if not rows.any():
-            continue
-        m = r[rows]
-        if k == 0:
-            s = np.sqrt(np.maximum(1.0 + trace[rows], QUAT_FROM_MATRIX_EPS)) * 2.0
-            q[rows] = np.stack([0.25 * s, (m[:, 2, 1] - m[:, 1, 2]) / s, (m[:, 0, 2] - m[:, 2, 0]) / s,
-                                (m[:, 1, 0] - m[:, 0, 1]) / s], axis=1)
-        elif k == 1:
-            s = np.sqrt(np.maximum(1.0 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], QUAT_FROM_MATRIX_EPS)) * 2.0
-            q[rows] = np.stack([(m[:, 2, 1] - m[:, 1, 2]) / s, 0.25 * s, (m[:, 0, 1] + m[:, 1, 0]) / s,
-                                (m[:, 0, 2] + m[:, 2, 0]) / s], axis=1)
-        elif k == 2:
-            s = np.sqrt(np.maximum(1.0 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2], QUAT_FROM_MATRIX_EPS)) * 2.0
-            q[rows] = np.stack([(m[:, 0, 2] - m[:, 2, 0]) / s, (m[:, 0, 1] + m[:, 1, 0]) / s, 0.25 * s,
-                                (m[:, 1, 2] + m[:, 2, 1]) / s], axis=1)
-        else:
-            s = np.sqrt(np.maximum(1.0 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1], QUAT_FROM_MATRIX_EPS)) * 2.0
-            q[rows] = np.stack([(m[:, 1, 0] - m[:, 0, 1]) / s, (m[:, 0, 2] + m[:, 2, 0]) / s,
-                                (m[:, 1, 2] + m[:, 2, 1]) / s, 0.25 * s], axis=1)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-class Augmentation(NamedTuple):
-    """A similarity ``x -> scale * flip @ rot_z @ x`` about the scene centre.
-
-    Fields:
-        scale: uniform scale factor (> 0).
-        angle: rotation about z in radians.
-        flip: ``[3]`` signs (+-1 on x and y, +1 on z).
-    """
-
-    scale: float
-    angle: float
-    flip: np.ndarray
-
-    @property
-    def linear(self) -> np.ndarray:
-        """``[3, 3]`` matrix ``scale * diag(flip) @ R_z(angle)``."""
-        c, s = np.cos(self.angle), np.sin(self.angle)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        return self.scale * np.diag(self.flip) @ rot
-
-    @classmethod
-    def identity(cls) -> "Augmentation":
-        return cls(1.0, 0.0, np.ones(3))
-
-
-def sample_augmentation(rng: np.random.Generator, config: DataConfig) -> Augmentation:
-    """Random scale in ``scale_range``, angle in [0, 2 pi), x/y mirrors with ``flip_probability``."""
-    if not config.augment:
-        return Augmentation.identity()
-    low, high = config.scale_range
-    scale = float(rng.uniform(low, high))
-    angle = float(rng.uniform(0.0, 2.0 * np.pi))
-    flips = rng.random(2) < config.flip_probability
-    flip = np.array([-1.0 if flips[0] else 1.0, -1.0 if flips[1] else 1.0, 1.0])
-    return Augmentation(scale, angle, flip)
-
-
-def augment_gaussians(
-    means: np.ndarray,  # [N, 3] recentred
-    quats: np.ndarray,  # [N, 4] unit, w x y z
-    log_scales: np.ndarray,  # [N, 3]
-    augmentation: Augmentation,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Means, quaternions and log-scales of the Gaussians mapped by the similarity (float32 out).
-
-    Covariance ``R S^2 R^T`` becomes ``A R S^2 R^T A^T``: with ``A = s F R_z`` the new rotation is
-    ``F R_z R D`` where ``D = diag(det F, 1, 1)`` makes it proper (D commutes with ``S``), and the
-    log-scales grow by ``log s``.
-    """
-    linear = augmentation.linear
-    new_means = (means.astype(np.float64) @ linear.T).astype(np.float32)
-    orthogonal = linear / augmentation.scale  # F R_z, det = det F
-    rotmats = np.einsum("ij,njk->nik", orthogonal, quats_to_rotmats(quats.astype(np.float64)))
-    if float(np.prod(augmentation.flip)) < 0:
-        rotmats[:, :, 0] *= -1.0  # R D with D = diag(-1, 1, 1): proper again, same covariance
-    new_quats = rotmats_to_quats(rotmats).astype(np.float32)
-    new_log_scales = (log_scales.astype(np.float64) + np.log(augmentation.scale)).astype(np.float32)
-    return new_means, new_quats, new_log_scales
-
-
-# --- records ---------------------------------------------------------------------------------------
-
-
-class SceneSource(Protocol):
-    """Where scenes come from: ``seggaussian.shards`` for a dataset split, or memory in tests."""
-
-    def list_scenes(self) -> list[str]: ...
-
-    def read_scene(self, scene_id: str): ...  # -> SceneRecord
-
-
-class ShardSource:
-    """Scenes of one split of a dataset written by ``seggaussian build``/``split``."""
-
-    def __init__(self, dataset: Path, split: str, verify: bool = False):
-        self.dataset, self.split, self.verify = Path(dataset), split, verify
-
-    def list_scenes(self) -> list[str]:
-        return list(shards.list_scenes(self.dataset, self.split))
-
-    def read_scene(self, scene_id: str):
-        return shards.read_scene(self.dataset, self.split, scene_id, verify=self.verify)
-
-    def fingerprint_files(self) -> dict[str, str]:
-        """sha256 of the dataset's manifest files (``*manifest*.json``)."""
-        out = {}
-        for path in sorted(self.dataset.rglob("*manifest*.json")):
-            out[str(path.relative_to(self.dataset))] = hashlib.sha256(path.read_bytes()).hexdigest()
-        return out
-
-
-class InMemorySource:
-    """Scenes held in memory (tests, notebooks): ``records`` are SceneRecord-like objects."""
-
-    def __init__(self, records: Sequence):
-        self.records = {r.scene_id: r for r in records}
-
-    def list_scenes(self) -> list[str]:
-        return list(self.records)
-
-    def read_scene(self, scene_id: str):
-        return self.records[scene_id]
-
-    def fingerprint_files(self) -> dict[str, str]:
-        return {}
-
-
-class SceneSummary(NamedTuple):
-    """What the scan learned about a scene.
-
-    Fields:
-        scene_id: identifier.
-        num_gaussians: N.
-        train_views: names of the views with role ``train``.
-        labelled_gaussians: Gaussians with a seen-class label.
-        labelled_pixels: pixels of the train views with a seen-class label.
-        skip_reason: None, or why the scene is not trained on (``empty``, ``no train view``, ``all ignore``).
-    """
-
-    scene_id: str
-    num_gaussians: int
-    train_views: tuple[str, ...]
-    labelled_gaussians: int
-    labelled_pixels: int
-    skip_reason: str | None
-
-
-class ScanResult(NamedTuple):
-    """The split's scenes.
-
-    Fields:
-        summaries: one per scene, in ``list_scenes`` order.
-        usable: ids of the scenes trained on.
-        skipped: ``{reason: count}``.
-        fingerprint: hex digest of the data (manifest files, scene ids, sizes, label counts).
-    """
-
-    summaries: tuple[SceneSummary, ...]
-    usable: tuple[str, ...]
-    skipped: dict[str, int]
-    fingerprint: str
-
-
-def summarize_scene(record, vocabulary: Vocabulary) -> SceneSummary:
-    """Counts of one SceneRecord and whether it can be trained on."""
-    n = len(record.gaussians)
-    views = tuple(v.name for v in record.views if v.role == "train")
-    semantic = record.gaussians.extras.get("semantic")
-    labelled = 0 if semantic is None else int((map_labels(semantic, vocabulary) != IGNORE_LABEL).sum())
-    pixels = sum(int((map_labels(v.semantic, vocabulary) != IGNORE_LABEL).sum())
-                 for v in record.views if v.role == "train" and v.semantic is not None)
-    reason = None
-    if n == 0:
-        reason = "empty"
-    elif not views:
-        reason = "no train view"
-    elif labelled == 0 and pixels == 0:
-        reason = "all ignore"
-    return SceneSummary(record.scene_id, n, views, labelled, pixels, reason)
-
-
-def scan_scenes(source: SceneSource, vocabulary: Vocabulary) -> ScanResult:
-    """Read every scene once (one at a time) and summarize the split."""
-    summaries = []
-    for scene_id in source.list_scenes():
-        summaries.append(summarize_scene(source.read_scene(scene_id), vocabulary))
-    skipped: dict[str, int] = {}
-    for s in summaries:
-        if s.skip_reason is not None:
-            skipped[s.skip_reason] = skipped.get(s.skip_reason, 0) + 1
-    files = source.fingerprint_files() if hasattr(source, "fingerprint_files") else {}
-    payload = json.dumps({"files": files, "scenes": [list(s[:5]) for s in summaries],
-                          "vocabulary": vocabulary.class_ids.tolist()}, sort_keys=True)
-    fingerprint = hashlib.sha256(payload.encode()).hexdigest()
-    usable = tuple(s.scene_id for s in summaries if s.skip_reason is None)
-    return ScanResult(tuple(summaries), usable, skipped, fingerprint)
-
-
-# --- prepared tensors ------------------------------------------------------------------------------
 
 
 class PreparedScene(NamedTuple):
@@ -395,16 +160,8 @@ class GeometryTensors(NamedTuple):
 
 def geometry_tensors(gaussians) -> GeometryTensors:
     """Copies of a Gaussians' geometry columns (shard arrays may be read-only numpy views)."""
-    import torch
-
     return GeometryTensors(*(torch.tensor(getattr(gaussians, name))
                              for name in ("means", "quats", "log_scales", "opacity_logits")))
-
-
-def sample_seed(seed: int, epoch: int, step: int, scene_id: str) -> list[int]:
-    """Entropy of the generator of one scene of one step (rank-independent)."""
-    digest = int.from_bytes(hashlib.sha256(scene_id.encode()).digest()[:4], "little")
-    return [int(seed), int(epoch), int(step), digest]
 
 
 class TrainingData:
@@ -520,8 +277,6 @@ class TrainingData:
     # samples --------------------------------------------------------------------------------
     def sample(self, scene_id: str, rng: np.random.Generator) -> SceneSample:
         """One view, augmentation and pixel set of a scene, drawn from ``rng``."""
-        import torch
-
         scene = self.prepared_scene(scene_id)
         view_name = scene.train_views[int(rng.integers(len(scene.train_views)))]
         view = self.prepared_view(scene_id, view_name)
@@ -550,18 +305,3 @@ def safe_name(name: str) -> str:
     """A file-name-safe version of a scene or view name (readable prefix + short digest)."""
     keep = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)[:64]
     return f"{keep}-{hashlib.sha1(name.encode()).hexdigest()[:8]}"
-
-
-def epoch_batches(scene_ids: Sequence[str], batch_scenes: int, seed: int, epoch: int) -> list[list[str]]:
-    """The epoch's scene order (seeded permutation) cut into batches of ``batch_scenes`` (last may be short)."""
-    if batch_scenes < 1:
-        raise ValueError(f"batch_scenes must be >= 1, got {batch_scenes}")
-    order = np.random.default_rng([int(seed), int(epoch), 0x5CE4E]).permutation(len(scene_ids))
-    ids = [scene_ids[i] for i in order]
-    return [ids[i:i + batch_scenes] for i in range(0, len(ids), batch_scenes)]
-
-
-def rank_slice(batch: Sequence[str], rank: int, world_size: int) -> list[str]:
-    """The contiguous part of a global batch a process handles (may be empty)."""
-    bounds = np.linspace(0, len(batch), world_size + 1).round().astype(int)
-    return list(batch[bounds[rank]:bounds[rank + 1]])

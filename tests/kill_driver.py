@@ -27,8 +27,8 @@ def job_build(root: str, out: str) -> None:
 def job_train(out: str, epochs: int) -> None:
     import torch
 
-    from ovgaussian import data as D
     from ovgaussian.checkpoint import CONFIG_NAME
+    from ovgaussian.scene_source import InMemorySource
     from ovgaussian.train import train
     from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
@@ -36,7 +36,7 @@ def job_train(out: str, epochs: int) -> None:
     out_path = Path(out)
     scenes = [make_scene(s, per_box=20, views=2) for s in range(2)]
     resume = (out_path / CONFIG_NAME).is_file()
-    train(tiny_config(out_path, epochs, resume=resume), source=D.InMemorySource(scenes),
+    train(tiny_config(out_path, epochs, resume=resume), source=InMemorySource(scenes),
           model_config=tiny_model_config(12), text_embeddings=text_stub())
 
 

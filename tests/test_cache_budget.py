@@ -42,10 +42,10 @@ def test_run_folder_after_a_demo_like_training_stays_within_the_cache_budget(tmp
 
     from ovgaussian.teacher import DenseTeacher
     from ovgaussian.train import train
-    from test_train import tiny_model_config
     from ovgaussian.train_config import DataConfig, TeacherConfig, TrainConfig
     from seggaussian import build as build_mod
     from seggaussian.build_config import BuildConfig, OracleConfig
+    from test_train import tiny_model_config
 
     raw = tmp_path / "raw"
     cfg = synthetic.SynthConfig(width=64, num_views=5)
@@ -81,9 +81,11 @@ def test_teacher_cache_stops_at_the_budget_and_features_stay_exact(tmp_path):
     import numpy as np
     from transformers import CLIPConfig, CLIPModel
 
-    from ovgaussian import data as D
+    from ovgaussian.data import TrainingData
+    from ovgaussian.scene_source import InMemorySource
     from ovgaussian.teacher import DenseTeacher
     from ovgaussian.train_config import DataConfig, TeacherConfig
+    from ovgaussian.vocabulary import training_vocabulary
     from test_train import make_scene
 
     torch.manual_seed(0)
@@ -98,7 +100,7 @@ def test_teacher_cache_stops_at_the_budget_and_features_stay_exact(tmp_path):
     grid = teacher.compute_patch_features(scenes[0].views[0].rgb).patch_features
     assert grid.shape == (2, 3, 20)
     one_file = grid.numel() * 4 + 512  # float32 features of the patch grid plus the header allowance
-    data = D.TrainingData(D.InMemorySource(scenes), DataConfig(view_cache_size=1), D.training_vocabulary(20),
+    data = TrainingData(InMemorySource(scenes), DataConfig(view_cache_size=1), training_vocabulary(20),
                           cache_dir=tmp_path, teacher=teacher, cache_budget_bytes=one_file + 10)
     views = scenes[0].views[:3]
     got = [data.prepared_view("scene00", v.name).teacher for v in views]
@@ -106,7 +108,7 @@ def test_teacher_cache_stops_at_the_budget_and_features_stay_exact(tmp_path):
     assert sum(p.stat().st_size for p in tmp_path.rglob("*") if p.is_file()) <= one_file + 10
     for view, features in zip(views, got):
         torch.testing.assert_close(features, teacher.compute_patch_features(view.rgb).patch_features, rtol=0, atol=0)
-    unlimited = D.TrainingData(D.InMemorySource(scenes), DataConfig(), D.training_vocabulary(20),
+    unlimited = TrainingData(InMemorySource(scenes), DataConfig(), training_vocabulary(20),
                                cache_dir=tmp_path / "all", teacher=teacher)
     for view in views:
         unlimited.prepared_view("scene00", view.name)

@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ovgaussian import data as D
+from ovgaussian.data import TrainingData
 from ovgaussian.model import canonical_quat_sign, gaussian_attributes
+from ovgaussian.scene_source import InMemorySource
 from ovgaussian.train_config import DataConfig
+from ovgaussian.vocabulary import training_vocabulary
 from seggaussian.gaussians import Gaussians
 from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
@@ -58,17 +60,17 @@ def test_training_path_outputs_are_invariant_under_quaternion_sign(tmp_path):
     """Train-mode network (batch statistics) on samples drawn from scenes with flipped signs: the same
     per-Gaussian semantic vectors and the same losses, with and without augmentation."""
     from ovgaussian.checkpoint import build_network
-    from ovgaussian.train import batch_losses, network_inputs
+    from ovgaussian.train_losses import batch_losses, network_inputs
 
     scenes = [make_scene(s) for s in (0, 1)]
     other = [r._replace(gaussians=flipped(r.gaussians, random_subset(len(r.gaussians), 7 + i)))
              for i, r in enumerate(scenes)]
-    voc = D.training_vocabulary(20)
+    voc = training_vocabulary(20)
     for augment in (False, True):
         config = DataConfig(blend_top_k=8, pixels_per_view=200, augment=augment)
         outputs = []
         for records in (scenes, other):
-            data = D.TrainingData(D.InMemorySource(records), config, voc)
+            data = TrainingData(InMemorySource(records), config, voc)
             samples = [data.sample(r.scene_id, np.random.default_rng(5)) for r in records]
             net = build_network(tiny_model_config(12)).train()
             semantic = net(*network_inputs(samples, "cpu"))

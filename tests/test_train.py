@@ -12,11 +12,16 @@ import numpy as np
 import pytest
 import torch
 
-from ovgaussian import data as D
+from ovgaussian.augmentation import Augmentation, augment_gaussians
+from ovgaussian.data import TrainingData, default_pixel_blend_function, prepare_scene
+from ovgaussian.scene_source import InMemorySource, ShardSource, scan_scenes
+from ovgaussian.schedule import epoch_batches, rank_slice
 from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TeacherConfig, TrainConfig
+from ovgaussian.vocabulary import benchmark_class_ids, map_labels, training_vocabulary
 from seggaussian.cameras import Camera, intrinsics, look_at
 from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
 from seggaussian.gaussians import Gaussians
+from seggaussian.rotations import rotmats_to_quats
 from seggaussian.shards import SceneRecord, ViewRecord
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,17 +86,17 @@ def scenes():
 
 
 def test_vocabulary_excludes_unseen_and_maps_labels():
-    voc = D.training_vocabulary(20)
+    voc = training_vocabulary(20)
     assert len(voc.class_ids) == 16
     unseen = [NAMES.index(n) for n in UNSEEN_CLASSES]
     assert not set(unseen) & set(voc.class_ids.tolist())
     labels = np.array([0, unseen[0], 2, IGNORE_LABEL, 99, -5, 70000], np.int64)
-    mapped = D.map_labels(labels, voc)
+    mapped = map_labels(labels, voc)
     assert mapped[0] == 0 and mapped[2] == list(voc.class_ids).index(2)
     assert (mapped[[1, 3, 4, 5, 6]] == IGNORE_LABEL).all()  # unseen, ignore, out of vocabulary, invalid
     # fallback rule gives the same ids as seggaussian.classes
     others = [i for i in range(100) if i not in unseen][:16]
-    assert sorted(unseen + others) == D.benchmark_class_ids(20)
+    assert sorted(unseen + others) == benchmark_class_ids(20)
 
 
 # --- augmentation ----------------------------------------------------------------------------------
@@ -101,8 +106,8 @@ def test_vocabulary_excludes_unseen_and_maps_labels():
 def test_augmentation_maps_covariances_consistently(flip):
     rng = np.random.default_rng(0)
     g = make_gaussians(rng, 5)
-    aug = D.Augmentation(1.3, 0.7, np.array([flip[0], flip[1], 1.0]))
-    means, quats, log_scales = D.augment_gaussians(g.means, g.normalized_quats(), g.log_scales, aug)
+    aug = Augmentation(1.3, 0.7, np.array([flip[0], flip[1], 1.0]))
+    means, quats, log_scales = augment_gaussians(g.means, g.normalized_quats(), g.log_scales, aug)
     a = aug.linear
     np.testing.assert_allclose(means, g.means @ a.T, rtol=1e-5, atol=1e-4)
     moved = Gaussians.from_arrays(means, quats, log_scales, g.opacity_logits, g.sh)
@@ -112,13 +117,13 @@ def test_augmentation_maps_covariances_consistently(flip):
 
 
 def test_rotmats_to_quats_roundtrip_including_half_turns():
-    from seggaussian.gaussians import quats_to_rotmats
+    from seggaussian.rotations import quats_to_rotmats
 
     rng = np.random.default_rng(1)
     q = rng.normal(size=(200, 4))
     q = np.concatenate([q, [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [1, 0, 0, 0]]])
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    back = D.rotmats_to_quats(quats_to_rotmats(q))
+    back = rotmats_to_quats(quats_to_rotmats(q))
     same = np.minimum(np.abs(back - q).max(1), np.abs(back + q).max(1))
     assert same.max() < 1e-9
 
@@ -130,8 +135,8 @@ def test_similarity_of_scene_and_camera_leaves_the_image_unchanged():
     rng = np.random.default_rng(3)
     g = make_gaussians(rng, 30)
     cam = make_views(g, rng, (0, 0, 0), 1)[0].camera
-    aug = D.Augmentation(1.25, 1.1, np.array([1.0, 1.0, 1.0]))  # proper similarity: camera stays a camera
-    means, quats, log_scales = D.augment_gaussians(g.means, g.normalized_quats(), g.log_scales, aug)
+    aug = Augmentation(1.25, 1.1, np.array([1.0, 1.0, 1.0]))  # proper similarity: camera stays a camera
+    means, quats, log_scales = augment_gaussians(g.means, g.normalized_quats(), g.log_scales, aug)
     # camera of the moved world x' = s Rz x: viewmat' (s Rz x) = s viewmat(x), i.e. R' = R Rz^T, t' = s t;
     # camera coordinates scale by s, which changes no pixel (projection and 2D covariances are scale-free)
     rot_z = aug.linear / aug.scale
@@ -155,21 +160,21 @@ def test_similarity_of_scene_and_camera_leaves_the_image_unchanged():
 
 
 def test_scan_skips_and_counts_empty_and_all_ignore(scenes):
-    voc = D.training_vocabulary(20)
+    voc = training_vocabulary(20)
     empty = SceneRecord("empty", "synthetic", Gaussians.empty(), [])
     g = scenes[0].gaussians
     ignore = SceneRecord("ignore", "synthetic", g.with_extras(semantic=np.full(len(g), IGNORE_LABEL, np.int32)),
                          [v._replace(semantic=np.full_like(v.semantic, IGNORE_LABEL)) for v in scenes[0].views])
     unseen_only = SceneRecord("unseen", "synthetic", g.with_extras(semantic=np.full(len(g), NAMES.index("sofa"), np.int32)),
                               [v._replace(semantic=np.full_like(v.semantic, NAMES.index("bed"))) for v in scenes[0].views])
-    scan = D.scan_scenes(D.InMemorySource([scenes[0], empty, ignore, unseen_only]), voc)
+    scan = scan_scenes(InMemorySource([scenes[0], empty, ignore, unseen_only]), voc)
     assert scan.usable == ("scene00",)
     assert scan.skipped == {"empty": 1, "all ignore": 2}
 
 
 def test_prepared_scene_is_recentred_and_unseen_ignored(scenes):
-    voc = D.training_vocabulary(20)
-    prepared = D.prepare_scene(scenes[1], voc)
+    voc = training_vocabulary(20)
+    prepared = prepare_scene(scenes[1], voc)
     g = scenes[1].gaussians
     assert prepared.means.dtype == np.float32
     np.testing.assert_allclose(prepared.means.max(0) + prepared.means.min(0), 0, atol=1e-5)
@@ -183,14 +188,14 @@ def test_training_data_computes_pixel_weights_on_the_fly_and_stores_none(scenes,
     from seggaussian.render.pixel_blend import pixel_blend_weights_reference
     from seggaussian.render.rasterize import camera_tensors
 
-    voc = D.training_vocabulary(20)
+    voc = training_vocabulary(20)
     cfg = DataConfig(blend_top_k=8, pixels_per_view=100, view_cache_size=1)
-    data = D.TrainingData(D.InMemorySource(scenes), cfg, voc, cache_dir=tmp_path)
+    data = TrainingData(InMemorySource(scenes), cfg, voc, cache_dir=tmp_path)
     first = [data.sample("scene00", np.random.default_rng(i)) for i in range(6)]
     assert data.blend_computations == 6  # once per sample, at its pixels only
     assert {s.view_name for s in first} <= {"frame000.jpg", "frame001.jpg"}
     assert not any(tmp_path.rglob("*")), "no per-view blend weights may be written to the run folder"
-    again = D.TrainingData(D.InMemorySource(scenes), cfg, voc, cache_dir=tmp_path)
+    again = TrainingData(InMemorySource(scenes), cfg, voc, cache_dir=tmp_path)
     s1, s2 = again.sample("scene00", np.random.default_rng(3)), first[3]
     for a, b in zip(s1, s2):  # same generator state -> the same sample, bit for bit
         if isinstance(a, torch.Tensor):
@@ -205,15 +210,15 @@ def test_training_data_computes_pixel_weights_on_the_fly_and_stores_none(scenes,
     assert (s1.pixel_ids >= 0).any()
     # labels of the sampled pixels agree with the view's label map; unseen classes ignored in 2D too
     raw = view.semantic[s1.pixels[:, 1].numpy(), s1.pixels[:, 0].numpy()]
-    np.testing.assert_array_equal(s1.pixel_labels.numpy(), D.map_labels(raw, voc))
+    np.testing.assert_array_equal(s1.pixel_labels.numpy(), map_labels(raw, voc))
     assert s1.pixels.shape == (100, 2) and s1.pixel_ids.shape == (100, 8)
 
 
 def test_render_pixels_matches_reference(scenes):
-    from ovgaussian.train import render_pixels, render_pixels_reference
+    from ovgaussian.train_losses import render_pixels, render_pixels_reference
 
-    voc = D.training_vocabulary(20)
-    data = D.TrainingData(D.InMemorySource(scenes), DataConfig(blend_top_k=8), voc)
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8), voc)
     sample = data.sample("scene01", np.random.default_rng(0))
     semantic = torch.randn(len(sample.means), 16, dtype=torch.float64, requires_grad=True)
     fast = render_pixels(sample.pixel_ids, sample.pixel_weights.double(), semantic)
@@ -228,11 +233,11 @@ def test_render_pixels_matches_reference(scenes):
 
 def test_epoch_batches_and_rank_slices():
     ids = [f"s{i}" for i in range(7)]
-    batches = D.epoch_batches(ids, 3, seed=0, epoch=0)
+    batches = epoch_batches(ids, 3, seed=0, epoch=0)
     assert sorted(sum(batches, [])) == sorted(ids) and [len(b) for b in batches] == [3, 3, 1]
-    assert batches == D.epoch_batches(ids, 3, seed=0, epoch=0) != D.epoch_batches(ids, 3, seed=0, epoch=1)
-    assert D.rank_slice(["a", "b", "c"], 0, 2) + D.rank_slice(["a", "b", "c"], 1, 2) == ["a", "b", "c"]
-    assert all(D.rank_slice(["a", "b", "c"], r, 3) for r in range(3))
+    assert batches == epoch_batches(ids, 3, seed=0, epoch=0) != epoch_batches(ids, 3, seed=0, epoch=1)
+    assert rank_slice(["a", "b", "c"], 0, 2) + rank_slice(["a", "b", "c"], 1, 2) == ["a", "b", "c"]
+    assert all(rank_slice(["a", "b", "c"], r, 3) for r in range(3))
 
 
 # --- trainer -------------------------------------------------------------------------------------
@@ -261,10 +266,10 @@ def tiny_config(out: Path, epochs: int, **kw) -> TrainConfig:
 
 def test_every_parameter_gets_a_finite_gradient(scenes, tmp_path):
     from ovgaussian.checkpoint import build_network
-    from ovgaussian.train import batch_losses
+    from ovgaussian.train_losses import batch_losses
 
-    voc = D.training_vocabulary(20)
-    data = D.TrainingData(D.InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=300), voc)
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=300), voc)
     samples = [data.sample(s, np.random.default_rng(0)) for s in ("scene00", "scene01")]
     samples[1] = samples[1]._replace(teacher=torch.randn(300, 6))
     samples[0] = samples[0]._replace(teacher=torch.randn(300, 6))
@@ -278,9 +283,10 @@ def test_every_parameter_gets_a_finite_gradient(scenes, tmp_path):
 
 
 def test_training_decreases_loss_and_resume_continues_the_same_curve(scenes, tmp_path):
-    from ovgaussian.train import read_metrics, train
+    from ovgaussian.run_folder import read_metrics
+    from ovgaussian.train import train
 
-    source = D.InMemorySource(scenes)
+    source = InMemorySource(scenes)
     common = dict(source=source, model_config=tiny_model_config(12), text_embeddings=text_stub())
     full = train(tiny_config(tmp_path / "full", 2), **common)
     steps = read_metrics(tmp_path / "full")
@@ -340,7 +346,7 @@ def shard_dataset(scenes, tmp_path_factory):
 
 
 def test_shard_source_reads_the_written_scenes(shard_dataset, scenes):
-    source = D.ShardSource(shard_dataset, "train")
+    source = ShardSource(shard_dataset, "train")
     assert source.list_scenes() == [s.scene_id for s in scenes]
     rec = source.read_scene("scene02")
     np.testing.assert_array_equal(rec.gaussians.extras["semantic"], scenes[2].gaussians.extras["semantic"])
@@ -404,7 +410,7 @@ def test_cli_trains_on_shards_and_reports_json(shard_dataset, tmp_path):
 
 
 def test_learning_rate_schedules():
-    from ovgaussian.train import learning_rate
+    from ovgaussian.schedule import learning_rate
 
     assert learning_rate(0, 100, 0.02, "cosine") == pytest.approx(0.02)
     assert learning_rate(50, 100, 0.02, "cosine") == pytest.approx(0.01)
@@ -436,9 +442,9 @@ def test_synchronized_batch_norm_matches_local_batch_norm_in_one_process(tmp_pat
     """With one process the synchronized statistics are the local ones: same output, gradients, buffers."""
     import torch.distributed as dist
 
+    from ovgaussian.process_group import synchronize_batch_norms
     from ovgaussian.sparse import SparseBatchNorm
     from ovgaussian.sparse.voxelize import SparseVoxels
-    from ovgaussian.train import synchronize_batch_norms
 
     dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'store'}", rank=0, world_size=1)
     try:
@@ -469,8 +475,9 @@ def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
     from transformers import CLIPConfig, CLIPModel
 
     from ovgaussian.checkpoint import load_trained_model
+    from ovgaussian.run_folder import read_metrics
     from ovgaussian.teacher import DenseTeacher
-    from ovgaussian.train import read_metrics, train
+    from ovgaussian.train import train
 
     torch.manual_seed(0)
     clip = CLIPModel(CLIPConfig(
@@ -480,7 +487,7 @@ def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
                            image_size=16, patch_size=8),
         projection_dim=20)).eval()
     teacher = DenseTeacher(clip, TeacherConfig(short_side=16))
-    result = train(tiny_config(tmp_path / "run", 1), source=D.InMemorySource(scenes), teacher=teacher,
+    result = train(tiny_config(tmp_path / "run", 1), source=InMemorySource(scenes), teacher=teacher,
                    model_config=tiny_model_config(12), text_embeddings=text_stub())
     steps = read_metrics(tmp_path / "run")
     assert all(s["cosine"] > 0 for s in steps) and not any("cosine" in n for n in result.notes)
@@ -494,12 +501,12 @@ def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
 def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkeypatch):
     """Adapter and 3D text loss in row chunks under activation checkpointing (the paper-scale memory
     bound) give the values and gradients of the one-piece computation."""
-    import ovgaussian.model as model_module
     from ovgaussian.checkpoint import build_network
-    from ovgaussian.train import batch_losses
+    import ovgaussian.model as model_module
+    from ovgaussian.train_losses import batch_losses
 
-    voc = D.training_vocabulary(20)
-    data = D.TrainingData(D.InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
     samples = [data.sample(s, np.random.default_rng(i)) for i, s in enumerate(("scene00", "scene01"))]
     config = tiny_config(Path("unused"), 1)
 
@@ -532,7 +539,7 @@ def test_decoded_text_logits_equal_the_direct_expression_forward_and_backward():
     """The Gram-matrix form of cos(phi(s), t) / T equals compute_text_logits(phi(s)) (the reference)."""
     from ovgaussian.losses import compute_text_logits
     from ovgaussian.model import OVGaussianNet, OVGaussianNetConfig
-    from ovgaussian.train import decoded_text_logits
+    from ovgaussian.train_losses import decoded_text_logits
 
     torch.manual_seed(0)
     phi = OVGaussianNet(OVGaussianNetConfig(embedding_width=384, **{k: v for k, v in vars(
@@ -567,7 +574,7 @@ def test_teacher_with_another_text_space_is_refused_before_any_work(scenes, tmp_
     clip = tmp_path / "clip"
     mismatch = tiny_config(tmp_path / "run", 1, teacher=TeacherConfig(clip_model=clip))
     with pytest.raises(ValueError, match="--text-encoder clip") as error:
-        train(mismatch, source=D.InMemorySource(scenes), model_config=tiny_model_config(12), text_embeddings=text_stub())
+        train(mismatch, source=InMemorySource(scenes), model_config=tiny_model_config(12), text_embeddings=text_stub())
     assert "\n" not in str(error.value) and not (tmp_path / "run").exists()
     other = tiny_config(tmp_path / "run", 1, teacher=TeacherConfig(clip_model=clip),
                         text=TextConfig(encoder="clip", clip_model=tmp_path / "other"))
@@ -594,10 +601,10 @@ def test_training_bench_and_build_blend_weights_use_float64_cameras(scenes, monk
 
     def spy(*args, **kwargs):
         seen.append((args[4].dtype, args[5].dtype))
-        return D.default_pixel_blend_function()(*args, **kwargs)
+        return default_pixel_blend_function()(*args, **kwargs)
 
-    data = D.TrainingData(D.InMemorySource(scenes[:1]), DataConfig(blend_top_k=8, pixels_per_view=64),
-                          D.training_vocabulary(20), pixel_blend_function=spy)
+    data = TrainingData(InMemorySource(scenes[:1]), DataConfig(blend_top_k=8, pixels_per_view=64),
+                          training_vocabulary(20), pixel_blend_function=spy)
     data.sample("scene00", np.random.default_rng(0))
     assert seen == [(torch.float64, torch.float64)]
     viewmat, K = camera_tensors(scenes[0].views[0].camera)
@@ -611,11 +618,12 @@ def test_two_trainings_with_one_seed_hash_equal(scenes, tmp_path):
 
     from safetensors.torch import load_file
 
-    from ovgaussian.train import read_metrics, train
+    from ovgaussian.run_folder import read_metrics
+    from ovgaussian.train import train
 
     digests = []
     for name in ("a", "b"):
-        result = train(tiny_config(tmp_path / name, 1), source=D.InMemorySource(scenes),
+        result = train(tiny_config(tmp_path / name, 1), source=InMemorySource(scenes),
                        model_config=tiny_model_config(12), text_embeddings=text_stub())
         h = hashlib.sha256()
         for path in sorted(result.checkpoint.glob("*.safetensors")):
