@@ -19,9 +19,9 @@ from ovgaussian.predict_config import PredictConfig
 @click.option("--vocab", required=True, help='Comma-separated class names, e.g. "chair, table, sofa".')
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="Labelled scene to write: PLY (int property 'semantic' = index into --vocab, class colours), "
-                   "or .compressed.ply / .splat / .spz (class colours only; see --format).")
+                   "or .compressed.ply / .splat / .spz / .ksplat (class colours only; see --format).")
 @config_option(PredictConfig, "output_format", "--format", "output_format",
-               type=click.Choice(["ply", "compressed_ply", "splat", "spz"]), default=None)
+               type=click.Choice(["ply", "compressed_ply", "splat", "spz", "ksplat"]), default=None)
 @config_option(PredictConfig, "spz_version", "--spz-version", type=click.Choice(["2", "3", "4"]), default="4",
                show_default=True)
 @config_option(PredictConfig, "color_by", "--color-by", "color_by", type=click.Choice(["semantic", "none"]),
@@ -39,7 +39,7 @@ from ovgaussian.predict_config import PredictConfig
 @guarded
 def command(scene, run, checkpoint, vocab, out, output_format, spz_version, color_by, cameras, views_dir, colour_mode,
             on_invalid, min_alpha, as_json):
-    """Open-vocabulary segmentation of SCENE (3DGS PLY, compressed PLY, .splat or SPZ) with a trained run."""
+    """Open-vocabulary segmentation of SCENE (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat) with a trained run."""
     from ovgaussian.predict import parse_vocabulary, run_predict
 
     names = parse_vocabulary(vocab)

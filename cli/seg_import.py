@@ -20,7 +20,7 @@ from cli._output import finish, guarded, json_option
 @json_option
 @guarded
 def command(scene: Path, out_dir: Path, on_invalid: str, as_json: bool) -> None:
-    """Read a splat file (3DGS PLY, compressed PLY, .splat or SPZ; detected by content), validate it, write a
+    """Read a splat file (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat; detected by content), validate it, write a
     standard 3DGS PLY and a JSON report into OUT."""
     from seggaussian.io.ply_import import ImportConfig, import_ply
     from seggaussian.io.splat_common import FORMAT_TITLES

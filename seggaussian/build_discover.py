@@ -61,11 +61,11 @@ def _owner(parts: tuple, ids: set) -> str | None:
 
 
 def find_trained_ply(ply_dir: Path | None, scene_id: str) -> Path | None:
-    """``ply_dir/<scene>.ply`` (or ``.compressed.ply``, ``.splat``, ``.spz``: any format ``io.formats``
+    """``ply_dir/<scene>.ply`` (or ``.compressed.ply``, ``.splat``, ``.spz``, ``.ksplat``: any format ``io.formats``
     reads, detected by content) or the highest ``ply_dir/<scene>/point_cloud/iteration_*/point_cloud.ply``."""
     if ply_dir is None:
         return None
-    for suffix in (".ply", ".compressed.ply", ".splat", ".spz"):
+    for suffix in (".ply", ".compressed.ply", ".splat", ".spz", ".ksplat"):
         flat = Path(ply_dir) / f"{scene_id}{suffix}"
         if flat.is_file():
             return flat

@@ -390,19 +390,25 @@ def test_export_ply_color_by_writes_palette_colours_and_legend(built, tmp_path):
         assert not list(tmp_path.glob(".*"))                                      # no temp files left
 
 
-def test_source_ply_reads_other_splat_formats(built, raw, tmp_path):
+@pytest.mark.parametrize("suffix", [".spz", ".ksplat"])
+def test_source_ply_reads_other_splat_formats(built, raw, tmp_path, suffix):
     from seggaussian.io.formats import write_gaussians
+    from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, bucket_layout
 
     ds, _ = built
     scene_id = shards.list_scenes(ds, "train")[0]
     orig = shards.read_scene(ds, "train", scene_id, views=False)
     ply_dir = tmp_path / "splats"
-    write_gaussians(ply_dir / f"{scene_id}.spz", orig.gaussians)
-    report = build_mod.build_dataset(BuildConfig(source="ply", root=raw / "scannetpp", out=tmp_path / "from_spz",
+    write_gaussians(ply_dir / f"{scene_id}{suffix}", orig.gaussians)
+    report = build_mod.build_dataset(BuildConfig(source="ply", root=raw / "scannetpp", out=tmp_path / "from_splat",
                                                  ply_dir=ply_dir, scenes=(scene_id,), progress=False))
     (outcome,) = report.outcomes
     assert outcome.status == "built" and outcome.info["mode"] == "import", outcome.reason
-    rec = shards.read_scene(tmp_path / "from_spz", shards.find_split(tmp_path / "from_spz", scene_id), scene_id,
+    rec = shards.read_scene(tmp_path / "from_splat", shards.find_split(tmp_path / "from_splat", scene_id), scene_id,
                             views=False)
     assert len(rec.gaussians) == len(orig.gaussians)
-    np.testing.assert_allclose(rec.gaussians.means, orig.gaussians.means, atol=0.5 / 4096 + 1e-6)
+    if suffix == ".spz":
+        np.testing.assert_allclose(rec.gaussians.means, orig.gaussians.means, atol=0.5 / 4096 + 1e-6)
+    else:                                              # level 1 (default): bucket order, 2.5 m / 32767 steps
+        expected = orig.gaussians.means[bucket_layout(orig.gaussians.means).order]
+        np.testing.assert_allclose(rec.gaussians.means, expected, atol=BLOCK_SIZE / 4 / DEFAULT_RANGE[1] + 1e-6)

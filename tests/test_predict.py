@@ -201,3 +201,16 @@ def test_predict_reads_and_writes_other_formats_with_legend(run_dir, tmp_path):
     decoded, _, _ = read_gaussians(spz)
     np.testing.assert_array_equal(kept.sh, decoded.sh)
     assert "semantic" in kept.extras and not (tmp_path / "plain.legend.json").exists()
+    # a .ksplat scene in, a .ksplat out (--format wins over the name)
+    from seggaussian.io.ksplat import write_ksplat
+
+    ksplat = tmp_path / "scene.ksplat"
+    write_ksplat(ksplat, original, compression_level=0)
+    out = tmp_path / "labelled.bin"
+    result = CliRunner().invoke(command, [str(ksplat), "--run", str(run_dir), "--vocab", VOCAB, "--out", str(out),
+                                          "--format", "ksplat", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["scene_format"] == "ksplat" and summary["out_format"] == "ksplat"
+    labelled, _, fmt = read_gaussians(out)
+    assert fmt == "ksplat" and len(labelled) == len(original)

@@ -35,24 +35,35 @@ def _quat_error(a, b):
 
 @pytest.mark.parametrize("fmt, kwargs", [("ply", {}), ("compressed_ply", {}), ("splat", {}),
                                          ("spz", {"spz_version": 2}), ("spz", {"spz_version": 3}),
-                                         ("spz", {"spz_version": 4})])
+                                         ("spz", {"spz_version": 4}), ("ksplat", {"ksplat_level": 0}),
+                                         ("ksplat", {"ksplat_level": 1}), ("ksplat", {"ksplat_level": 2})])
 def test_round_trip_within_quantisation_and_detected_by_content(fmt, kwargs, tmp_path):
+    from seggaussian.io.ksplat import bucket_layout
+
     g = _gaussians(degree=0 if fmt == "splat" else 2)
     path = tmp_path / "scene.bin"                      # no telling extension
     assert write_gaussians(path, g, fmt, **kwargs) == fmt
     assert detect_format(path) == fmt
     back, report, detected = read_gaussians(path)
     assert detected == fmt and report.ok and len(back) == len(g) and back.sh_degree == g.sh_degree
+    if (level := kwargs.get("ksplat_level")) is not None:
+        fmt = f"ksplat{level}"                         # tolerances per compression level below
+        if level:                                      # levels 1-2 store the splats bucket by bucket
+            g = g.subset(bucket_layout(g.means).order)
     # steps: see each module's docstring
-    pos = {"ply": 0, "splat": 0, "spz": 0.5 / 4096, "compressed_ply": np.ptp(g.means, 0) / 1023}[fmt]
+    half16 = 2.0 ** -11                                # float16 relative rounding (ksplat levels 1-2)
+    pos = {"ply": 0, "splat": 0, "spz": 0.5 / 4096, "compressed_ply": np.ptp(g.means, 0) / 1023,
+           "ksplat0": 0, "ksplat1": 2.5 / 32767 / 2, "ksplat2": 2.5 / 32767 / 2}[fmt]
     assert (np.abs(back.means - g.means) <= pos + 1e-5).all()
-    scale = {"ply": 0, "splat": 1e-6, "spz": 0.5 / 16, "compressed_ply": np.ptp(g.log_scales, 0) / 1023}[fmt]
+    scale = {"ply": 0, "splat": 1e-6, "spz": 0.5 / 16, "compressed_ply": np.ptp(g.log_scales, 0) / 1023,
+             "ksplat0": 1e-6, "ksplat1": half16, "ksplat2": half16}[fmt]
     assert (np.abs(back.log_scales - g.log_scales) <= scale + 1e-5).all()
     assert (np.abs(back.opacities() - g.opacities()) <= (0 if fmt == "ply" else 0.5 / 255) + 1e-5).all()
     dc = {"ply": 0, "splat": 0.5 / 255 / SH_C0, "spz": 0.5 / 255 / 0.15,
-          "compressed_ply": np.ptp(g.dc_colors(), 0) / 255 / SH_C0}[fmt]
+          "compressed_ply": np.ptp(g.dc_colors(), 0) / 255 / SH_C0}.get(fmt, 0.5 / 255 / SH_C0)
     assert (np.abs(back.sh[:, 0] - g.sh[:, 0]) <= dc + 1e-5).all()
-    rest = {"ply": 0, "spz": 0.5 / 128, "compressed_ply": 8 / 256}.get(fmt)
+    rest = {"ply": 0, "spz": 0.5 / 128, "compressed_ply": 8 / 256, "ksplat0": 0, "ksplat1": half16,
+            "ksplat2": 0.5 * 2 * np.abs(g.sh[:, 1:]).max(initial=0) / 255}.get(fmt)
     if rest is not None:
         assert (np.abs(back.sh[:, 1:] - g.sh[:, 1:]) <= rest + 1e-5).all()
     if fmt == "spz" and kwargs["spz_version"] == 2:
@@ -60,7 +71,8 @@ def test_round_trip_within_quantisation_and_detected_by_content(fmt, kwargs, tmp
         assert (np.abs(back.quats[:, 1:] - unit[:, 1:]) <= 1 / 127.5).all()   # w is derived (see spz.py)
     else:
         assert (_quat_error(back.quats, g.quats) <= {"ply": 1e-6, "splat": 1 / 127.5, "spz": 1 / 511,
-                                                      "compressed_ply": np.sqrt(2) / 1023}[fmt] + 1e-5).all()
+                                                      "compressed_ply": np.sqrt(2) / 1023, "ksplat0": 1e-6,
+                                                      "ksplat1": half16, "ksplat2": half16}[fmt] + 1e-5).all()
 
 
 def test_spz_gzip_wrapped_and_raw_payload_decode_identically(tmp_path):
@@ -158,10 +170,11 @@ def test_output_format_from_name_and_stem():
     assert format_for_output("a/b.compressed.ply") == "compressed_ply"
     assert [format_for_output(f"x{s}") for s in (".ply", ".splat", ".spz", ".PLY")] == ["ply", "splat", "spz", "ply"]
     assert format_for_output("x.ply", "spz") == "spz"
+    assert format_for_output("x.KSPLAT") == "ksplat"
     with pytest.raises(ValueError, match="unknown splat format"):
-        format_for_output("x.ply", "ksplat")
-    assert [scene_stem(p) for p in ("r.compressed.ply", "r.ply", "r.spz", "r.splat")] == ["r"] * 4
-    assert set(FORMATS) == {"ply", "compressed_ply", "splat", "spz"}
+        format_for_output("x.ply", "sog")
+    assert [scene_stem(p) for p in ("r.compressed.ply", "r.ply", "r.spz", "r.splat", "r.ksplat")] == ["r"] * 5
+    assert set(FORMATS) == {"ply", "compressed_ply", "splat", "spz", "ksplat"}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -239,3 +252,134 @@ def test_cli_inspect_names_the_format_and_import_converts(tmp_path):
     bad.write_bytes(b"NGSP" + bytes(20))
     result = runner.invoke(main, ["import", str(bad), "--out", str(tmp_path / "o")])
     assert result.exit_code != 0 and "bad.spz" in result.output and "Traceback" not in result.output
+
+
+# ---------------------------------------------------------------------------------------------
+# .ksplat: multi-section files against a per-record reference decoder
+# ---------------------------------------------------------------------------------------------
+def _ksplat_slow_decode(data: bytes) -> dict[str, np.ndarray]:
+    """A per-splat loop over the file, written from the format description (slow, obviously correct)."""
+    from seggaussian.io.ksplat import SH_VALUES
+
+    u8, u16, u32, f32 = (lambda o: data[o]), (lambda o: struct.unpack_from("<H", data, o)[0]), \
+        (lambda o: struct.unpack_from("<I", data, o)[0]), (lambda o: struct.unpack_from("<f", data, o)[0])
+    f16 = lambda o: float(np.frombuffer(data, "<f2", 1, o)[0])  # noqa: E731
+    max_sections, level = u32(4), u16(20)
+    sh_min, sh_max = f32(36) or -1.5, f32(40) or 1.5
+    out = {"means": [], "scales": [], "quats": [], "rgba": [], "rest": []}
+    base = 4096 + 1024 * max_sections
+    for s in range(max_sections):
+        h = 4096 + 1024 * s
+        count, room, capacity, buckets = u32(h), u32(h + 4), u32(h + 8), u32(h + 12)
+        block, bucket_bytes, q_range = f32(h + 16), u16(h + 20), u32(h + 24) or (1 if level == 0 else 32767)
+        full, partial, degree = u32(h + 32), u32(h + 36), u16(h + 40)
+        m = SH_VALUES[degree]
+        per = (44 if level == 0 else 24) + m * (4, 2, 1)[level]
+        records = base + 4 * partial + bucket_bytes * buckets
+        bucket, bucket_end = -1, 0
+        for i in range(count):
+            while level and i >= bucket_end:                 # walk the buckets: full ones, then the partial ones
+                bucket += 1
+                bucket_end += capacity if bucket < full else u32(base + 4 * (bucket - full))
+            o = records + i * per
+            if level == 0:
+                xyz = [f32(o + 4 * k) for k in range(3)]
+                scale = [f32(o + 12 + 4 * k) for k in range(3)]
+                quat = [f32(o + 24 + 4 * k) for k in range(4)]
+                c = o + 40
+            else:
+                centre = [f32(base + 4 * partial + 12 * bucket + 4 * k) for k in range(3)]
+                xyz = [(u16(o + 2 * k) - q_range) * block / 2 / q_range + centre[k] for k in range(3)]
+                scale = [f16(o + 6 + 2 * k) for k in range(3)]
+                quat = [f16(o + 12 + 2 * k) for k in range(4)]
+                c = o + 20
+            rest = np.zeros((15, 3))
+            for j in range(m):
+                band = 1 if j < 9 else 2 if j < 24 else 3
+                first = {1: 0, 2: 9, 3: 24}[band]
+                width = 2 * band + 1
+                channel, coeff = (j - first) // width, band * band - 1 + (j - first) % width
+                p = c + 4
+                v = (f32(p + 4 * j) if level == 0 else f16(p + 2 * j) if level == 1
+                     else sh_min + u8(p + j) / 255 * (sh_max - sh_min))
+                rest[coeff, channel] = v
+            out["means"].append(xyz)
+            out["scales"].append(scale)
+            out["quats"].append(quat)
+            out["rgba"].append([u8(c + k) for k in range(4)])
+            out["rest"].append(rest)
+        base = records + per * room
+    return {k: np.array(v, np.float64) for k, v in out.items()}
+
+
+def _two_section_ksplat(level: int) -> bytes:
+    """Two sections of our writer (SH degrees 1 and 2), the second with room for 50 more splats (padding)."""
+    from seggaussian.io.ksplat import encode_ksplat
+
+    a = encode_ksplat(_gaussians(n=700, degree=1, seed=1), level)         # 700: two full buckets and partials
+    b = encode_ksplat(_gaussians(n=90, degree=2, seed=2), level)
+    main = bytearray(a[:4096])
+    struct.pack_into("<III", main, 4, 2, 2, 790)
+    struct.pack_into("<I", main, 16, 790)
+    if level == 2:                                           # one SH range for the file: take the wider one
+        struct.pack_into("<ff", main, 36, *max((struct.unpack_from("<ff", x, 36) for x in (a, b)),
+                                               key=lambda r: r[1]))
+    head_b = bytearray(b[4096:5120])
+    struct.pack_into("<I", head_b, 4, 140)                   # room for 140 splats, 90 used
+    per = (len(b) - 5120 - (struct.unpack_from("<I", b, 4096 + 36)[0] * 4
+                            + 12 * struct.unpack_from("<I", b, 4096 + 12)[0])) // 90
+    return bytes(main) + a[4096:5120] + bytes(head_b) + a[5120:] + b[5120:] + bytes(50 * per)
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_ksplat_vectorised_decode_equals_a_per_record_reference(level):
+    from seggaussian.io.ksplat import decode_ksplat
+
+    data = _two_section_ksplat(level)
+    fast = decode_ksplat(data, "two.ksplat")
+    slow = _ksplat_slow_decode(data)
+    assert len(fast) == 790 and fast.sh_degree == 2               # the highest degree of the sections
+    np.testing.assert_allclose(fast.means, slow["means"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(fast.log_scales, np.log(slow["scales"]), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(fast.quats, slow["quats"], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(fast.dc_colors(), slow["rgba"][:, :3] / 255, atol=1e-6)
+    np.testing.assert_allclose(fast.opacities(), np.clip(slow["rgba"][:, 3] / 255, 1e-6, 1 - 1e-6), atol=1e-6)
+    np.testing.assert_allclose(fast.sh[:, 1:], slow["rest"][:, :8], rtol=1e-6, atol=1e-6)
+    assert (fast.sh[:700, 4:] == 0).all()                          # the degree-1 section has no band 2
+
+
+def test_ksplat_errors_and_edge_cases(tmp_path):
+    from seggaussian.io.ksplat import ZERO_SCALE_LOG, bucket_layout, decode_ksplat, encode_ksplat
+
+    g = _gaussians(n=300, degree=1)
+    data = bytearray(encode_ksplat(g, 1))
+    # a zero (float16-underflowed) scale decodes to the reference's floor, a negative one is left for validation
+    first = 5120 + 4 * struct.unpack_from("<I", data, 4096 + 36)[0] + 12 * struct.unpack_from("<I", data, 4096 + 12)[0]
+    data[first + 6: first + 8] = bytes(2)
+    data[first + 42 + 6: first + 42 + 8] = np.array([-1.0], "<f2").tobytes()    # 42 bytes per record
+    with np.errstate(invalid="ignore"):
+        back = decode_ksplat(bytes(data))
+    assert back.log_scales[0, 0] == ZERO_SCALE_LOG and np.isnan(back.log_scales[1, 0])
+    path = tmp_path / "neg.ksplat"
+    path.write_bytes(bytes(data))
+    with pytest.raises(SplatFormatError, match=r"neg.ksplat \(mkkellogg .ksplat\): invalid values .*scale_0"):
+        read_gaussians(path)
+    # truncated, trailing bytes, counts that do not add up, bad level: one line naming the file
+    cases = {"truncated": bytes(data[:-10]), "after the last section": bytes(data) + b"\0" * 8,
+             "the header declares": bytes(data[:16]) + struct.pack("<I", 301) + bytes(data[20:]),
+             "do not cover": bytes(data[:5120]) + struct.pack("<I", 0) + bytes(data[5124:])}   # a partial bucket
+    for message, content in cases.items():
+        path.write_bytes(content)
+        with pytest.raises(SplatFormatError, match=message) as info:
+            read_gaussians(path)
+        assert str(path) in str(info.value) and "\n" not in str(info.value)
+    # an empty scene writes and reads; every splat lands in a bucket within half a block of its centre
+    empty = Gaussians.from_arrays(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0),
+                                  np.zeros((0, 1, 3)))
+    assert len(decode_ksplat(encode_ksplat(empty, 1))) == 0
+    layout = bucket_layout(g.means, block_size=1.0, capacity=4)
+    assert sorted(layout.order.tolist()) == list(range(len(g)))
+    sizes = np.concatenate([np.full(layout.full, 4), layout.partial_sizes])
+    assert (layout.partial_sizes < 4).all() and sizes.sum() == len(g)
+    centre_of = np.repeat(layout.centres, sizes, axis=0)
+    assert (np.abs(g.means[layout.order] - centre_of) <= 0.5 + 1e-6).all()

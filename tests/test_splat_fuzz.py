@@ -50,7 +50,9 @@ def _base_files(tmp: Path) -> dict[str, bytes]:
     out = {}
     for name, fmt, kwargs in (("splat", "splat", {}), ("compressed_ply", "compressed_ply", {}),
                               ("spz2", "spz", {"spz_version": 2}), ("spz3", "spz", {"spz_version": 3}),
-                              ("spz4", "spz", {"spz_version": 4}), ("ply", "ply", {})):
+                              ("spz4", "spz", {"spz_version": 4}), ("ply", "ply", {}),
+                              ("ksplat0", "ksplat", {"ksplat_level": 0}), ("ksplat1", "ksplat", {"ksplat_level": 1}),
+                              ("ksplat2", "ksplat", {"ksplat_level": 2})):
         path = tmp / f"base_{name}"
         write_gaussians(path, g if name != "splat" else _gaussians(degree=0), fmt, **kwargs)
         out[name] = path.read_bytes()
@@ -73,6 +75,10 @@ def _nan_payload(name: str, data: bytearray, rng: np.random.Generator) -> bytear
     elif name == "spz1":
         offset = 16 + 2 * int(rng.integers(40 * 3))
         data[offset: offset + 2] = np.array([np.nan, np.inf][int(rng.integers(2))], "<f2").tobytes()
+    elif name.startswith("ksplat"):                     # block size, SH range, or a record's float (2 bytes)
+        offset = [4096 + 16, 36, 40, 5120 + 2 * int(rng.integers((len(data) - 5120) // 2))][int(rng.integers(4))]
+        data[offset: offset + (4 if offset < 5120 else 2)] = (bad if offset < 5120 else
+                                                              np.array([np.nan], "<f2").tobytes())
     return data
 
 
@@ -103,6 +109,11 @@ def _mutate(name: str, base: bytes, rng: np.random.Generator) -> bytes:
             size = 4 if field in (4, 8, 16) else 1
             value = int(rng.choice([0, 1, 2, 5, 39, 41, 255, 2**20, 2**31 - 1])) % (256 ** size)
             data[field: field + size] = value.to_bytes(size, "little")
+        elif name.startswith("ksplat"):               # main and section header counts, level, buckets, degree
+            field, size = [(4, 4), (8, 4), (12, 4), (16, 4), (20, 2), (4096, 4), (4100, 4), (4108, 4), (4128, 4),
+                           (4132, 4), (4136, 2)][int(rng.integers(11))]
+            value = int(rng.choice([0, 1, 2, 3, 4, 39, 41, 255, 2**20, 2**31 - 1])) % (256 ** size)
+            data[field: field + size] = value.to_bytes(size, "little")
         else:                                         # .splat has no count: drop or add a partial record
             data = data[:-int(rng.integers(1, 32))] if rng.random() < 0.5 else data + bytes(int(rng.integers(1, 32)))
     elif kind == 3:                                   # bad magic
@@ -130,7 +141,8 @@ def _classify(path: Path) -> str:
     return "accepted" if all(np.isfinite(a).all() for a in arrays) else "crash: accepted non-finite values"
 
 
-@pytest.mark.parametrize("name", ["splat", "compressed_ply", "spz1", "spz2", "spz3", "spz3_raw", "spz4", "ply"])
+@pytest.mark.parametrize("name", ["splat", "compressed_ply", "spz1", "spz2", "spz3", "spz3_raw", "spz4", "ply",
+                                  "ksplat0", "ksplat1", "ksplat2"])
 def test_fuzz_gives_clear_errors_only(name, tmp_path):
     base = _base_files(tmp_path)[name]
     rng = np.random.default_rng(sum(map(ord, name)))  # seeded per format
@@ -158,7 +170,7 @@ def test_fuzz_gives_clear_errors_only(name, tmp_path):
 HARNESS_MUTANTS = 400
 
 
-@pytest.mark.parametrize("index", range(7))
+@pytest.mark.parametrize("index", range(8))
 def test_splat_formats_in_the_shared_fuzz_harness(index, tmp_path):
     from seggaussian.tools import fuzz
     from seggaussian.tools.fuzz_splat import splat_targets

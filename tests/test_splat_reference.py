@@ -9,8 +9,9 @@ Directions checked:
 * reference writes (compressed PLY, SPZ v3, SPZ v4) from a PLY the test writes -> our reader equals the
   reference's own decode of the same file (both decode the same bytes: float32 rounding only) and the
   test's Gaussians within the format's quantisation step;
-* our writers (compressed PLY, .splat, SPZ v2/v3/v4) -> the reference reads our file, and its decode
-  equals ours;
+* our writers (compressed PLY, .splat, SPZ v2/v3/v4, .ksplat at compression levels 0/1/2 and SH degrees
+  0-3) -> the reference reads our file, and its decode equals ours (the reference cannot write .ksplat,
+  so this is the only direction for it);
 * real PLYs from the open web (/work/shared/realdata) converted by the reference to every format:
   counts and bounds of our decode agree with the reference's.
 """
@@ -28,6 +29,7 @@ import pytest
 from seggaussian.constants import SH_C0
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.formats import detect_format, read_gaussians, read_gaussians_raw, write_gaussians
+from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, bucket_layout, write_ksplat
 from seggaussian.io.ply import read_vertex_table, vertex_table_to_gaussians, write_gaussians_ply
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,6 +40,9 @@ REAL_FILES = ("loadersgl_train-1000.ply", "v3dg_donut_fused_sh0.ply")
 DECODE_ATOL = 2e-6
 #: The same for quaternions whose largest component is recomputed as sqrt(1 - sum of squares).
 QUAT_DECODE_ATOL = 3e-5
+#: .ksplat levels 1-2: position step inside a bucket (block / 2 / range), float16 relative step.
+KSPLAT_POSITION_STEP = BLOCK_SIZE / 2 / DEFAULT_RANGE[1]
+HALF_STEP = 2.0 ** -11
 
 needs_reference = pytest.mark.skipif(
     shutil.which("node") is None or not CLI.is_file(),
@@ -127,6 +132,9 @@ def reference_files(tmp_path_factory):
                 continue
             write_gaussians(d / name, g, **kwargs)
             files[f"{tag}_sh{degree}"] = d / name
+        for level in (0, 1, 2):       # degree 3 too: GaussianSplats3D stops at 2, the reference reads 3
+            write_ksplat(d / f"our_sh{degree}_l{level}.ksplat", g, compression_level=level, max_sh_degree=3)
+            files[f"our_ksplat{level}_sh{degree}"] = d / f"our_sh{degree}_l{level}.ksplat"
     real = _realdata()
     if real is not None:
         for stem in (Path(f).stem for f in REAL_FILES):
@@ -138,6 +146,8 @@ def reference_files(tmp_path_factory):
             g, _, _ = read_gaussians(real / f"{stem}.ply")
             files[f"real_our_splat_{stem}"] = d / f"{stem}.splat"
             write_gaussians(d / f"{stem}.splat", g)
+            files[f"real_our_ksplat_{stem}"] = d / f"{stem}.ksplat"
+            write_gaussians(d / f"{stem}.ksplat", g)
             sources[f"real_{stem}"] = g
     convert_all(jobs)
     # the reference decodes every non-PLY file back to a plain PLY
@@ -235,6 +245,36 @@ def test_real_files_counts_and_bounds_agree_with_the_reference(reference_files):
         stem = key.split("_", 3)[-1]
         original = sources[f"real_{stem}"]
         assert len(original) == len(ref)
-        step = 1e-6 if "splat" in key else np.ptp(original.means, axis=0).max() / 1023 + 1e-3
+        step = {"our_splat": 1e-6, "our_ksplat": KSPLAT_POSITION_STEP / 2 + 1e-6}.get(
+            key.split("_")[1] + "_" + key.split("_")[2], np.ptp(original.means, axis=0).max() / 1023 + 1e-3)
         np.testing.assert_allclose(loaded.gaussians.means.min(0), original.means.min(0), atol=step, err_msg=key)
         np.testing.assert_allclose(loaded.gaussians.means.max(0), original.means.max(0), atol=step, err_msg=key)
+
+
+@needs_reference
+@pytest.mark.parametrize("degree", range(4))
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_our_ksplat_files_are_read_by_the_reference(reference_files, level, degree):
+    """The reference reads .ksplat but cannot write it: our writer's files, every level and SH degree."""
+    files, sources = reference_files
+    path = files[f"our_ksplat{level}_sh{degree}"]
+    renamed = path.with_name(path.name + ".bin")           # detection is by content, not by name
+    shutil.copyfile(path, renamed)
+    ours, fmt = read_gaussians_raw(renamed)
+    assert fmt == "ksplat"
+    ref = reference_decode(path)
+    _compare_decodes(ours, ref, f"ksplat level {level} sh{degree}")
+    # within the quantisation step of what the test wrote (levels 1-2 store bucket by bucket)
+    original = sources[f"sh{degree}"]
+    original = original.subset(bucket_layout(original.means).order) if level else original
+    assert ours.sh_degree == original.sh_degree
+    position_step, float_step = (0.0, 1e-6) if level == 0 else (KSPLAT_POSITION_STEP / 2, HALF_STEP)
+    assert (np.abs(ours.means - original.means) <= position_step + 1e-6 * np.abs(original.means) + 1e-6).all()
+    # float16 scales: relative step, plus the subnormal step 2^-24 for the smallest (log -9.9: 5e-5 m)
+    scales, expected = np.exp(ours.log_scales.astype(np.float64)), np.exp(original.log_scales.astype(np.float64))
+    assert (np.abs(scales - expected) <= float_step * expected + (2.0 ** -24 if level else 0) + 1e-12).all()
+    assert (np.abs(ours.opacities() - original.opacities()) <= 0.5 / 255 + 1e-6).all()
+    assert (np.abs(ours.dc_colors() - original.dc_colors()).max() <= 0.5 / 255 + 1e-6)
+    rest_step = {0: 1e-6, 1: HALF_STEP, 2: np.abs(original.sh[:, 1:]).max(initial=0) / 255}[level]
+    assert (np.abs(ours.sh[:, 1:] - original.sh[:, 1:]) <= rest_step + 1e-6).all()
+    assert (_sign_free_quat_error(ours.quats, original.quats) <= float_step + 1e-6).all()

@@ -8,6 +8,8 @@ format             how it is recognised
 ``ply``            starts with ``ply`` and the header has no ``chunk`` element (the Inria layout)
 ``compressed_ply`` starts with ``ply``; a ``chunk`` element and a ``packed_position`` vertex property
 ``spz``            starts with ``NGSP``, or is a gzip stream whose payload starts with ``NGSP``
+``ksplat``         none of the above; a plausible mkkellogg header (version 0.1+, compression level 0-2,
+                   section table inside the file)
 ``splat``          none of the above; size a multiple of 32 and the first records plausible
 =================  ===============================================================================
 
@@ -16,7 +18,7 @@ what was looked for. Every reader's Gaussians then go through the same validatio
 (:func:`seggaussian.io.validate.validate_gaussians`, policy ``on_invalid``).
 
 Writing picks the format from ``fmt`` or, when not given, from the output name (``.compressed.ply``,
-``.splat``, ``.spz``, else ``.ply``): there are no bytes to look at yet.
+``.splat``, ``.spz``, ``.ksplat``, else ``.ply``): there are no bytes to look at yet.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Literal, NamedTuple
 
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.compressed_ply import is_compressed_ply_header, read_compressed_ply, write_compressed_ply
+from seggaussian.io.ksplat import looks_like_ksplat, read_ksplat, write_ksplat
 from seggaussian.io.ply import (gaussians_to_vertex_table, read_gaussians_ply, read_ply_header, read_vertex_table,
                                 vertex_table_to_gaussians, write_vertex_table)
 from seggaussian.io.splat import looks_like_splat, read_splat, write_splat
@@ -37,9 +40,9 @@ from seggaussian.io.validate import InvalidGaussiansError, validate_gaussians
 __all__ = ["FORMATS", "SplatFormat", "LoadedSplat", "detect_format", "read_gaussians", "read_gaussians_raw",
            "write_gaussians", "format_for_output", "scene_stem"]
 
-SplatFormat = Literal["ply", "compressed_ply", "splat", "spz"]
+SplatFormat = Literal["ply", "compressed_ply", "splat", "spz", "ksplat"]
 #: Every format read and written.
-FORMATS: tuple[str, ...] = ("ply", "compressed_ply", "splat", "spz")
+FORMATS: tuple[str, ...] = ("ply", "compressed_ply", "splat", "spz", "ksplat")
 #: Bytes read to detect the format (a PLY header is parsed separately, up to its own limit).
 SNIFF_BYTES = 4096
 
@@ -80,12 +83,14 @@ def detect_format(path: str | os.PathLike) -> str:
             return "spz"
         raise SplatFormatError(f"{path}: a gzip file whose content is not SPZ (no 'NGSP' magic); "
                                "gunzip it first if it holds a PLY")
+    if looks_like_ksplat(head, size):
+        return "ksplat"
     if looks_like_splat(head, size):
         return "splat"
     first = head[:8]
     raise SplatFormatError(
         f"{path}: unknown splat format (starts with {first!r}, {size} bytes): not a PLY file ('ply' header), "
-        f"not SPZ ('NGSP' or gzip), not an antimatter15 .splat (32-byte records"
+        f"not SPZ ('NGSP' or gzip), not a mkkellogg .ksplat (version 0.1 header), not an antimatter15 .splat (32-byte records"
         f"{'' if size % 32 == 0 else f'; {size} is not a multiple of 32'})"
     )
 
@@ -103,6 +108,8 @@ def read_gaussians_raw(path: str | os.PathLike, fmt: str | None = None) -> tuple
         return read_splat(path), fmt
     if fmt == "spz":
         return read_spz(path), fmt
+    if fmt == "ksplat":
+        return read_ksplat(path), fmt
     raise ValueError(f"unknown splat format {fmt!r}, expected one of {FORMATS}")
 
 
@@ -124,7 +131,7 @@ def read_gaussians(path: str | os.PathLike, on_invalid: str = "error") -> Loaded
 def scene_stem(path: str | os.PathLike) -> str:
     """The file name without its splat suffix (``room.compressed.ply`` -> ``room``, ``room.spz`` -> ``room``)."""
     name = Path(path).name
-    for suffix in (".compressed.ply", ".ply", ".splat", ".spz"):
+    for suffix in (".compressed.ply", ".ply", ".splat", ".spz", ".ksplat"):
         if name.lower().endswith(suffix) and len(name) > len(suffix):
             return name[: -len(suffix)]
     return Path(path).stem
@@ -143,11 +150,13 @@ def format_for_output(path: str | os.PathLike, fmt: str | None = None) -> str:
         return "splat"
     if name.endswith(".spz"):
         return "spz"
+    if name.endswith(".ksplat"):
+        return "ksplat"
     return "ply"
 
 
 def write_gaussians(path: str | os.PathLike, gaussians: Gaussians, fmt: str | None = None, *,
-                    spz_version: int = 4, ply_comments: tuple[str, ...] = ()) -> str:
+                    spz_version: int = 4, ksplat_level: int = 1, ply_comments: tuple[str, ...] = ()) -> str:
     """Write ``gaussians`` atomically in ``fmt`` (or the format of the name) -> the format written.
 
     Only ``ply`` keeps extras (labels); the other formats hold the splat attributes alone.
@@ -159,6 +168,8 @@ def write_gaussians(path: str | os.PathLike, gaussians: Gaussians, fmt: str | No
         write_compressed_ply(path, gaussians)
     elif fmt == "splat":
         write_splat(path, gaussians)
+    elif fmt == "ksplat":
+        write_ksplat(path, gaussians, compression_level=ksplat_level)
     else:
         write_spz(path, gaussians, version=spz_version)
     return fmt

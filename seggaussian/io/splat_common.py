@@ -33,6 +33,7 @@ FORMAT_TITLES = {
     "compressed_ply": "compressed PLY (SuperSplat / PlayCanvas)",
     "splat": "antimatter15 .splat",
     "spz": "Niantic SPZ",
+    "ksplat": "mkkellogg .ksplat",
 }
 
 #: An 8-bit opacity a/255 is clamped to [eps, 1 - eps] before the logit, so a stored 0 or 255 becomes a

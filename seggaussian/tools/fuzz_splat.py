@@ -1,12 +1,14 @@
 """Fuzz targets of the non-PLY splat formats for the shared harness in ``seggaussian.tools.fuzz``.
 
-One ``FuzzTarget`` per format (``.splat``, compressed PLY, SPZ v1-v4 gzip-wrapped and raw), all read through
+One ``FuzzTarget`` per format (``.splat``, compressed PLY, SPZ v1-v4 gzip-wrapped and raw, ``.ksplat`` at
+compression levels 0-2), all read through
 ``seggaussian.io.formats.read_gaussians`` (content detection + decode + validation, what every command runs).
 Seeds are written by our writers (SPZ v1 is assembled from a v2 payload: no writer emits it). Mutators: the
 harness's byte mutators for every format, its PLY header mutators for compressed PLY, plus format-aware ones:
 SPZ header fields (count, version, SH degree, fraction bits, stream count, TOC offset) and byte flips inside
 the gzip payload (re-wrapped, so they pass the CRC), and NaN / Inf written into float fields (.splat records,
-compressed-PLY chunk bounds, SPZ v1 float16 positions).
+compressed-PLY chunk bounds, SPZ v1 float16 positions, .ksplat block size, SH range and record floats), and
+.ksplat header fields (section count, splat counts, compression level, buckets, SH degree).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from seggaussian.tools.fuzz import BYTE_MUTATORS, PLY_MUTATORS, FuzzTarget, Muta
 
 __all__ = ["splat_targets", "SPLAT_TARGET_NAMES"]
 
-SPLAT_TARGET_NAMES = ("splat", "compressed_ply", "spz1", "spz2", "spz3", "spz3_raw", "spz4")
+SPLAT_TARGET_NAMES = ("splat", "compressed_ply", "spz1", "spz2", "spz3", "spz3_raw", "spz4", "ksplat")
 _BAD_FLOATS = (np.nan, np.inf, -np.inf)
 
 
@@ -100,6 +102,37 @@ def _f16_nan(data: bytes, rng: np.random.Generator) -> bytes:
     return bytes(out)
 
 
+#: (offset, size) of the .ksplat header fields mutated: main header counts and level, section header fields.
+_KSPLAT_FIELDS = ((0, 1), (1, 1), (4, 4), (8, 4), (12, 4), (16, 4), (20, 2)) + tuple(
+    (4096 + offset, size) for offset, size in ((0, 4), (4, 4), (8, 4), (12, 4), (20, 2), (24, 4), (32, 4), (36, 4),
+                                               (40, 2)))
+
+
+def _ksplat_header_field(data: bytes, rng: np.random.Generator) -> bytes:
+    out = bytearray(data)
+    offset, size = _KSPLAT_FIELDS[int(rng.integers(len(_KSPLAT_FIELDS)))]
+    if len(out) >= offset + size:
+        value = int(rng.choice([0, 1, 2, 3, 4, 7, 39, 41, 255, 256, 2**16 - 1, 2**20, 2**31 - 1, 2**32 - 1]))
+        out[offset: offset + size] = (value % (256 ** size)).to_bytes(size, "little")
+    return bytes(out)
+
+
+def _ksplat_nan(data: bytes, rng: np.random.Generator) -> bytes:
+    """NaN / Inf into the block size, the SH range or a float (float32 or float16) of the records."""
+    out = bytearray(data)
+    bad = rng.choice(_BAD_FLOATS)
+    where = int(rng.integers(3))
+    if where == 0 and len(out) >= 4096 + 20:
+        out[4096 + 16: 4096 + 20] = struct.pack("<f", bad)
+    elif where == 1 and len(out) >= 44:
+        offset = 36 + 4 * int(rng.integers(2))          # sh_min or sh_max
+        out[offset: offset + 4] = struct.pack("<f", bad)
+    elif len(out) > 5120 + 64:
+        offset = 5120 + 2 * int(rng.integers((len(out) - 5120) // 2 - 2))
+        out[offset: offset + 2] = np.array([bad], "<f2").tobytes()
+    return bytes(out)
+
+
 SPZ_MUTATORS: tuple[tuple[str, Mutator], ...] = (
     ("spz_header_field", _on_payload(_spz_header_field)),
     ("spz_payload_flip", _on_payload(_payload_flip)),
@@ -120,6 +153,11 @@ def splat_targets(seed: int = 0) -> list[FuzzTarget]:
                 seeds[name].append((f"written:{label}", path.read_bytes()))
             seeds["spz3_raw"].append((f"written:{label}", gzip.decompress(seeds["spz3"][-1][1])))
             seeds["spz1"].append((f"assembled:{label}", _spz_v1(g)))
+        for label, g in scenes.items():
+            for level in (0, 1, 2):
+                path = Path(tmp) / f"ksplat{level}_{label}"
+                write_gaussians(path, g, "ksplat", ksplat_level=level)
+                seeds["ksplat"].append((f"written:l{level}:{label}", path.read_bytes()))
         path = Path(tmp) / "seed.splat"
         write_gaussians(path, scenes["sh0"], "splat")
         seeds["splat"].append(("written:sh0", path.read_bytes()))
@@ -127,6 +165,7 @@ def splat_targets(seed: int = 0) -> list[FuzzTarget]:
         "splat": (("splat_nan", _splat_nan),),
         "compressed_ply": PLY_MUTATORS + (("chunk_nan", _chunk_nan),),
         "spz1": SPZ_MUTATORS + (("spz1_f16_nan", _f16_nan),),
+        "ksplat": (("ksplat_header_field", _ksplat_header_field), ("ksplat_nan", _ksplat_nan)),
     }
 
     def read(path: Path) -> Gaussians:
