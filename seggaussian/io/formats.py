@@ -90,7 +90,8 @@ def detect_format(path: str | os.PathLike) -> str:
     first = head[:8]
     raise SplatFormatError(
         f"{path}: unknown splat format (starts with {first!r}, {size} bytes): not a PLY file ('ply' header), "
-        f"not SPZ ('NGSP' or gzip), not a mkkellogg .ksplat (version 0.1 header), not an antimatter15 .splat (32-byte records"
+        f"not SPZ ('NGSP' or gzip), not a mkkellogg .ksplat (version 0.1 header), "
+        f"not an antimatter15 .splat (32-byte records"
         f"{'' if size % 32 == 0 else f'; {size} is not a multiple of 32'})"
     )
 
