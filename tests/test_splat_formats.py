@@ -140,6 +140,34 @@ def test_rotation_packing_matches_a_per_record_reference():
     assert (_quat_error(decode_rotations(encode_rotations(unit)), unit) < np.sqrt(2) / 1023).all()
 
 
+def test_spz_v3_rotations_and_sh_match_a_per_record_reference():
+    """The vectorised smallest-three and SH decode against plain loops over the bits and bytes."""
+    from seggaussian.io.spz import decode_spz, encode_spz
+
+    rng = np.random.default_rng(4)
+    g = _gaussians(n=400, degree=3, seed=4)
+    payload = bytearray(gzip.decompress(encode_spz(g, 3)))
+    n, k = len(g), 16
+    rot_at = 16 + n * (9 + 1 + 3 + 3)
+    packed = rng.integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32)    # every bit pattern, not only ours
+    payload[rot_at: rot_at + 4 * n] = packed.astype("<u4").tobytes()
+    fast = decode_spz(bytes(payload))
+    sh_bytes = payload[rot_at + 4 * n:]
+    for i, value in enumerate(packed.tolist()):
+        largest, xyzw, rest = value >> 30, [0.0] * 4, value
+        for component in (3, 2, 1, 0):                       # the highest remaining index sits in the lowest bits
+            if component == largest:
+                continue
+            magnitude = (rest & 511) / 511 / np.sqrt(2)
+            xyzw[component] = -magnitude if rest & 512 else magnitude
+            rest >>= 10
+        xyzw[largest] = np.sqrt(max(0.0, 1 - sum(v * v for v in xyzw)))
+        np.testing.assert_allclose(fast.quats[i], [xyzw[3], xyzw[0], xyzw[1], xyzw[2]], atol=1e-6)
+        for j in range(k - 1):
+            for c in range(3):
+                assert fast.sh[i, 1 + j, c] == (sh_bytes[(i * (k - 1) + j) * 3 + c] - 128) / 128
+
+
 def test_unknown_and_empty_files_name_the_file(tmp_path):
     for content, message in ((b"", "empty file"), (b"hello world", "unknown splat format"),
                              (gzip.compress(b"ply\nformat ascii 1.0\n"), "gzip file whose content is not SPZ"),
