@@ -13,7 +13,10 @@ Directions checked:
   0-3) -> the reference reads our file, and its decode equals ours (the reference cannot write .ksplat,
   so this is the only direction for it);
 * real PLYs from the open web (/work/shared/realdata) converted by the reference to every format:
-  counts and bounds of our decode agree with the reference's.
+  counts and bounds of our decode agree with the reference's;
+* files written by other programs (tests/data/splat_transform_fixtures: the reference repository's own
+  fixtures: SPZ v3/v4 from Niantic's library via @adobe/spz, a hand-assembled level-0 .ksplat with a bucket,
+  legacy SPZ and .splat files; see its SOURCES.md): our decode equals the reference's.
 """
 
 from __future__ import annotations
@@ -36,6 +39,9 @@ ROOT = Path(__file__).resolve().parents[1]
 CLI = ROOT / ".node" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
 REALDATA_DIRS = (ROOT.parent / "shared" / "realdata", Path("/work/shared/realdata"))
 REAL_FILES = ("loadersgl_train-1000.ply", "v3dg_donut_fused_sh0.ply")
+FIXTURES = ROOT / "tests" / "data" / "splat_transform_fixtures"
+FIXTURE_FILES = ("minimal-raw.spz", "minimal-v2.spz", "minimal-v3.spz", "minimal-v4.spz", "minimal.ksplat",
+                 "minimal.splat")
 #: Float32 rounding between two decoders of the same bytes (the reference computes in float64 JS numbers).
 DECODE_ATOL = 2e-6
 #: The same for quaternions whose largest component is recomputed as sqrt(1 - sum of squares).
@@ -149,6 +155,9 @@ def reference_files(tmp_path_factory):
             files[f"real_our_ksplat_{stem}"] = d / f"{stem}.ksplat"
             write_gaussians(d / f"{stem}.ksplat", g)
             sources[f"real_{stem}"] = g
+    for name in FIXTURE_FILES:                  # copied: the reference's decode is written beside each file
+        shutil.copyfile(FIXTURES / name, d / f"fixture_{name}")
+        files[f"fixture_{name}"] = d / f"fixture_{name}"
     convert_all(jobs)
     # the reference decodes every non-PLY file back to a plain PLY
     convert_all([(path, path.with_name(path.name + ".ref.ply"), ()) for path in files.values()])
@@ -278,3 +287,28 @@ def test_our_ksplat_files_are_read_by_the_reference(reference_files, level, degr
     rest_step = {0: 1e-6, 1: HALF_STEP, 2: np.abs(original.sh[:, 1:]).max(initial=0) / 255}[level]
     assert (np.abs(ours.sh[:, 1:] - original.sh[:, 1:]) <= rest_step + 1e-6).all()
     assert (_sign_free_quat_error(ours.quats, original.quats) <= float_step + 1e-6).all()
+
+
+@needs_reference
+@pytest.mark.parametrize("name", FIXTURE_FILES)
+def test_files_written_by_other_programs_decode_like_the_reference(reference_files, name):
+    files, _ = reference_files
+    path = files[f"fixture_{name}"]
+    expected = {"spz": "spz", "ksplat": "ksplat", "splat": "splat"}[name.rsplit(".", 1)[1]]
+    renamed = path.with_name(path.name + ".bin")           # detection is by content, not by name
+    shutil.copyfile(path, renamed)
+    ours, fmt = read_gaussians_raw(renamed)
+    assert fmt == expected
+    ref = reference_decode(path)
+    _compare_decodes(ours, ref, name)
+    np.testing.assert_array_equal(ours.means.min(0), ref.means.min(0))
+    np.testing.assert_array_equal(ours.means.max(0), ref.means.max(0))
+    loaded = read_gaussians(path)                          # and it passes validation
+    assert loaded.report.ok and len(loaded.gaussians) == 4
+    # the generator's values (test/fixtures/create-fixtures.mjs): a 2 x 2 grid with 1 m spacing, scale 0.1,
+    # opacity 230/255; SPZ stores the scale as a log in 1/16 steps and v3/v4 (Niantic's writer) flips z
+    assert sorted(map(tuple, np.round(ours.means[:, [0, 2]]).tolist())) == (
+        [(-1, 0), (-1, 1), (0, 0), (0, 1)] if name in ("minimal-v3.spz", "minimal-v4.spz")
+        else [(-1, -1), (-1, 0), (0, -1), (0, 0)])
+    np.testing.assert_allclose(np.exp(ours.log_scales), 0.1, rtol=0.02 if expected == "spz" else 1e-6)
+    np.testing.assert_allclose(ours.opacities(), 230 / 255, atol=0.5 / 255)
