@@ -210,12 +210,15 @@ def decode_ksplat(data: bytes, source: str | os.PathLike = "<bytes>") -> Gaussia
         rgba = records["rgba"]
         sh[rows, 0, :] = dc_from_rgb(rgba[:, :3] * np.float32(1.0 / 255.0))
         opacity_logits[rows] = logit_from_unit(rgba[:, 3] * np.float32(1.0 / 255.0))
-        if section_degree:
-            stored = records["sh"]
-            if level == 2:
-                stored = (sh_min + stored.astype(np.float64) / 255.0 * (sh_max - sh_min)).astype(np.float32)
-            coeffs, channels = _sh_slots(section_degree)
-            sh[rows, 1:, :][:, coeffs, channels] = stored        # a view of the section's rows
+        stored = records["sh"]
+        if level == 2:       # the 256 byte values, computed as the reference does (float64, then float32)
+            stored = (sh_min + np.arange(256) / 255.0 * (sh_max - sh_min)).astype(np.float32)[stored]
+        at_value = 0
+        for band in range(1, section_degree + 1):    # channel-major inside a band -> [N, coefficient, channel]
+            first, width = band * band - 1, 2 * band + 1
+            block = stored[:, at_value: at_value + 3 * width].reshape(count, 3, width)
+            sh[rows, 1 + first: 1 + first + width, :] = block.transpose(0, 2, 1)
+            at_value += 3 * width
         done += count
         offset = end
     if offset != size:
