@@ -46,6 +46,10 @@ def test_round_trip_within_quantisation_and_detected_by_content(fmt, kwargs, tmp
     assert detect_format(path) == fmt
     back, report, detected = read_gaussians(path)
     assert detected == fmt and report.ok and len(back) == len(g) and back.sh_degree == g.sh_degree
+    if fmt == "compressed_ply":                        # stored in Morton order, as the reference writes it
+        from seggaussian.io.compressed_ply import morton_order
+
+        g = g.subset(morton_order(g.means))
     if (level := kwargs.get("ksplat_level")) is not None:
         fmt = f"ksplat{level}"                         # tolerances per compression level below
         if level:                                      # levels 1-2 store the splats bucket by bucket
@@ -119,6 +123,24 @@ def test_compressed_ply_layout(tmp_path):
     path.write_bytes(data)
     with pytest.raises(SplatFormatError, match=r"a.compressed.ply: compressed PLY: 2 chunks for 600 vertices"):
         read_gaussians(path)
+
+
+def test_morton_order_degenerate_and_refined():
+    from seggaussian.io.compressed_ply import morton_order
+
+    assert morton_order(np.zeros((0, 3))).tolist() == [] and morton_order(np.ones((1, 3))).tolist() == [0]
+    assert morton_order(np.ones((600, 3))).tolist() == list(range(600))           # all equal: input order
+    # 300 points inside one 10-bit cell of the whole cloud are sorted again over their own bounds
+    rng = np.random.default_rng(5)
+    cluster = rng.uniform(0, 1e-6, (300, 3))
+    points = np.concatenate([cluster, [[1000.0, 1000.0, 1000.0]]])
+    order = morton_order(points)
+    assert sorted(order.tolist()) == list(range(301)) and order[-1] == 300
+    assert order[:300].tolist() == morton_order(cluster).tolist() != list(range(300))
+    # a line along x comes out sorted by x
+    x = rng.permutation(1000).astype(np.float64)
+    line = np.stack([x, np.zeros(1000), np.zeros(1000)], axis=1)
+    assert (np.diff(x[morton_order(line)]) > 0).all()
 
 
 def test_rotation_packing_matches_a_per_record_reference():

@@ -32,6 +32,7 @@ import pytest
 from seggaussian.constants import SH_C0
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.formats import detect_format, read_gaussians, read_gaussians_raw, write_gaussians
+from seggaussian.io.compressed_ply import morton_order
 from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, bucket_layout, write_ksplat
 from seggaussian.io.ply import read_vertex_table, vertex_table_to_gaussians, write_gaussians_ply
 
@@ -224,7 +225,9 @@ def test_our_files_are_read_by_the_reference(reference_files, tag, degree):
     ref = reference_decode(path)
     _compare_decodes(ours, ref, f"{tag} sh{degree}")
     original = sources[f"sh{degree}"]
-    # our writer kept the order; values within the quantisation steps of the format
+    if tag == "our_cply":                                   # stored in Morton order, as the reference does
+        original = original.subset(morton_order(original.means))
+    # values within the quantisation steps of the format
     tol_means = {"our_cply": np.ptp(original.means, axis=0) / 1023 + 1e-4, "our_splat": 1e-6}.get(tag, 0.5 / 4096 + 1e-6)
     assert (np.abs(ours.means - original.means) <= tol_means).all()
     tol_opacity = 0.5 / 255 + 1e-6 if tag != "our_splat" else 0.5 / 255 + 1e-6
@@ -312,3 +315,18 @@ def test_files_written_by_other_programs_decode_like_the_reference(reference_fil
         else [(-1, -1), (-1, 0), (0, -1), (0, 0)])
     np.testing.assert_allclose(np.exp(ours.log_scales), 0.1, rtol=0.02 if expected == "spz" else 1e-6)
     np.testing.assert_allclose(ours.opacities(), 230 / 255, atol=0.5 / 255)
+
+
+@needs_reference
+@pytest.mark.parametrize("degree", range(4))
+def test_our_compressed_ply_has_the_reference_writers_order(reference_files, degree):
+    """Both writers Morton-sort before chunking: the same Gaussians land in the same places and chunks."""
+    files, sources = reference_files
+    ours, _ = read_gaussians_raw(files[f"our_cply_sh{degree}"])
+    theirs, _ = read_gaussians_raw(files[f"ref_cply_sh{degree}"])
+    step = np.ptp(sources[f"sh{degree}"].means, axis=0) / 1023 + 1e-4      # one position step of the widest chunk
+    assert (np.abs(ours.means - theirs.means) <= step).all()
+    # same chunk membership: the same per-chunk lower position bounds (stored exactly as float32)
+    edges = np.arange(0, len(ours), 256)
+    np.testing.assert_allclose(np.minimum.reduceat(ours.means, edges), np.minimum.reduceat(theirs.means, edges),
+                               atol=1e-4)

@@ -24,9 +24,11 @@ Quantisation steps (what the tests allow): position ``(max - min) / 2047`` (x, z
 chunk; log scale likewise; colour ``(max - min) / 255`` in colour units; opacity 1/255; quaternion
 components ``sqrt(2) / 1023``; SH ``8 / 256``.
 
-Writing follows the same rules; chunks hold the Gaussians in input order (the reference writer sorts
-by Morton code first, which only changes the order), the scale bounds are clamped to [-20, 20] as the
-reference does, and chunk colour bounds are always written. Extras are not representable and dropped.
+Writing follows the same rules. The Gaussians are stored in Morton (Z-curve) order first, as the
+reference writer does (:func:`morton_order`: 10 bits per axis over the bounds, ties kept in input order,
+runs of more than 256 equal codes re-sorted over their own bounds), so each chunk is spatially compact and
+its bounds tight; the scale bounds are clamped to [-20, 20] as the reference does, and chunk colour bounds
+are always written. Extras are not representable and dropped.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from seggaussian.io.ply import PlyElement, PlyHeader, read_ply_header, write_ato
 from seggaussian.io.splat_common import SplatFormatError, dc_from_rgb, logit_from_unit, unit_from_logit
 
 __all__ = ["CHUNK_SIZE", "is_compressed_ply_header", "read_compressed_ply", "encode_compressed_ply",
-           "write_compressed_ply"]
+           "write_compressed_ply", "morton_order"]
 
 TITLE = "compressed PLY"
 #: Gaussians per chunk.
@@ -235,13 +237,62 @@ def encode_rotations(quats: np.ndarray) -> np.ndarray:
     return (largest.astype(np.uint32) << np.uint32(30)) | (q[:, 0] << np.uint32(20)) | (q[:, 1] << np.uint32(10)) | q[:, 2]
 
 
+#: Bits per axis of a Morton code (three interleaved fit 30 bits).
+MORTON_BITS = 10
+
+
+def _spread_bits(v: np.ndarray) -> np.ndarray:
+    """``[N]`` uint32 10-bit values -> the bits moved to every third position (bit i -> bit 3i)."""
+    v = v & np.uint32(0x3FF)
+    v = (v ^ (v << np.uint32(16))) & np.uint32(0xFF0000FF)
+    v = (v ^ (v << np.uint32(8))) & np.uint32(0x0300F00F)
+    v = (v ^ (v << np.uint32(4))) & np.uint32(0x030C30C3)
+    return (v ^ (v << np.uint32(2))) & np.uint32(0x09249249)
+
+
+def morton_order(means: np.ndarray) -> np.ndarray:
+    """``[N, 3]`` finite centres -> ``[N]`` indices in Morton order (the reference writer's order).
+
+    Codes quantise each axis to ``MORTON_BITS`` bits between the bounds of the points being sorted
+    (truncating, the top clamped); ties keep the input order; a run of more than ``CHUNK_SIZE`` equal
+    codes is sorted again over its own bounds, until its points coincide.
+    """
+    points = means.astype(np.float64)
+    order = np.arange(points.shape[0])
+    pending = [(0, points.shape[0])]
+    top = float(1 << MORTON_BITS)
+    while pending:
+        start, stop = pending.pop()
+        if stop - start < 2:
+            continue
+        idx = order[start:stop]
+        p = points[idx]
+        lo, extent = p.min(axis=0), np.ptp(p, axis=0)
+        if not (extent > 0).any():
+            continue                                        # all points equal: nothing to order
+        scale = np.divide(top, extent, out=np.zeros(3), where=extent > 0)
+        q = np.minimum(top - 1, (p - lo) * scale).astype(np.uint32)
+        codes = (_spread_bits(q[:, 2]) << np.uint32(2)) | (_spread_bits(q[:, 1]) << np.uint32(1)) \
+            | _spread_bits(q[:, 0])
+        perm = np.argsort(codes, kind="stable")
+        order[start:stop] = idx[perm]
+        codes = codes[perm]
+        edges = np.concatenate([[0], np.flatnonzero(np.diff(codes)) + 1, [codes.shape[0]]])
+        for a, b in zip(edges[:-1], edges[1:]):
+            if b - a > CHUNK_SIZE:
+                pending.append((start + int(a), start + int(b)))
+    return order
+
+
 def encode_compressed_ply(gaussians: Gaussians) -> tuple[bytes, list[np.ndarray]]:
-    """``Gaussians`` -> (header bytes, body arrays) of a compressed PLY; non-finite input is refused."""
+    """``Gaussians`` -> (header bytes, body arrays) of a compressed PLY, in :func:`morton_order`;
+    non-finite input is refused."""
     g = gaussians
     n = len(g)
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         if not np.isfinite(getattr(g, name)).all():
             raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
+    g = g.subset(morton_order(g.means))
     num_chunks = -(-n // CHUNK_SIZE)
     chunk = np.zeros(num_chunks, dtype=[(name, "<f4") for name in CHUNK_BOUNDS + CHUNK_COLOURS])
     packed = np.zeros(n, dtype=[(name, "<u4") for name in VERTEX_PACKED])
