@@ -200,8 +200,8 @@ def _split_streams(data: bytes, source) -> tuple[dict, dict[str, np.ndarray]]:
 
 
 #: Value of every 10-bit smallest-three field: a 9-bit magnitude ``m / 511 / sqrt(2)``, bit 9 the sign.
-_FIELD_DECODE = (np.where(np.arange(1024) & 512, -1.0, 1.0) * (np.arange(1024) & 511)
-                 * (np.sqrt(0.5) / 511.0)).astype(np.float32)
+_FIELD_DECODE = (np.where(np.arange(1024) & 512, np.float32(-1.0), np.float32(1.0))
+                 * ((np.arange(1024) & 511).astype(np.float32) * np.float32(np.sqrt(0.5) / 511.0))).astype(np.float32)
 #: Per index of the largest component (x, y, z, w order): where each output component w, x, y, z comes from
 #: among [field 0, field 1, field 2, largest]; the fields from the lowest bits up hold the remaining
 #: components from the highest index down.
