@@ -37,6 +37,7 @@ from ovgaussian.bench_config import (
     TABLE1_COLUMNS,
     BenchConfig,
 )
+from ovgaussian.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from ovgaussian.predict import load_model_predictor
 from ovgaussian.train_config import config_to_dict
@@ -97,6 +98,7 @@ class BenchResult(NamedTuple):
     results: dict  # {(dim, metric): MetricResult}
     common_classes: np.ndarray | None
     confusion: dict  # {(split, dim): [K, K+1] counts}
+    scene_confusion: dict | None = None  # {(split, dim): [S, K, K+1] counts, one matrix per scored scene}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -169,7 +171,8 @@ def evaluate(
 
     Each split is iterated once; a scene's per-Gaussian vectors are computed once and reused for its
     3D labels and every view. Views are streamed: one view's blend weights at a time, ``band_rows`` rows at once.
-    Returns per-(dim, metric) results and the confusion matrices.
+    Returns per-(dim, metric) results, the confusion matrices and one matrix per scored scene (for the
+    bootstrap intervals of ``ovgaussian.bootstrap``).
     """
     unknown = set(metrics) - set(METRICS)
     if unknown:
@@ -190,11 +193,13 @@ def evaluate(
         functions = default_blend_functions()
 
     confusion: dict[tuple[str, str], ConfusionMatrix] = {}
+    per_scene: dict[tuple[str, str], list[np.ndarray]] = {}
     counts: dict[tuple[str, str], list[int]] = {}
     common: set[int] = set()
     for split, dim_roles in plan.items():
         for dim in dim_roles:
             confusion[(split, dim)] = ConfusionMatrix(k)
+            per_scene[(split, dim)] = []
             counts[(split, dim)] = [0, 0]
         for scene in scenes_by_split.get(split, ()):
             if progress is not None:
@@ -214,10 +219,14 @@ def evaluate(
                     raise ValueError(f"scene {scene.scene_id} ({split}): Gaussians have no 'semantic' labels")
                 gt = to_vocabulary_labels(semantic, vocabulary, f"scene {scene.scene_id} Gaussians.semantic")
                 pred = classify_vectors(predictor, vectors, vocabulary, chunk_rows)
-                confusion[(split, "3d")].update(pred, gt)
+                scene_cm = ConfusionMatrix(k)
+                scene_cm.update(pred, gt)
+                confusion[(split, "3d")].counts += scene_cm.counts
+                per_scene[(split, "3d")].append(scene_cm.counts)
                 counts[(split, "3d")][0] += 1
             if "2d" in dim_roles:
                 views = _views_with_role(scene, dim_roles["2d"], max_views_per_scene)
+                scene_cm = ConfusionMatrix(k)
                 for view in views:
                     if view.semantic is None:
                         raise ValueError(f"scene {scene.scene_id} view {view.name}: no stored semantic label map")
@@ -228,8 +237,11 @@ def evaluate(
                     if pred.shape != gt.shape:
                         raise ValueError(f"scene {scene.scene_id} view {view.name}: rendered {pred.shape} but "
                                          f"the stored label map is {gt.shape}")
-                    confusion[(split, "2d")].update(pred, gt)
+                    scene_cm.update(pred, gt)
                     counts[(split, "2d")][1] += 1
+                confusion[(split, "2d")].counts += scene_cm.counts
+                if views:
+                    per_scene[(split, "2d")].append(scene_cm.counts)
                 counts[(split, "2d")][0] += 1 if views else 0
 
     common_idx = None
@@ -249,7 +261,8 @@ def evaluate(
         cm = confusion[(split, dim)]
         scenes, views = counts[(split, dim)]
         results[(dim, metric)] = MetricResult(metric, dim, split, classes, cm.scores(classes), scenes, views)
-    return BenchResult(vocabulary, results, common_idx, {key: cm.counts for key, cm in confusion.items()})
+    stacked = {key: np.stack(mats) if mats else np.zeros((0, k, k + 1), np.int64) for key, mats in per_scene.items()}
+    return BenchResult(vocabulary, results, common_idx, {key: cm.counts for key, cm in confusion.items()}, stacked)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -278,15 +291,27 @@ def _finite_or_none(value) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
+def metric_interval(result: BenchResult, dim: str, metric: str, *, draws: int = DEFAULT_DRAWS,
+                    seed: int = 0) -> Interval | None:
+    """95 % percentile-bootstrap interval over scenes of one metric's mIoU (None without per-scene matrices)."""
+    r = result.results.get((dim, metric))
+    if r is None or result.scene_confusion is None or (r.split, dim) not in result.scene_confusion:
+        return None
+    return bootstrap_miou(result.scene_confusion[(r.split, dim)], r.classes, draws=draws, seed=seed)
+
+
 def result_to_dict(result: BenchResult) -> dict:
-    """JSON-ready dict (no NaN: None where a class is not scored): per metric mIoU, mAcc, per-class IoU
-    by name, counts, the Table-1 row and the confusion matrices."""
+    """JSON-ready dict (no NaN: None where a class is not scored): per metric mIoU with its 95 % bootstrap
+    interval over scenes, mAcc, per-class IoU by name, counts, the Table-1 row, the confusion matrices and
+    the per-scene matrices."""
     voc = result.vocabulary
     metrics = {}
     for (dim, metric), r in result.results.items():
+        interval = metric_interval(result, dim, metric)
         metrics.setdefault(dim, {})[metric] = {
             "split": r.split,
             "miou": r.scores.miou,
+            "ci95": None if interval is None or interval.low is None else [interval.low, interval.high],
             "macc": r.scores.macc,
             "classes": [voc.names[i] for i in r.classes],
             "scored_classes": [voc.names[i] for i in r.scores.scored_classes],
@@ -309,6 +334,8 @@ def result_to_dict(result: BenchResult) -> dict:
         "row": {f"{d}_{m}": (None if (d, m) not in result.results else result.results[(d, m)].scores.miou)
                 for d, m in TABLE1_COLUMNS},
         "confusion": {f"{split}_{dim}": counts.tolist() for (split, dim), counts in result.confusion.items()},
+        "scene_confusion": {f"{split}_{dim}": counts.tolist()
+                            for (split, dim), counts in (result.scene_confusion or {}).items()},
     }
 
 
