@@ -10,6 +10,7 @@ from ovgaussian import __version__
 COMMANDS = {
     "train": "cli.ov_train:command",
     "bench": "cli.ov_bench:command",
+    "bench-suite": "cli.ov_bench_suite:command",
     "predict": "cli.ov_predict:command",
 }
 

@@ -62,8 +62,12 @@ def compute_text_logits(
 def masked_cross_entropy(
     logits: torch.Tensor,  # [P, C]
     labels: torch.Tensor,  # [P] int, class index in 0..C-1 or IGNORE_LABEL
+    class_weights: torch.Tensor | None = None,  # [C] weight of each class's rows; None: all 1
 ) -> tuple[torch.Tensor, int]:
-    """Mean cross-entropy over labelled rows (log-softmax, stable for any finite logits) and their count."""
+    """Mean cross-entropy over labelled rows (log-softmax, stable for any finite logits) and their count.
+
+    With ``class_weights`` each row's term is multiplied by its class's weight and the sum is still divided
+    by the row count (weights normalized over the training data keep the loss on the same scale)."""
     labels = labels.long()
     valid = labels != IGNORE_LABEL
     count = int(valid.sum())
@@ -75,7 +79,10 @@ def masked_cross_entropy(
         raise ValueError(f"labels must be in 0..{num_classes - 1} or IGNORE_LABEL, got range "
                          f"{int(chosen.min())}..{int(chosen.max())}")
     log_probs = torch.log_softmax(logits[valid], dim=1)
-    return -log_probs.gather(1, chosen[:, None]).mean(), count
+    nll = -log_probs.gather(1, chosen[:, None])[:, 0]
+    if class_weights is not None:
+        nll = nll * class_weights.to(nll.dtype)[chosen]
+    return nll.mean(), count
 
 
 def masked_cosine_loss(

@@ -14,6 +14,8 @@ import json
 from pathlib import Path
 from typing import NamedTuple, Protocol, Sequence
 
+import numpy as np
+
 from ovgaussian.vocabulary import Vocabulary, map_labels
 from seggaussian import shards
 from seggaussian.constants import IGNORE_LABEL
@@ -73,6 +75,7 @@ class SceneSummary(NamedTuple):
         labelled_gaussians: Gaussians with a seen-class label.
         labelled_pixels: pixels of the train views with a seen-class label.
         skip_reason: None, or why the scene is not trained on (``empty``, ``no train view``, ``all ignore``).
+        class_counts: ``[C]`` Gaussians per seen class (for class-balanced loss weights).
     """
 
     scene_id: str
@@ -81,6 +84,7 @@ class SceneSummary(NamedTuple):
     labelled_gaussians: int
     labelled_pixels: int
     skip_reason: str | None
+    class_counts: tuple[int, ...] = ()
 
 
 class ScanResult(NamedTuple):
@@ -104,7 +108,10 @@ def summarize_scene(record, vocabulary: Vocabulary) -> SceneSummary:
     n = len(record.gaussians)
     views = tuple(v.name for v in record.views if v.role == "train")
     semantic = record.gaussians.extras.get("semantic")
-    labelled = 0 if semantic is None else int((map_labels(semantic, vocabulary) != IGNORE_LABEL).sum())
+    mapped = np.zeros(0, np.int64) if semantic is None else map_labels(semantic, vocabulary)
+    mapped = mapped[mapped != IGNORE_LABEL]
+    labelled = int(mapped.size)
+    class_counts = tuple(int(c) for c in np.bincount(mapped, minlength=vocabulary.class_ids.size))
     pixels = sum(int((map_labels(v.semantic, vocabulary) != IGNORE_LABEL).sum())
                  for v in record.views if v.role == "train" and v.semantic is not None)
     reason = None
@@ -114,7 +121,23 @@ def summarize_scene(record, vocabulary: Vocabulary) -> SceneSummary:
         reason = "no train view"
     elif labelled == 0 and pixels == 0:
         reason = "all ignore"
-    return SceneSummary(record.scene_id, n, views, labelled, pixels, reason)
+    return SceneSummary(record.scene_id, n, views, labelled, pixels, reason, class_counts)
+
+
+def class_weights(scan: ScanResult, num_classes: int, exponent: float) -> np.ndarray:
+    """``[C]`` float32 loss weights ``n_c ** -exponent`` of the seen classes from the usable scenes' Gaussian
+    counts ``n_c``, scaled so the labelled Gaussians' mean weight is 1; 0 counts as 1 (a class never seen
+    gets the largest weight, harmlessly: it has no sample). ``exponent`` 0 gives all ones."""
+    counts = np.zeros(num_classes, np.float64)
+    usable = set(scan.usable)
+    for summary in scan.summaries:
+        if summary.scene_id in usable and summary.class_counts:
+            counts += np.asarray(summary.class_counts, np.float64)
+    weights = np.maximum(counts, 1.0) ** -float(exponent)
+    total = counts.sum()
+    if total > 0:
+        weights *= total / float((weights * counts).sum())
+    return weights.astype(np.float32)
 
 
 def scan_scenes(source: SceneSource, vocabulary: Vocabulary) -> ScanResult:

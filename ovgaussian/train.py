@@ -52,7 +52,7 @@ from ovgaussian.process_group import (
 from ovgaussian.run_folder import (
     METRIC_NAMES, append_metrics, check_resumable, run_config_payload, truncate_metrics,
 )
-from ovgaussian.scene_source import ScanResult, ShardSource, scan_scenes
+from ovgaussian.scene_source import ScanResult, ShardSource, class_weights, scan_scenes
 from ovgaussian.schedule import epoch_batches, learning_rate, rank_slice, sample_seed
 from ovgaussian.teacher import DenseTeacher
 from ovgaussian.text import load_or_encode_texts
@@ -93,7 +93,10 @@ class TrainResult(NamedTuple):
 
 def make_model_config(config: TrainConfig, text_width: int) -> OVGaussianNetConfig:
     """The network config of the preset, with ``embedding_width`` = text width and the adapter switch."""
-    fields = dict(embedding_width=int(text_width), use_adapter=config.use_adapter, seed=config.seed)
+    fields = dict(embedding_width=int(text_width), use_adapter=config.use_adapter, seed=config.seed,
+                  use_coordinates=config.use_coordinates)
+    if config.voxel_size is not None:
+        fields["voxel_size"] = float(config.voxel_size)
     if config.model_preset == "slim":
         return OVGaussianNetConfig.slim(**fields)
     if config.model_preset == "default":
@@ -235,6 +238,7 @@ class _Run(NamedTuple):
     optimizer: torch.optim.Optimizer
     data: TrainingData
     text_embeddings: torch.Tensor  # [C_seen, D] on device
+    class_weights: torch.Tensor | None  # [C_seen] weights of the text cross-entropies (None: all 1)
     use_teacher: bool
     batch_scenes: int
     steps_per_epoch: int
@@ -253,7 +257,8 @@ def train_step(run: _Run, epoch: int, step: int, batch: list[str], global_step: 
     samples = [run.data.sample(sid, np.random.default_rng(sample_seed(config.seed, epoch, step, sid)))
                for sid in local]
     optimizer.zero_grad(set_to_none=True)
-    terms = batch_losses(run.net, samples, run.text_embeddings, config, run.use_teacher, run.device)
+    terms = batch_losses(run.net, samples, run.text_embeddings, config, run.use_teacher, run.device,
+                         run.class_weights)
     loss = sum(t.total for t in terms) / len(batch)
     loss.backward()
     if group.world_size > 1:
@@ -383,8 +388,11 @@ def train_in_process_group(
         for note in notes:
             LOG.warning(note)
 
-    run = _Run(config, group, device, net, optimizer, data, text_embeddings, teacher is not None, batch_scenes,
-               steps_per_epoch, steps_per_epoch * config.epochs, run_dir, metrics_path)
+    weights = None
+    if config.loss.class_balance:
+        weights = torch.from_numpy(class_weights(scan, len(vocabulary.names), config.loss.class_balance)).to(device)
+    run = _Run(config, group, device, net, optimizer, data, text_embeddings, weights, teacher is not None,
+               batch_scenes, steps_per_epoch, steps_per_epoch * config.epochs, run_dir, metrics_path)
     last_epoch_metrics: dict = {}
     end_epoch = config.epochs if config.stop_after_epochs is None else min(config.epochs, config.stop_after_epochs)
     for epoch in range(start_epoch, end_epoch):

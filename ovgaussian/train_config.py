@@ -82,6 +82,9 @@ class LossConfig:
     """Drop the visual-semantic cosine loss (ablation)."""
     cosine_weight: float = 1.0
     """Weight of the cosine loss in L = L_semantic + w * L_cosine."""
+    class_balance: float = 0.0
+    """Exponent p of the class weights n_c^-p of both text cross-entropies (n_c: the seen class's Gaussians in
+    the training split; mean weight 1): 0 is the paper's plain loss, 0.5 lifts small objects against walls."""
 
 
 @dataclass(frozen=True)
@@ -122,6 +125,11 @@ class TrainConfig:
     """Model width preset: ``default`` (paper widths) or ``slim`` (narrow backbone for CPU)."""
     use_adapter: bool = True
     """Use the voxel-to-point adapter (off: ablation --no-adapter)."""
+    voxel_size: Optional[float] = None
+    """Voxel edge in metres of the network's finest level; None keeps the preset's (5 cm, as the paper)."""
+    use_coordinates: bool = False
+    """Also give the network each Gaussian's position, normalized by the scene's extent (height above the floor
+    tells floor, wall and ceiling objects apart); off keeps the paper's 11 attributes."""
     progress: bool = True
     """Show a tqdm progress bar with the running losses."""
     data: DataConfig = field(default_factory=DataConfig)

@@ -94,12 +94,14 @@ def text_cross_entropy_3d(
     labels: "torch.Tensor",  # [N] seen-class index
     text_embeddings: "torch.Tensor",  # [C, D]
     temperature: float,
+    class_weights: "torch.Tensor | None" = None,  # [C]
 ) -> tuple["torch.Tensor", int]:
     """3D-to-text cross-entropy (mean over the rows, count): ``masked_cross_entropy`` of
     ``compute_text_logits(phi(semantic))``, over row chunks under activation checkpointing
     (``ovgaussian.model.checkpointed_rows``): phi's ``[N, D]`` output is never held whole."""
     def chunk_sum(rows, rows_labels):
-        mean, count = masked_cross_entropy(decoded_text_logits(phi, rows, text_embeddings, temperature), rows_labels)
+        mean, count = masked_cross_entropy(decoded_text_logits(phi, rows, text_embeddings, temperature), rows_labels,
+                                           class_weights)
         return mean * count
 
     count = int((labels != IGNORE_LABEL).sum())
@@ -109,7 +111,7 @@ def text_cross_entropy_3d(
 
 
 def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embeddings: "torch.Tensor",
-                 config: TrainConfig, use_teacher: bool):
+                 config: TrainConfig, use_teacher: bool, class_weights: "torch.Tensor | None" = None):
     """:class:`ovgaussian.losses.LossTerms` of one scene from its semantic vectors ``[N, S]``."""
     device = semantic.device
     temperature = config.loss.temperature
@@ -118,13 +120,14 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
     if config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     else:
-        text_3d = text_cross_entropy_3d(net.phi, semantic[valid3], labels[valid3], text_embeddings, temperature)
+        text_3d = text_cross_entropy_3d(net.phi, semantic[valid3], labels[valid3], text_embeddings, temperature,
+                                        class_weights)
     pixel_ids, pixel_weights = sample.pixel_ids.to(device), sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)
     valid2 = pixel_labels != IGNORE_LABEL
     logits2 = compute_text_logits(net.phi(rendered[valid2]), text_embeddings, temperature)
-    text_2d = masked_cross_entropy(logits2, pixel_labels[valid2])
+    text_2d = masked_cross_entropy(logits2, pixel_labels[valid2], class_weights)
     cosine = None
     if use_teacher and sample.teacher is not None:
         covered = (pixel_weights * (pixel_ids >= 0)).sum(-1) >= COVERAGE_MIN
@@ -136,13 +139,14 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
 
 
 def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: TrainConfig, use_teacher: bool,
-                 device) -> list:
+                 device, class_weights: "torch.Tensor | None" = None) -> list:
     """LossTerms of each scene of this process's slice (one network forward for all of them)."""
     means, attributes, batch_index = network_inputs(samples, device)
     semantic = net(means, attributes, batch_index)
     terms, start = [], 0
     for sample in samples:
         n = len(sample.means)
-        terms.append(scene_losses(net, semantic[start:start + n], sample, text_embeddings, config, use_teacher))
+        terms.append(scene_losses(net, semantic[start:start + n], sample, text_embeddings, config, use_teacher,
+                                  class_weights))
         start += n
     return terms

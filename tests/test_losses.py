@@ -106,3 +106,15 @@ def test_combine_losses_switches():
     assert float(offv.total) == 3.0 and offv.count_cosine == 0
     assert float(combine_losses(t3, t2, None, no_3dt_align=False, no_vs_align=False).total) == 3.0
     assert float(combine_losses(t3, t2, cs, no_3dt_align=False, no_vs_align=False, cosine_weight=0.5).total) == 5.0
+
+
+def test_weighted_cross_entropy_is_the_weighted_sum_over_the_row_count():
+    logits = torch.tensor([[1.0, 2.0, 3.0], [0.5, 0.0, -1.0], [5.0, 5.0, 5.0], [0.0, 1.0, 0.0]])
+    labels = torch.tensor([2, 0, IGNORE_LABEL, 1])
+    weights = torch.tensor([0.5, 2.0, 1.5])
+    loss, count = masked_cross_entropy(logits, labels, weights)
+    rows = [(logits[0].tolist(), 2), (logits[1].tolist(), 0), (logits[3].tolist(), 1)]
+    expected = sum(float(weights[y]) * reference_cross_entropy([row], [y]) for row, y in rows) / 3
+    assert count == 3 and float(loss) == pytest.approx(expected, rel=1e-6)
+    plain, _ = masked_cross_entropy(logits, labels, torch.ones(3))
+    assert float(plain) == pytest.approx(float(masked_cross_entropy(logits, labels)[0]), rel=1e-7)

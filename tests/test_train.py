@@ -14,7 +14,7 @@ import torch
 
 from ovgaussian.augmentation import Augmentation, augment_gaussians
 from ovgaussian.data import TrainingData, default_pixel_blend_function, prepare_scene
-from ovgaussian.scene_source import InMemorySource, ShardSource, scan_scenes
+from ovgaussian.scene_source import InMemorySource, ShardSource, class_weights, scan_scenes
 from ovgaussian.schedule import epoch_batches, rank_slice
 from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TeacherConfig, TrainConfig
 from ovgaussian.vocabulary import benchmark_class_ids, map_labels, training_vocabulary
@@ -170,6 +170,22 @@ def test_scan_skips_and_counts_empty_and_all_ignore(scenes):
     scan = scan_scenes(InMemorySource([scenes[0], empty, ignore, unseen_only]), voc)
     assert scan.usable == ("scene00",)
     assert scan.skipped == {"empty": 1, "all ignore": 2}
+
+
+def test_class_weights_follow_the_scan_counts(scenes):
+    voc = training_vocabulary(20)
+    scan = scan_scenes(InMemorySource(scenes), voc)
+    counts = np.zeros(len(voc.names))
+    for record in scenes:
+        labels = map_labels(record.gaussians.extras["semantic"], voc)
+        counts += np.bincount(labels[labels != IGNORE_LABEL], minlength=len(voc.names))
+    assert np.asarray([s.class_counts for s in scan.summaries]).sum(0).tolist() == counts.tolist()
+    assert (class_weights(scan, len(voc.names), 0.0) == 1).all()
+    w = class_weights(scan, len(voc.names), 0.5)
+    present = counts > 0
+    assert float((w * counts).sum() / counts.sum()) == pytest.approx(1.0, rel=1e-5)  # mean weight 1
+    ratio = w[present] * np.sqrt(counts[present])  # n_c^-1/2 up to one factor
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-5)
 
 
 def test_prepared_scene_is_recentred_and_unseen_ignored(scenes):

@@ -1,0 +1,48 @@
+"""``ovgaussian bench-suite``: the benchmark profile (Table 1 + the paper's Table 2, 95 % intervals over scenes)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cli._config_options import config_option
+from cli._output import finish, guarded, json_option
+from ovgaussian.suite_config import SuiteConfig
+
+D = SuiteConfig()
+
+
+@click.command("bench-suite")
+@config_option(SuiteConfig, "out", "--out", type=click.Path(path_type=Path, file_okay=False), default=D.out,
+               show_default=True)
+@config_option(SuiteConfig, "scenes", "--scenes", type=click.IntRange(min=1), default=D.scenes, show_default=True)
+@config_option(SuiteConfig, "replica_scenes", "--replica-scenes", type=click.IntRange(min=1), default=D.replica_scenes,
+               show_default=True)
+@config_option(SuiteConfig, "gaussians", "--gaussians", type=click.IntRange(min=1), default=D.gaussians,
+               show_default=True)
+@config_option(SuiteConfig, "epochs", "--epochs", type=click.IntRange(min=1), default=D.epochs, show_default=True)
+@config_option(SuiteConfig, "max_views", "--max-views", type=click.IntRange(min=1), default=D.max_views,
+               show_default=True)
+@config_option(SuiteConfig, "ablation", "--ablation/--no-ablation", default=D.ablation, show_default=True)
+@config_option(SuiteConfig, "jobs", "--jobs", type=click.IntRange(min=1), default=D.jobs, show_default=True)
+@config_option(SuiteConfig, "seed", "--seed", type=int, default=D.seed, show_default=True)
+@config_option(SuiteConfig, "progress", "--progress/--no-progress", default=D.progress, show_default=True)
+@json_option
+@guarded
+def command(out, scenes, replica_scenes, gaussians, epochs, max_views, ablation, jobs, seed, progress, as_json):
+    """Run the benchmark profile into OUT (finished stages found there are reused)."""
+    from ovgaussian.bench_suite import run_suite
+
+    config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, gaussians=gaussians, epochs=epochs,
+                         max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)
+    report = run_suite(config, log=(lambda m: click.echo(m, err=True)) if progress and not as_json else None)
+    passed = sum(ok for ok, _ in report.checks.values())
+    wall = sum(t.wall for t in report.times)
+    cpu = sum(t.cpu for t in report.times)
+    finish(f"bench-suite: {len(report.reports)} reports, checks {passed}/{len(report.checks)} passed, "
+           f"{wall:.0f} s wall, {cpu:.0f} s CPU -> {report.out}",
+           {"out": str(report.out), "checks": {k: {"passed": ok, "detail": d} for k, (ok, d) in report.checks.items()},
+            "times": [t._asdict() for t in report.times]}, as_json,
+           details=report.table1 + "\n" + report.ablation + "\n" + "".join(
+               f"- [{'x' if ok else ' '}] {k}: {d}\n" for k, (ok, d) in report.checks.items()))

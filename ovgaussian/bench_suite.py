@@ -1,0 +1,334 @@
+"""The benchmark profile (``ovgaussian bench-suite``): Table 1 and the paper's Table 2 with 95 % intervals.
+
+Stages, each reused when its output already exists in ``SuiteConfig.out`` (so an interrupted profile goes on):
+
+1. ``seggaussian synth`` of ScanNet++- and Replica-layout rooms, ``seggaussian build --gaussians oracle`` and
+   the train / val / xval split (the ScanNet++-layout rooms train:val, every Replica-layout room xval);
+2. one training run per :data:`ovgaussian.suite_config.RUNS` entry, all on the same schedule;
+3. ``ovgaussian bench`` of every Table-1 row and of every ablation run, each metric with its 95 % percentile
+   bootstrap interval over scenes (``ovgaussian.bootstrap``);
+4. ``table1.md``, ``ablation.md``, ``classes.md`` (per-class 3D IoU on the val rooms), the checks of issue #16
+   and ``suite.json`` with the CPU and wall time of every stage.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from ovgaussian.bench import run_bench
+from ovgaussian.bench_config import TABLE1_COLUMNS, BenchConfig
+from ovgaussian.bootstrap import Interval, overlaps
+from ovgaussian.checkpoint import latest_checkpoint
+from ovgaussian.suite_config import ABLATION_ROWS, RUNS, TABLE1_ROWS, RunSpec, SuiteConfig, Table1Row
+from ovgaussian.train import train
+from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TrainConfig, config_to_dict
+from seggaussian import shards
+from seggaussian.atomic import write_json_atomic, write_text_atomic
+from seggaussian.build import build_dataset
+from seggaussian.build_config import BuildConfig, OracleConfig, SplitConfig
+from seggaussian.sources.synthetic import SynthConfig, synthesize
+
+#: The metrics the full model must win against both baselines (issue #16: every non-OVA metric).
+NON_OVA_COLUMNS = (("3d", "CSA"), ("3d", "CDA"), ("2d", "CSA"), ("2d", "NVA"), ("2d", "CDA"))
+#: Columns of the ablation table (the paper's Table 2).
+ABLATION_COLUMNS = (("3d", "CSA"), ("2d", "CSA"), ("2d", "NVA"))
+#: Least scenes per split the profile must have (issue #16).
+MIN_SCENES = {"train": 40, "val": 10, "xval": 8}
+
+
+class StageTime(NamedTuple):
+    """Wall and CPU seconds (this process and its finished children) of one stage."""
+
+    name: str
+    wall: float
+    cpu: float
+
+
+class SuiteReport(NamedTuple):
+    """What the profile produced.
+
+    Fields:
+        out: the profile folder.
+        reports: ``{row label: bench JSON payload}`` of Table 1 and ``{run name: payload}`` of the ablation.
+        table1, ablation, classes: the markdown tables.
+        checks: ``{check: (passed, detail)}``.
+        times: one StageTime per stage.
+    """
+
+    out: Path
+    reports: dict
+    table1: str
+    ablation: str
+    classes: str
+    checks: dict
+    times: tuple[StageTime, ...]
+
+
+def _cpu_seconds() -> float:
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+# --- stages -------------------------------------------------------------------------------------------
+
+
+def build_data(config: SuiteConfig) -> Path:
+    """Synthetic rooms -> oracle-Gaussian dataset with its split; reused when ``dataset/splits.json`` exists."""
+
+    dataset = config.out / "dataset"
+    if (dataset / "splits.json").is_file():
+        return dataset
+    raw = config.out / "raw"
+    synth = SynthConfig(width=config.width, num_views=config.views)
+    if not (raw / "scannetpp").is_dir():
+        synthesize(raw / "scannetpp", config.scenes, config.seed, "scannetpp", synth)
+    if not (raw / "replica").is_dir():
+        synthesize(raw / "replica", config.replica_scenes, config.seed, "replica", synth)
+    build_dataset(BuildConfig(
+        source="synthetic", root=raw, out=dataset, jobs=config.jobs, gaussians="oracle", seed=config.seed,
+        progress=False, oracle=OracleConfig(num_gaussians=config.gaussians),
+        split=SplitConfig(ratios=(*config.val_ratio, config.replica_scenes), seed=config.seed)))
+    return dataset
+
+
+def split_sizes(dataset: Path) -> dict[str, int]:
+    """Scenes per split of a built dataset."""
+    return {split: len(shards.list_scenes(dataset, split)) for split in ("train", "val", "xval")}
+
+
+def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConfig:
+    """The TrainConfig of one run of the profile."""
+    return TrainConfig(
+        out=config.out / "runs" / spec.name, epochs=config.epochs, batch_scenes=config.batch_scenes,
+        seed=config.seed, model_preset=config.model_preset, use_adapter=spec.use_adapter,
+        voxel_size=config.voxel_size, use_coordinates=config.use_coordinates, progress=False,
+        data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view),
+        loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
+                        class_balance=config.class_balance),
+        optim=OptimConfig(lr=config.lr),
+    )
+
+
+def train_run(config: SuiteConfig, spec: RunSpec, dataset: Path) -> Path:
+    """Train one run (resumed when interrupted, reused when finished)."""
+    run_config = train_config(config, spec, dataset)
+    run = run_config.out
+    done = run / "suite-done.json"
+    if done.is_file():
+        return run
+    train(replace(run_config, resume=latest_checkpoint(run) is not None))
+    write_json_atomic(done, {"epochs": config.epochs})
+    return run
+
+
+def bench_config(config: SuiteConfig, dataset: Path, row: Table1Row | None = None, run: Path | None = None,
+                 metrics: tuple[str, ...] | None = None) -> BenchConfig:
+    """The BenchConfig of a Table-1 row (or of an ablation run with ``run`` and ``metrics``)."""
+    fields = dict(dataset=dataset, num_classes=config.num_classes, max_views_per_scene=config.max_views,
+                  progress=False)
+    if row is not None:
+        fields.update(predictor=row.predictor, run=None if row.run is None else config.out / "runs" / row.run)
+        fields.update(dict(row.options))
+    if run is not None:
+        fields.update(run=run)
+    if metrics is not None:
+        fields.update(metrics=metrics)
+    return BenchConfig(**fields)
+
+
+def bench_row(config: SuiteConfig, bench: BenchConfig, report_path: Path) -> dict:
+    """The bench JSON payload of one row (reused when its report exists)."""
+    if report_path.is_file():
+        return json.loads(report_path.read_text())
+    payload = run_bench(bench).payload
+    write_json_atomic(report_path, payload)
+    return payload
+
+
+# --- tables and checks --------------------------------------------------------------------------------
+
+
+def interval_of(payload: dict, dim: str, metric: str) -> Interval:
+    """The metric's value and 95 % interval from a bench payload."""
+    m = payload["metrics"].get(dim, {}).get(metric)
+    if m is None:
+        return Interval(None, None, None, 0, 0)
+    ci = m.get("ci95") or [None, None]
+    return Interval(m["miou"], ci[0], ci[1], 0, 0)
+
+
+def _cell(interval: Interval) -> str:
+    if interval.value is None:
+        return "-"
+    if interval.low is None:
+        return f"{100 * interval.value:.1f}"
+    return f"{100 * interval.value:.1f} [{100 * interval.low:.1f}, {100 * interval.high:.1f}]"
+
+
+def format_table1(reports: dict) -> str:
+    """Table 1 (mIoU %, 95 % interval over scenes in brackets)."""
+    head = "| method | " + " | ".join(f"{d.upper()} {m}" for d, m in TABLE1_COLUMNS) + " |"
+    lines = [head, "|---|" + "---:|" * len(TABLE1_COLUMNS)]
+    for label, payload in reports.items():
+        lines.append(f"| {label} | " + " | ".join(_cell(interval_of(payload, d, m)) for d, m in TABLE1_COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def format_ablation(run_reports: dict, vs_available: bool) -> str:
+    """The paper's Table 2 rows at K = 20 on this profile, the paper's values beside them."""
+    head = ("| V-S align | 3D-T align | adapter | run | " + " | ".join(f"{d.upper()} {m}" for d, m in ABLATION_COLUMNS)
+            + " | paper " + " | paper ".join(f"{d.upper()} {m}" for d, m in ABLATION_COLUMNS) + " |")
+    lines = [head, "|---|---|---|---|" + "---:|" * (2 * len(ABLATION_COLUMNS))]
+    for row in ABLATION_ROWS:
+        vs = "x" if row.vs_align and vs_available else ("(off: no CLIP)" if row.vs_align else "")
+        payload = run_reports.get(row.run)
+        cells = ["-"] * len(ABLATION_COLUMNS) if payload is None else [
+            _cell(interval_of(payload, d, m)) for d, m in ABLATION_COLUMNS]
+        lines.append(f"| {vs} | {'x' if row.t3d_align else ''} | {'x' if row.adapter else ''} | {row.run} | "
+                     + " | ".join(cells) + " | " + " | ".join(f"{v:.2f}" for v in row.paper) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def format_classes(reports: dict, dim: str = "3d", metric: str = "CSA") -> str:
+    """Per-class IoU (%) of every Table-1 row on the metric's set."""
+    labels = list(reports)
+    first = reports[labels[0]]["metrics"][dim][metric]
+    names = list(first["per_class_iou"])
+    lines = ["| class | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+    for name in names:
+        cells = []
+        for label in labels:
+            v = reports[label]["metrics"][dim][metric]["per_class_iou"].get(name)
+            cells.append("-" if v is None else f"{100 * v:.1f}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def present_seen_classes(payload: dict, dim: str = "3d") -> list[str]:
+    """Seen classes present in the val ground truth (a confusion row with samples)."""
+    counts = np.asarray(payload["confusion"][f"val_{dim}"])
+    names, unseen = payload["vocabulary"]["names"], set(payload["vocabulary"]["unseen"])
+    return [n for i, n in enumerate(names) if counts[i].sum() > 0 and n not in unseen]
+
+
+def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run_reports: dict) -> dict:
+    """The model-quality checks of issue #16: ``{name: (passed, detail)}``."""
+    out = {}
+    full = reports[full_label]
+    for dim, metric in NON_OVA_COLUMNS:
+        mine = interval_of(full, dim, metric)
+        details, passed = [], mine.value is not None
+        for label in baseline_labels:
+            other = interval_of(reports[label], dim, metric)
+            separate = overlaps(mine, other) is False
+            passed = passed and other.value is not None and mine.value > other.value and separate
+            details.append(f"{label}: {_cell(other)}")
+        out[f"full beats both baselines on {dim.upper()} {metric}, intervals apart"] = (
+            bool(passed), f"full {_cell(mine)} vs " + "; ".join(details))
+    nva = interval_of(full, "2d", "NVA").value
+    out["NVA >= 60"] = (nva is not None and nva >= 0.60, f"NVA {_cell(interval_of(full, '2d', 'NVA'))}")
+    for dim in ("3d", "2d"):
+        ious = full["metrics"][dim]["CSA"]["per_class_iou"]
+        zero = [n for n in present_seen_classes(full, dim) if not (ious.get(n) or 0.0) > 0.0]
+        out[f"every seen class of the val rooms above 0 IoU ({dim.upper()})"] = (
+            not zero, "zero: " + ", ".join(zero) if zero else f"{len(present_seen_classes(full, dim))} classes > 0")
+    order = []
+    for dim, metric in ABLATION_COLUMNS:
+        values = [interval_of(run_reports[r.run], dim, metric).value if r.run in run_reports else None
+                  for r in ABLATION_ROWS]
+        if None in values:
+            continue
+        rising = all(b >= a for a, b in zip(values, values[1:]))
+        order.append(f"{dim.upper()} {metric} {'rises' if rising else 'does not rise'} down the rows "
+                     f"({', '.join(f'{100 * v:.1f}' for v in values)})")
+    if order:
+        out["ablation rows order as the paper's"] = (all("does not" not in o for o in order), "; ".join(order))
+    return out
+
+
+def format_checks(result: dict) -> str:
+    return "\n".join(f"- [{'x' if ok else ' '}] {name}: {detail}" for name, (ok, detail) in result.items()) + "\n"
+
+
+# --- the profile --------------------------------------------------------------------------------------
+
+
+def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> SuiteReport:
+    """Run (or finish) the whole profile; see the module docstring. Library entry point of ``bench-suite``."""
+    say = log or (lambda message: None)
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    config = replace(config, out=out)
+    times: list[StageTime] = []
+    started = (time.perf_counter(), _cpu_seconds())
+
+    def stage(name: str, fn, *args):
+        t0, c0 = time.perf_counter(), _cpu_seconds()
+        say(f"[{time.perf_counter() - started[0]:.0f} s] {name}")
+        value = fn(*args)
+        times.append(StageTime(name, time.perf_counter() - t0, _cpu_seconds() - c0))
+        return value
+
+    dataset = stage("data: synth + build + split", build_data, config)
+    sizes = split_sizes(dataset)
+    needed = {row.run for row in TABLE1_ROWS if row.run is not None}
+    if config.ablation:
+        needed |= {row.run for row in ABLATION_ROWS}
+    runs = {}
+    for spec in RUNS:
+        if spec.name in needed:
+            runs[spec.name] = stage(f"train: {spec.name}", train_run, config, spec, dataset)
+
+    reports_dir = out / "reports"
+    reports = {}
+    for index, row in enumerate(TABLE1_ROWS):
+        path = reports_dir / f"table1-{index:02d}.json"
+        reports[row.label] = stage(f"bench: {row.label}", bench_row, config, bench_config(config, dataset, row), path)
+    run_reports = {}
+    if config.ablation:
+        for name in sorted({row.run for row in ABLATION_ROWS}):
+            full_row = next((r for r in TABLE1_ROWS if r.run == name and not r.options), None)
+            if full_row is not None:
+                run_reports[name] = reports[full_row.label]
+                continue
+            bench = bench_config(config, dataset, run=runs[name], metrics=("CSA", "NVA"))
+            run_reports[name] = stage(f"bench: ablation {name}", bench_row, config, bench,
+                                      reports_dir / f"ablation-{name}.json")
+
+    full_label = next(r.label for r in TABLE1_ROWS if r.run == "full" and not r.options)
+    baselines = tuple(r.label for r in TABLE1_ROWS if r.predictor != "model")
+    table1 = format_table1(reports)
+    ablation = format_ablation(run_reports, vs_available=False) if config.ablation else ""
+    classes = format_classes(reports)
+    result = {"profile size (at least 40 train, 10 val, 8 xval rooms)": (
+        all(sizes[k] >= n for k, n in MIN_SCENES.items()), ", ".join(f"{sizes[k]} {k}" for k in MIN_SCENES)),
+        **checks(reports, full_label, baselines, run_reports)}
+    wall, cpu = time.perf_counter() - started[0], _cpu_seconds() - started[1]
+    summary = {
+        "config": config_to_dict(config),
+        "splits": sizes,
+        "runs": {name: config_to_dict(train_config(config, spec, dataset))
+                 for spec in RUNS for name in [spec.name] if name in runs},
+        "table1": {label: {f"{d}_{m}": list(interval_of(p, d, m)[:3]) for d, m in TABLE1_COLUMNS}
+                   for label, p in reports.items()},
+        "ablation": {name: {f"{d}_{m}": list(interval_of(p, d, m)[:3]) for d, m in ABLATION_COLUMNS}
+                     for name, p in run_reports.items()},
+        "checks": {name: {"passed": ok, "detail": detail} for name, (ok, detail) in result.items()},
+        "times": [t._asdict() for t in times],
+        "total": {"wall_s": wall, "cpu_s": cpu, "load_average": list(os.getloadavg()), "cores": os.cpu_count()},
+    }
+    write_json_atomic(out / "suite.json", summary)
+    write_text_atomic(out / "table1.md", table1)
+    write_text_atomic(out / "ablation.md", ablation)
+    write_text_atomic(out / "classes.md", classes)
+    write_text_atomic(out / "checks.md", format_checks(result))
+    return SuiteReport(out, {**reports, **{f"ablation {k}": v for k, v in run_reports.items()}}, table1, ablation,
+                       classes, result, tuple(times))

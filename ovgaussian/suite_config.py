@@ -1,0 +1,138 @@
+"""Configuration of the benchmark profile (``ovgaussian bench-suite``): the data, the schedule and the rows.
+
+The profile's tables are lists of row specifications, so that a new method is one more line:
+
+- :data:`TABLE1_ROWS`: Table 1. A row names a predictor (a baseline, or a model run of :data:`RUNS`) and the
+  ``BenchConfig`` options it is scored with. The open-vocabulary methods of issue #16 (calibrated stacking,
+  generative feature synthesis, prompt ensembles) each add one ``Table1Row`` scoring the ``full`` run with
+  their bench option, e.g. ``Table1Row("full + calibrated stacking", run="full",
+  options=(("open_vocabulary", "calibrated-stacking"),))``.
+- :data:`ABLATION_ROWS`: the paper's Table 2 (switches added one at a time). Without local CLIP weights the
+  visual-semantic loss is off in every run, so the "V-S" row is the "none" run and says so.
+
+No code beyond data lives here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run of the profile (its switches; the schedule is the suite's)."""
+
+    name: str
+    """Folder name under OUT/runs/."""
+    use_adapter: bool = True
+    """Voxel-to-point adapter on."""
+    no_3dt_align: bool = False
+    """3D-to-text cross-entropy off."""
+    no_vs_align: bool = False
+    """Visual-semantic (MaskCLIP) cosine loss off (it is off anyway without a local CLIP)."""
+
+
+@dataclass(frozen=True)
+class Table1Row:
+    """One row of Table 1."""
+
+    label: str
+    """Row label."""
+    predictor: Literal["model", "majority", "nearest-colour"] = "model"
+    """What is scored (``BenchConfig.predictor``)."""
+    run: Optional[str] = None
+    """Name of the run of :data:`RUNS` scored (predictor ``model``)."""
+    options: tuple[tuple[str, object], ...] = ()
+    """Extra ``BenchConfig`` fields of this row (an open-vocabulary method's switch), as (field, value) pairs."""
+
+
+@dataclass(frozen=True)
+class AblationRow:
+    """One row of the paper's Table 2."""
+
+    vs_align: bool
+    """Visual-semantic alignment asked for."""
+    t3d_align: bool
+    """3D-to-text alignment."""
+    adapter: bool
+    """Voxel-to-point adapter."""
+    run: str
+    """The run of :data:`RUNS` that trains this configuration here."""
+    paper: tuple[float, float, float]
+    """Paper Table 2 at K = 20 (3D CSA, 2D CSA, NVA), for comparison."""
+
+
+#: The runs the tables need: the full model and the two ablation configurations that differ from it.
+RUNS = (
+    RunSpec("full"),
+    RunSpec("no-adapter", use_adapter=False),
+    RunSpec("text-2d-only", use_adapter=False, no_3dt_align=True),
+)
+
+#: Table 1: both non-learned baselines, the full model, then one line per open-vocabulary method (#16a).
+TABLE1_ROWS = (
+    Table1Row("majority (baseline)", predictor="majority"),
+    Table1Row("nearest-colour (baseline)", predictor="nearest-colour"),
+    Table1Row("OVGaussian (full)", run="full"),
+)
+
+#: Table 2 of the paper at K = 20, top to bottom.
+ABLATION_ROWS = (
+    AblationRow(False, False, False, "text-2d-only", (32.18, 37.15, 56.35)),
+    AblationRow(True, False, False, "text-2d-only", (34.57, 40.17, 57.71)),
+    AblationRow(True, True, False, "no-adapter", (40.55, 43.70, 67.55)),
+    AblationRow(True, True, True, "full", (43.84, 45.76, 69.51)),
+)
+
+
+@dataclass(frozen=True)
+class SuiteConfig:
+    """The benchmark profile: synthetic rooms, one schedule for every run, every Table-1 and Table-2 row."""
+
+    out: Path = Path("out/bench-suite")
+    """Folder of everything the profile writes (raw rooms, dataset, runs, reports, tables); finished stages
+    found there are reused."""
+    scenes: int = 56
+    """ScanNet++-layout rooms (split train:val by ``val_ratio``)."""
+    replica_scenes: int = 8
+    """Replica-layout rooms (the cross-domain set)."""
+    val_ratio: tuple[int, int] = (4, 1)
+    """train:val ratio of the ScanNet++-layout rooms."""
+    width: int = 160
+    """Image width of the synthetic views (height 3/4 of it)."""
+    views: int = 16
+    """Views per room (ScanNet++ rooms: a quarter of them are novel views for NVA)."""
+    gaussians: int = 40000
+    """Oracle Gaussians sampled per room."""
+    epochs: int = 30
+    """Epochs of every run."""
+    batch_scenes: int = 3
+    """Scenes per optimizer step."""
+    pixels_per_view: int = 4096
+    """Pixels sampled per view for the 2D losses."""
+    lr: float = 0.05
+    """Initial SGD learning rate (cosine decay)."""
+    model_preset: Literal["default", "slim"] = "slim"
+    """Network widths."""
+    voxel_size: float = 0.1
+    """Voxel edge in metres of the network's finest level."""
+    use_coordinates: bool = True
+    """Give the network the normalized Gaussian positions."""
+    class_balance: float = 0.5
+    """Exponent of the class weights of the text cross-entropies."""
+    num_classes: int = 20
+    """Vocabulary size K."""
+    max_views: int = 4
+    """Views scored per scene in 2D."""
+    ablation: bool = True
+    """Train and score the Table-2 runs."""
+    jobs: int = 2
+    """Build processes."""
+    bootstrap_draws: int = 2000
+    """Bootstrap draws per interval."""
+    seed: int = 0
+    """Seed of the rooms, the split and every run."""
+    progress: bool = True
+    """Print a line per stage."""

@@ -1,0 +1,78 @@
+"""The benchmark profile's rows, tables and checks, on hand-made bench payloads (the stages themselves are
+the bench, train and build code, tested elsewhere; the profile runs them in benchmarks/, not in CI)."""
+
+from pathlib import Path
+
+import numpy as np
+
+from ovgaussian import bench_suite as S
+from ovgaussian.suite_config import ABLATION_ROWS, RUNS, TABLE1_ROWS, SuiteConfig, Table1Row
+
+NAMES = ["wall", "chair", "sofa"]
+
+
+def payload(values: dict, ci_halfwidth=0.02, chair_iou=0.3):
+    """A bench payload with the given {(dim, metric): mIoU} and intervals of +- ci_halfwidth."""
+    metrics = {}
+    for (dim, metric), v in values.items():
+        metrics.setdefault(dim, {})[metric] = {
+            "miou": v, "ci95": [v - ci_halfwidth, v + ci_halfwidth],
+            "per_class_iou": {"wall": 0.9, "chair": chair_iou, "sofa": 0.0}}
+    confusion = np.zeros((3, 4), int)
+    confusion[0, 0], confusion[1, 1], confusion[2, 0] = 50, 5, 7
+    return {"metrics": metrics, "vocabulary": {"names": NAMES, "unseen": ["sofa"]},
+            "confusion": {"val_3d": confusion.tolist(), "val_2d": confusion.tolist()}}
+
+
+ALL = [("3d", "CSA"), ("3d", "OVA"), ("3d", "CDA"), ("2d", "CSA"), ("2d", "OVA"), ("2d", "NVA"), ("2d", "CDA")]
+
+
+def test_checks_need_intervals_apart_from_both_baselines():
+    base = {k: 0.2 for k in ALL}
+    reports = {"majority": payload({k: 0.05 for k in ALL}), "colour": payload(base),
+               "full": payload({k: (0.7 if k == ("2d", "NVA") else 0.5) for k in ALL})}
+    runs = {"text-2d-only": payload({k: 0.3 for k in ALL}), "no-adapter": payload({k: 0.4 for k in ALL}),
+            "full": reports["full"]}
+    result = S.checks(reports, "full", ("majority", "colour"), runs)
+    assert all(ok for ok, _ in result.values()), result
+    close = dict(reports, colour=payload({**base, ("2d", "CDA"): 0.47}))  # intervals overlap on 2D CDA
+    result = S.checks(close, "full", ("majority", "colour"), runs)
+    assert not result["full beats both baselines on 2D CDA, intervals apart"][0]
+    assert result["full beats both baselines on 3D CSA, intervals apart"][0]
+    zero = dict(reports, full=payload({k: 0.5 for k in ALL}, chair_iou=0.0))
+    result = S.checks(zero, "full", ("majority", "colour"), runs)
+    assert result["every seen class of the val rooms above 0 IoU (3D)"] == (False, "zero: chair")
+    assert not result["NVA >= 60"][0]
+    swapped = dict(runs, **{"no-adapter": payload({k: 0.6 for k in ALL})})
+    assert not S.checks(reports, "full", ("majority", "colour"), swapped)["ablation rows order as the paper's"][0]
+
+
+def test_tables_show_values_and_intervals():
+    reports = {"full": payload({k: 0.5 for k in ALL})}
+    table = S.format_table1(reports)
+    assert "| full | 50.0 [48.0, 52.0] |" in table and table.count("\n") == 3
+    ablation = S.format_ablation({"full": reports["full"]}, vs_available=False)
+    assert "(off: no CLIP)" in ablation and "43.84" in ablation and ablation.count("| - |") >= 3
+    classes = S.format_classes(reports)
+    assert "| chair | 30.0 |" in classes
+
+
+def test_a_table1_row_is_one_line_of_bench_options():
+    config = SuiteConfig(out=Path("/tmp/profile"))
+    row = Table1Row("full + stacking", run="full", options=(("min_alpha", 0.25),))
+    bench = S.bench_config(config, Path("/tmp/profile/dataset"), row)
+    assert bench.run == Path("/tmp/profile/runs/full") and bench.min_alpha == 0.25
+    assert bench.max_views_per_scene == config.max_views and bench.num_classes == config.num_classes
+    names = {spec.name for spec in RUNS}
+    assert {r.run for r in TABLE1_ROWS if r.run} <= names and {r.run for r in ABLATION_ROWS} <= names
+    assert {r.predictor for r in TABLE1_ROWS} >= {"majority", "nearest-colour", "model"}
+
+
+def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
+    config = SuiteConfig(out=Path("/tmp/profile"))
+    configs = {spec.name: S.train_config(config, spec, Path("/tmp/d")) for spec in RUNS}
+    full = configs["full"]
+    assert full.voxel_size == config.voxel_size and full.loss.class_balance == config.class_balance
+    for name, c in configs.items():
+        assert (c.epochs, c.optim.lr, c.data.pixels_per_view) == (full.epochs, full.optim.lr, full.data.pixels_per_view)
+    assert not configs["no-adapter"].use_adapter and configs["text-2d-only"].loss.no_3dt_align
