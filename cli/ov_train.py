@@ -37,6 +37,11 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @config_option(TrainConfig, "model_preset", "--model-preset", type=click.Choice(["default", "slim"]), default="default",
                show_default=True)
 @config_option(DataConfig, "pixels_per_view", "--pixels-per-view", type=click.IntRange(min=1), default=None)
+@config_option(TrainConfig, "voxel_size", "--voxel-size", type=click.FloatRange(min=0, min_open=True), default=None)
+@config_option(TrainConfig, "use_coordinates", "--use-coordinates/--no-coordinates", default=TrainConfig.use_coordinates,
+               show_default=True)
+@config_option(LossConfig, "class_balance", "--class-balance", type=click.FloatRange(min=0),
+               default=LossConfig.class_balance, show_default=True)
 @config_option(LossConfig, "temperature", "--temperature", type=click.FloatRange(min=0, min_open=True),
                default=LossConfig.temperature, show_default=True)
 @config_option(DataConfig, "verify", "--verify", is_flag=True)
@@ -44,8 +49,8 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @json_option
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
-            no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, temperature, verify,
-            progress, as_json):
+            no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
+            use_coordinates, class_balance, temperature, verify, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
@@ -54,11 +59,13 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
     config = TrainConfig(
         out=out, epochs=epochs, batch_scenes=batch_scenes, seed=seed, device=device, resume=resume,
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
+        voxel_size=voxel_size, use_coordinates=use_coordinates,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
                         verify=verify),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),
-        loss=LossConfig(temperature=temperature, no_3dt_align=no_3dt_align, no_vs_align=no_vs_align),
+        loss=LossConfig(temperature=temperature, no_3dt_align=no_3dt_align, no_vs_align=no_vs_align,
+                        class_balance=class_balance),
         optim=OptimConfig(lr=lr, schedule=schedule),
     )
     from ovgaussian.train import train
