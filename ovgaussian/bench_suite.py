@@ -120,7 +120,7 @@ def train_run(config: SuiteConfig, spec: RunSpec, dataset: Path) -> Path:
     run_config = train_config(config, spec, dataset)
     run = run_config.out
     done = run / "suite-done.json"
-    if done.is_file():
+    if done.is_file() and json.loads(done.read_text()).get("epochs") == config.epochs:
         return run
     train(replace(run_config, resume=latest_checkpoint(run) is not None))
     write_json_atomic(done, {"epochs": config.epochs})
