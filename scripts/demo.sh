@@ -14,6 +14,9 @@ VIEWS=${VIEWS:-16}                # views per room
 GAUSSIANS=${GAUSSIANS:-15000}     # Gaussians per room sampled on the labelled mesh
 EPOCHS=${EPOCHS:-120}
 CLASSES=${CLASSES:-20}
+VOXEL=${VOXEL:-0.1}               # network voxel edge (m): 10 cm reaches twice as far as 5 cm at a third of the voxels
+BALANCE=${BALANCE:-0.5}           # class-balance exponent of the text losses (small objects vs walls)
+LR=${LR:-0.05}
 FIT_SECONDS=${FIT_SECONDS:-60}       # time budget of the one-room CPU fit (default FitConfig schedule)
 export PYTHONUNBUFFERED=1
 mkdir -p "$OUT"
@@ -36,9 +39,10 @@ $BIN/seggaussian build --source synthetic --root "$OUT/raw" --out "$OUT/dataset"
 step "split: train / val / xval"
 $BIN/seggaussian split --data "$OUT/dataset" | tail -n 1
 
-step "train: $EPOCHS epochs, slim widths"
+step "train: $EPOCHS epochs, slim widths, ${VOXEL} m voxels, coordinates, class balance $BALANCE, lr $LR"
 $BIN/ovgaussian train --data "$OUT/dataset" --out "$OUT/run" --epochs "$EPOCHS" --classes "$CLASSES" \
-    --model-preset slim --pixels-per-view 4096 --no-progress | tail -n 1
+    --model-preset slim --pixels-per-view 4096 --voxel-size "$VOXEL" --use-coordinates \
+    --class-balance "$BALANCE" --lr "$LR" --no-progress | tail -n 1
 
 step "bench: two baselines and the trained run (K = $CLASSES)"
 for P in majority nearest-colour; do
