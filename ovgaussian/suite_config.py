@@ -107,7 +107,8 @@ class SuiteConfig:
     gaussians: int = 40000
     """Oracle Gaussians sampled per room."""
     epochs: int = 20
-    """Epochs of every run (20 x 15 steps of 3 rooms; sized for the 60-minute budget on 2 quiet cores)."""
+    """Epochs of every run (20 x 15 steps of 3 rooms). Measured 12 s CPU per step at 40,000 Gaussians per room:
+    the three runs take about 3 h of CPU, over the 60-minute budget (see BENCHMARKS.md)."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
