@@ -1,17 +1,13 @@
 """Configuration of OVGaussian training: frozen dataclasses, one docstring per field.
 
-The field docstrings are read back by :func:`field_help` and reused verbatim as the CLI help of
-``ovgaussian train``, so the documentation lives in one place. No code beyond that lives here.
+The field docstrings are read back by ``seggaussian.field_docs.field_docs`` and reused verbatim as the CLI help
+of ``ovgaussian train``, so the documentation lives in one place. No code beyond that lives here.
 """
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import inspect
-import textwrap
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -142,25 +138,6 @@ class TrainConfig:
     """Loss temperature, weights and ablation switches."""
     optim: OptimConfig = field(default_factory=OptimConfig)
     """SGD optimizer and learning-rate schedule."""
-
-
-@lru_cache(maxsize=None)
-def field_help(cls: type) -> dict[str, str]:
-    """``{field name: docstring}`` of a config dataclass, read from the string after each field
-    (reStructuredText literals unquoted, for CLI help)."""
-    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
-    body = tree.body[0].body
-    helps: dict[str, str] = {}
-    for node, following in zip(body, body[1:]):
-        if (
-            isinstance(node, ast.AnnAssign)
-            and isinstance(node.target, ast.Name)
-            and isinstance(following, ast.Expr)
-            and isinstance(following.value, ast.Constant)
-            and isinstance(following.value.value, str)
-        ):
-            helps[node.target.id] = " ".join(following.value.value.split()).replace("``", "")
-    return helps
 
 
 def config_to_dict(config) -> dict:

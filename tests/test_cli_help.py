@@ -10,7 +10,8 @@ import click
 import pytest
 
 from cli import ovgaussian_cli, seggaussian_cli
-from cli._config_options import ConfigOption, config_option, field_docs
+from cli._config_options import ConfigOption, config_option
+from seggaussian.field_docs import field_docs
 
 COMMAND_TARGETS = {**{f"seggaussian {k}": v for k, v in seggaussian_cli.COMMANDS.items()},
                    **{f"ovgaussian {k}": v for k, v in ovgaussian_cli.COMMANDS.items()}}
@@ -58,15 +59,6 @@ def test_field_docs_reads_docstrings_and_comment_lines():
         config_option(Example, "undocumented", "--undocumented")
     with pytest.raises(TypeError):
         config_option(Example, "after", "--after", help="a hand-copied help")
-
-
-def test_field_docs_agrees_with_train_config_reader():
-    """``ovgaussian.train_config.field_help`` (the older reader, kept while issue 16 edits that module) and
-    ``field_docs`` give the same text for every training config."""
-    train_config = pytest.importorskip("ovgaussian.train_config")
-    for cls in (train_config.TrainConfig, train_config.DataConfig, train_config.TextConfig, train_config.LossConfig,
-                train_config.OptimConfig, train_config.TeacherConfig):
-        assert field_docs(cls) == train_config.field_help(cls), cls.__name__
 
 
 def test_comment_documented_config_fields_are_read():

@@ -440,10 +440,11 @@ def test_learning_rate_schedules():
 def test_every_config_field_has_a_docstring_and_round_trips():
     import dataclasses
 
-    from ovgaussian.train_config import TeacherConfig, TextConfig, config_from_dict, config_to_dict, field_help
+    from ovgaussian.train_config import TeacherConfig, TextConfig, config_from_dict, config_to_dict
+    from seggaussian.field_docs import field_docs
 
     for cls in (TrainConfig, DataConfig, TextConfig, TeacherConfig, LossConfig, OptimConfig):
-        helps = field_help(cls)
+        helps = field_docs(cls)
         assert set(helps) == {f.name for f in dataclasses.fields(cls)}, cls
         assert all(len(h) > 10 for h in helps.values())
     config = TrainConfig(out=Path("x"), text=TextConfig(encoder="clip", clip_model=Path("/m")),
