@@ -16,11 +16,22 @@ import json
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
+import cv2
 import numpy as np
+import torch
 
+from ovgaussian.checkpoint import load_trained_model
+from ovgaussian.model import gaussian_attributes
 from ovgaussian.predict_config import PredictConfig
+from ovgaussian.text import load_or_encode_texts
+from ovgaussian.train_config import TextConfig, config_from_dict
 from ovgaussian.view_labels import default_blend_functions, stream_view_labels
+from seggaussian.atomic import atomic_path, ensure_writable_dir
+from seggaussian.cameras import Camera
 from seggaussian.constants import IGNORE_LABEL, SH_C0, read_class_names
+from seggaussian.gaussians import Gaussians
+from seggaussian.io.formats import format_for_output, read_gaussians, write_gaussians
+from seggaussian.palette import build_legend, palette, write_legend
 
 #: Lower bound of a decoded vector's norm before cosine similarity (a zero vector scores 0, not NaN).
 COSINE_NORM_EPS = 1e-12
@@ -51,10 +62,6 @@ class ModelPredictor:
     # --- per-Gaussian vectors ------------------------------------------------------------------
     def encode_gaussians(self, gaussians) -> np.ndarray:
         """``[N, S]`` float32 semantic vectors of a ``Gaussians`` (one scene, no augmentation)."""
-        import torch
-
-        from ovgaussian.model import gaussian_attributes
-
         n = len(gaussians)
         if n == 0:
             return np.zeros((0, self.model.config.semantic_width), np.float32)
@@ -80,15 +87,11 @@ class ModelPredictor:
         """``[C, D]`` L2-normalized text embeddings (cached per vocabulary)."""
         key = tuple(names)
         if key not in self._embeddings:
-            from ovgaussian.text import load_or_encode_texts
-
             self._embeddings[key] = load_or_encode_texts(list(names), self.text_config, self.text_cache).to(self.device)
         return self._embeddings[key]
 
     def score_names(self, vectors: np.ndarray, names: Sequence[str]) -> np.ndarray:
         """``[M, S]`` semantic vectors (per Gaussian or rendered per pixel) -> ``[M, C]`` cosine scores."""
-        import torch
-
         text = self.text_embeddings(names)
         with torch.no_grad():
             decoded = self.model.phi(torch.as_tensor(np.asarray(vectors), dtype=torch.float32, device=self.device))
@@ -102,9 +105,6 @@ class ModelPredictor:
 
 def load_model_predictor(run: Path, checkpoint: Path | None = None, device: str = "cpu") -> ModelPredictor:
     """The model of a training run (its latest checkpoint folder unless ``checkpoint`` is given)."""
-    from ovgaussian.checkpoint import load_trained_model
-    from ovgaussian.train_config import TextConfig, config_from_dict
-
     run = Path(run)
     trained = load_trained_model(run, checkpoint, device=device)
     text_config = config_from_dict(TextConfig, trained.run_config.get("train", {}).get("text", {}))
@@ -130,16 +130,12 @@ def parse_vocabulary(text: str) -> tuple[str, ...]:
 
 def class_colours(num_classes: int) -> np.ndarray:
     """``[C, 3]`` uint8 colours of vocabulary indices 0..C-1: the fixed palette of ``seggaussian.palette``."""
-    from seggaussian.palette import palette
-
     return palette(num_classes)
 
 
 def read_cameras(path: Path) -> list[tuple[str, object]]:
     """Cameras of a JSON file: ``{"cameras": [{"name", "width", "height", "K": 3x3, "viewmat": 4x4 | "c2w": 4x4}]}``
     (or the list alone). ``viewmat`` is world-to-camera, ``c2w`` camera-to-world, OpenCV axes."""
-    from seggaussian.cameras import Camera
-
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
@@ -208,8 +204,6 @@ def argmax_labels(scores_fn, vectors: np.ndarray, chunk_rows: int) -> np.ndarray
 
 def paint_gaussians(gaussians, labels: np.ndarray, colours: np.ndarray, mode: str):
     """Gaussians with the ``semantic`` extra and the class colours (``f_dc`` and/or uchar red/green/blue)."""
-    from seggaussian.gaussians import Gaussians
-
     rgb = colours[labels]  # [N, 3] uint8
     extras = {k: v for k, v in gaussians.extras.items() if k not in ("semantic", "red", "green", "blue")}
     extras["semantic"] = labels.astype(np.int32)
@@ -252,10 +246,6 @@ def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig,
 
 
 def _write_png_atomic(path: Path, image: np.ndarray) -> None:
-    import cv2
-
-    from seggaussian.atomic import atomic_path
-
     with atomic_path(path, suffix=".png") as tmp:
         if not cv2.imwrite(str(tmp), image):
             raise OSError(f"{path}: could not encode the PNG")
@@ -292,14 +282,9 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
                 views_dir: Path | None = None, predictor: ModelPredictor | None = None) -> PredictReport:
     """Read ``scene_path`` (any splat format), label it with the run's model, write ``out`` (PLY unless
     ``config.output_format`` or the name asks for another format), the legend and optional label-map PNGs."""
-    from seggaussian.io.formats import format_for_output, read_gaussians, write_gaussians
-    from seggaussian.palette import build_legend, write_legend
-
     scene_path, out = Path(scene_path), Path(out)
     if scene_path.resolve() == out.resolve():
         raise ValueError(f"{out}: refusing to overwrite the input scene")
-    from seggaussian.atomic import ensure_writable_dir
-
     ensure_writable_dir(out.parent)  # fail before the model runs, not after it
     cameras = read_cameras(cameras_path) if cameras_path is not None else []
     out_format = format_for_output(out, config.output_format)

