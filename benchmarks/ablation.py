@@ -104,7 +104,8 @@ def train_run(args, label: str, no_vs: bool, no_3dt: bool, adapter: bool, k: int
 
 
 def score(args, run: Path, k: int) -> dict:
-    from ovgaussian.bench import run_bench, write_json_atomic
+    from ovgaussian.bench import run_bench
+    from seggaussian.atomic import write_json_atomic
     from ovgaussian.bench_config import BenchConfig
 
     config = BenchConfig(dataset=args.data, run=run, metrics=("CSA", "NVA"), dims=("3d", "2d"), num_classes=k,

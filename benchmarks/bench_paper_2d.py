@@ -97,7 +97,8 @@ def main() -> int:
         return 0
 
     from bench_paper_step import make_room
-    from ovgaussian.bench import benchmark_vocabulary, evaluate
+    from ovgaussian.bench import evaluate
+    from ovgaussian.vocabulary import benchmark_vocabulary
     from ovgaussian.bench_config import DEFAULT_BAND_ROWS
 
     band_rows = args.band_rows or DEFAULT_BAND_ROWS

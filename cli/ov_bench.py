@@ -36,7 +36,8 @@ from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
 def command(dataset, run, checkpoint, predictor, metric, num_classes, dim, min_alpha, max_views, max_scenes,
             out, label, verify, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
-    from ovgaussian.bench import run_bench, table1_header, table1_row, write_json_atomic
+    from ovgaussian.bench import run_bench, table1_header, table1_row
+    from seggaussian.atomic import write_json_atomic
 
     metrics = METRICS if metric.lower() == "all" else (metric.upper(),)
     dims = ("3d", "2d") if dim == "both" else (dim,)

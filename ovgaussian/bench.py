@@ -41,20 +41,9 @@ from ovgaussian.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from ovgaussian.predict import load_model_predictor
 from ovgaussian.train_config import config_to_dict
-from ovgaussian.view_labels import (  # noqa: F401  (re-exported: part of the benchmark's API)
-    BlendFunctions,
-    accumulated_alpha,
-    default_blend_functions,
-    stream_view_labels,
-)
-from ovgaussian.vocabulary import (  # noqa: F401  (re-exported: part of the benchmark's API)
-    Vocabulary,
-    benchmark_vocabulary,
-    make_vocabulary,
-    to_vocabulary_labels,
-)
+from ovgaussian.view_labels import BlendFunctions, default_blend_functions, stream_view_labels
+from ovgaussian.vocabulary import Vocabulary, benchmark_vocabulary, to_vocabulary_labels
 from seggaussian import shards
-from seggaussian.atomic import atomic_path, write_json_atomic  # noqa: F401 (write_json_atomic: CLI API)
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.shards import sha256_file
 
@@ -389,7 +378,7 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
 
 def run_bench(config: BenchConfig, predictor: Predictor | None = None, *,
               functions: BlendFunctions | None = None) -> BenchReport:
-    """Evaluate the configured predictor on the dataset's splits; nothing is written (see write_json_atomic)."""
+    """Evaluate the configured predictor on the dataset's splits; nothing is written (the CLI writes the report)."""
     vocabulary = benchmark_vocabulary(config.num_classes)
     description = {"kind": getattr(predictor, "name", "custom")}
     if predictor is None:

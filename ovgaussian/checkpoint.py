@@ -11,7 +11,8 @@ Layout of a run folder::
     RUN/caches/                          text embeddings, blend weights, teacher features
 
 Every file is written under a temporary name in its folder and renamed; a checkpoint folder is
-complete before ``latest.json`` points at it. No pickle: tensors in safetensors, the rest in JSON.
+complete before ``latest.json`` points at it. No pickle: tensors in safetensors, the rest in JSON, written by
+``seggaussian.atomic.write_json_atomic`` with NaN/Inf refused (``nan=NAN_IS_ERROR``: they must read back).
 """
 
 from __future__ import annotations
@@ -23,8 +24,7 @@ from typing import TYPE_CHECKING, NamedTuple
 from ovgaussian.model import OVGaussianNet
 from ovgaussian.model_config import OVGaussianNetConfig
 from ovgaussian.train_config import config_from_dict
-from seggaussian import atomic
-from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps
+from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps, write_json_atomic
 from seggaussian.jsonsafe import NAN_IS_ERROR
 
 if TYPE_CHECKING:
@@ -38,11 +38,6 @@ LATEST_NAME = "latest.json"
 
 class CheckpointError(ValueError):
     """A run folder or checkpoint that cannot be used; the message names the file."""
-
-
-def write_json_atomic(path: Path, payload) -> None:
-    """The run's JSON files (config, optimizer state, latest pointer): NaN/Inf refused (they must read back)."""
-    atomic.write_json_atomic(path, payload, nan=NAN_IS_ERROR)
 
 
 def read_json(path: Path) -> dict:
@@ -91,9 +86,9 @@ def save_checkpoint(run_dir: Path, epoch: int, net, optimizer, state: dict) -> P
         with atomic_path(tmp / "optimizer.safetensors") as path:
             save_file(buffers, str(path))
         groups = [{k: v for k, v in g.items()} for g in opt_state["param_groups"]]
-        write_json_atomic(tmp / "state.json", dict(state, epoch=epoch, param_groups=groups))
+        write_json_atomic(tmp / "state.json", dict(state, epoch=epoch, param_groups=groups), nan=NAN_IS_ERROR)
     write_json_atomic(run_dir / CHECKPOINTS_DIR / LATEST_NAME,
-                      {"epoch": epoch, "path": str(folder.relative_to(run_dir))})
+                      {"epoch": epoch, "path": str(folder.relative_to(run_dir))}, nan=NAN_IS_ERROR)
     return folder
 
 

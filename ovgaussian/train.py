@@ -41,7 +41,7 @@ from tqdm import tqdm
 from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, DATASET_INTERNAL_FOLDERS, folder_bytes
 from ovgaussian.checkpoint import (
     CONFIG_NAME, METRICS_NAME, CheckpointError, build_network, latest_checkpoint, load_checkpoint, read_json,
-    save_checkpoint, sweep_run_temps, write_json_atomic,
+    save_checkpoint, sweep_run_temps,
 )
 from ovgaussian.data import TrainingData
 from ovgaussian.model_config import OVGaussianNetConfig
@@ -59,7 +59,8 @@ from ovgaussian.text import load_or_encode_texts
 from ovgaussian.train_config import TrainConfig, config_from_dict
 from ovgaussian.train_losses import batch_losses
 from ovgaussian.vocabulary import Vocabulary, training_vocabulary
-from seggaussian.atomic import ensure_writable_dir, make_dirs
+from seggaussian.atomic import ensure_writable_dir, make_dirs, write_json_atomic
+from seggaussian.jsonsafe import NAN_IS_ERROR
 
 LOG = logging.getLogger("ovgaussian.train")
 
@@ -380,7 +381,7 @@ def train_in_process_group(
         payload = run_config_payload(config, model_config, teacher_width, vocabulary, scan, group,
                                      text_embeddings.shape[1])
         payload["notes"] = notes
-        write_json_atomic(run_dir / CONFIG_NAME, payload)
+        write_json_atomic(run_dir / CONFIG_NAME, payload, nan=NAN_IS_ERROR)
         if saved is not None:
             truncate_metrics(metrics_path, start_epoch)
         else:

@@ -13,9 +13,11 @@ from pathlib import Path
 
 from seggaussian.build_cache import code_digest, sha256_json
 from seggaussian.build_config import BuildConfig, ShardConfig, SplitConfig, config_dict
+from seggaussian.atomic import write_json_atomic
 from seggaussian.build_types import SceneOutcome
 from seggaussian.constants import read_class_names
-from seggaussian.shards.files import sha256_file, write_json_atomic
+from seggaussian.jsonsafe import NAN_AS_NULL
+from seggaussian.shards.files import sha256_file
 from seggaussian.shards.layout import MANIFEST_NAME, SPLITS_NAME
 from seggaussian.shards.writer import write_dataset
 from seggaussian.split import SceneSplitInfo, assign_splits, read_splits, splits_payload
@@ -67,7 +69,7 @@ def write_build_record(cache_root: Path, config: BuildConfig, outcomes: list[Sce
     scenes = {s: v for s, v in scenes.items() if all((root / f).is_file() for f in v["fragments"].values())}
     record = {"config_hash": content_config_hash(config), "config": _content_config(config),
               "scenes": dict(sorted(scenes.items()))}
-    write_json_atomic(path, record)
+    write_json_atomic(path, record, nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
     return kept
 
 
@@ -112,14 +114,16 @@ def assemble(out: Path, config: BuildConfig | None = None, split_config=None) ->
         manifest = json.loads(manifest_path.read_text())
         if all((out / rel).is_file() and (out / rel).stat().st_size == f["bytes"]
                for rel, f in manifest["files"].items()):
-            write_json_atomic(out / SPLITS_NAME, splits_payload(result, split_config))
+            write_json_atomic(out / SPLITS_NAME, splits_payload(result, split_config), nan=NAN_AS_NULL, sort_keys=True,
+                              only_if_changed=True)
             return result.counts, len(manifest["files"]), sum(f["bytes"] for f in manifest["files"].values()), False
     payload = {s: dict(v["info"], fragments={k: out / f for k, f in v["fragments"].items()},
                        official_split=v.get("official_split"))
                for s, v in scenes.items()}
     manifest = write_dataset(out, result.assignments, payload, shard_config, class_names, record["config_hash"])
-    write_json_atomic(out / SPLITS_NAME, splits_payload(result, split_config))
-    write_json_atomic(state_path, {"key": key})
+    write_json_atomic(out / SPLITS_NAME, splits_payload(result, split_config), nan=NAN_AS_NULL, sort_keys=True,
+                      only_if_changed=True)
+    write_json_atomic(state_path, {"key": key}, nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
     return result.counts, len(manifest["files"]), sum(f["bytes"] for f in manifest["files"].values()), True
 
 

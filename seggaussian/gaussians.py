@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Mapping
 import numpy as np
 
 from seggaussian.constants import MAX_SH_DEGREE, QUAT_NORM_EPS, SH_C0
-from seggaussian.rotations import quats_to_rotmats  # noqa: F401  (re-exported: Gaussians' API)
+from seggaussian.rotations import quats_to_rotmats
 
 if TYPE_CHECKING:  # torch is heavy: imported only where tensors are asked for
     import torch

@@ -27,19 +27,27 @@ def test_json_nan_becomes_null_and_png_suffix_kept(tmp_path):
 
 
 def test_json_nan_policy_error_refuses_before_writing(tmp_path):
-    from ovgaussian import checkpoint
-    from seggaussian import shards
-    from seggaussian.jsonsafe import NAN_IS_ERROR
+    import torch
+
+    from ovgaussian.checkpoint import CHECKPOINTS_DIR, save_checkpoint
+    from seggaussian.jsonsafe import NAN_AS_NULL, NAN_IS_ERROR
 
     target = tmp_path / "state.json"
     with pytest.raises(ValueError, match=r"payload\['groups'\]\[1\] holds nan"):
         write_json_atomic(target, {"groups": [1.0, math.nan]}, nan=NAN_IS_ERROR)
-    with pytest.raises(ValueError, match="holds inf"):
-        checkpoint.write_json_atomic(target, {"lr": math.inf})
     with pytest.raises(ValueError, match="NaN policy"):
         write_json_atomic(target, {}, nan="drop")
     assert list(tmp_path.iterdir()) == []  # nothing written, no temp file left
-    checkpoint.write_json_atomic(target, {"lr": 0.5})
-    assert json.loads(target.read_text()) == {"lr": 0.5}
-    shards.write_json_atomic(tmp_path / "m.json", {"b": math.nan, "a": 1})
+    # the run's JSON files refuse NaN/Inf: a checkpoint whose state holds inf is not written at all
+    net = torch.nn.Linear(2, 2)
+    optimizer = torch.optim.SGD(net.parameters(), lr=0.1)
+    run = tmp_path / "run"
+    with pytest.raises(ValueError, match="holds inf"):
+        save_checkpoint(run, 1, net, optimizer, {"lr": math.inf})
+    assert not [p for p in run.rglob("*") if p.is_file()]
+    save_checkpoint(run, 1, net, optimizer, {"lr": 0.5})
+    assert json.loads((run / CHECKPOINTS_DIR / "epoch-0001" / "state.json").read_text())["lr"] == 0.5
+    # the dataset's JSON files (manifest, splits): NaN as null, keys sorted
+    write_json_atomic(tmp_path / "m.json", {"b": math.nan, "a": 1}, nan=NAN_AS_NULL, sort_keys=True,
+                      only_if_changed=True)
     assert (tmp_path / "m.json").read_text() == '{\n  "a": 1,\n  "b": null\n}\n'

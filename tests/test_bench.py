@@ -7,15 +7,9 @@ import numpy as np
 import pytest
 
 from ovgaussian import baseline
-from ovgaussian.bench import (
-    BlendFunctions,
-    evaluate,
-    make_vocabulary,
-    result_to_dict,
-    table1_header,
-    table1_row,
-    to_vocabulary_labels,
-)
+from ovgaussian.bench import evaluate, result_to_dict, table1_header, table1_row
+from ovgaussian.view_labels import BlendFunctions
+from ovgaussian.vocabulary import make_vocabulary, to_vocabulary_labels
 from seggaussian.constants import IGNORE_LABEL, SH_C0, read_class_names
 from seggaussian.gaussians import Gaussians
 
@@ -301,7 +295,8 @@ def test_real_renderer_oracle_matches_rendered_label_maps():
     """With the real blend weights, an oracle's 2D labels equal render_label_maps of the same Gaussians."""
     import torch
 
-    from ovgaussian.bench import default_blend_functions, predict_view_labels
+    from ovgaussian.bench import predict_view_labels
+    from ovgaussian.view_labels import default_blend_functions
     from seggaussian.cameras import Camera, intrinsics, look_at
     from seggaussian.render import render_label_maps
 
@@ -415,7 +410,8 @@ def test_bench_cli_baseline_writes_json(tiny_dataset, tmp_path):
 
 
 def test_views_are_streamed_in_bands_and_nothing_is_cached(tiny_dataset, tmp_path):
-    from ovgaussian.bench import BlendFunctions, default_blend_functions, run_bench
+    from ovgaussian.bench import run_bench
+    from ovgaussian.view_labels import default_blend_functions
     from ovgaussian.bench_config import BenchConfig
 
     real = default_blend_functions()

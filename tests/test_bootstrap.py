@@ -5,11 +5,12 @@ import pytest
 
 from types import SimpleNamespace
 
-from ovgaussian.bench import evaluate, make_vocabulary, metric_interval, result_to_dict
+from ovgaussian.bench import evaluate, metric_interval, result_to_dict
 from ovgaussian.bootstrap import (
     bootstrap_miou, bootstrap_miou_reference, draw_scene_counts, miou_of_stack, overlaps,
 )
 from ovgaussian.metrics import scores_from_confusion
+from ovgaussian.vocabulary import make_vocabulary
 from seggaussian.constants import read_class_names
 from seggaussian.gaussians import Gaussians
 

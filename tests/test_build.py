@@ -302,7 +302,7 @@ def test_split_rules():
 
 
 def test_quats_from_z_axis_rotates_z_onto_the_normal():
-    from seggaussian.gaussians import quats_to_rotmats
+    from seggaussian.rotations import quats_to_rotmats
 
     rng = np.random.default_rng(0)
     normals = np.concatenate([rng.normal(size=(50, 3)), [[0, 0, 1.0], [0, 0, -1.0], [1e-12, 0, -1.0]]])

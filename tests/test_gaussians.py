@@ -3,7 +3,8 @@ import pytest
 
 from seggaussian.cameras import Camera, intrinsics, look_at
 from seggaussian.constants import SH_C0
-from seggaussian.gaussians import Gaussians, quats_to_rotmats, sh_degree_from_coeffs
+from seggaussian.gaussians import Gaussians, sh_degree_from_coeffs
+from seggaussian.rotations import quats_to_rotmats
 
 
 def random_gaussians(n, degree=1, seed=0):

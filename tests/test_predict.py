@@ -18,9 +18,10 @@ def _tiny_run(run_dir: Path) -> Path:
     """A run folder in the trainer's layout holding a randomly-initialized slim network."""
     import torch
 
-    from ovgaussian.checkpoint import CONFIG_NAME, build_network, save_checkpoint, write_json_atomic
+    from ovgaussian.checkpoint import CONFIG_NAME, build_network, save_checkpoint
     from ovgaussian.model_config import OVGaussianNetConfig
     from ovgaussian.train_config import TextConfig, config_to_dict
+    from seggaussian.atomic import write_json_atomic
 
     model_config = OVGaussianNetConfig.slim(embedding_width=384, blocks=(1,) * 8, voxel_size=0.2)
     net = build_network(model_config)

@@ -6,7 +6,7 @@ import torch
 
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.render import render_label_maps
-from seggaussian.render.blend import BlendWeights
+from seggaussian.render.results import BlendWeights
 from seggaussian.render.labelmaps import render_label_maps_reference
 
 

@@ -2,17 +2,37 @@
 
 from __future__ import annotations
 
+import ast
+import importlib
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from ovgaussian import bench, data, vocabulary as V
+from ovgaussian import vocabulary as V
 from seggaussian.classes import benchmark_vocabulary as class_ids_for
 from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
 
 
 def test_one_type_everywhere():
-    assert bench.Vocabulary is data.Vocabulary is V.Vocabulary
-    assert bench.make_vocabulary is V.make_vocabulary and data.map_labels is V.map_labels
+    """The vocabulary type and rules are defined, and bound, in ovgaussian.vocabulary only: no other module of the
+    package defines them or re-exports them under a second import path."""
+    names = {"Vocabulary", "make_vocabulary", "benchmark_vocabulary", "training_vocabulary", "map_labels",
+             "to_vocabulary_labels"}
+    root = Path(V.__file__).parent
+    for path in sorted(root.rglob("*.py")):
+        if path.name == "vocabulary.py":
+            continue
+        tree = ast.parse(path.read_text())
+        defined = {n.name for n in ast.walk(tree) if isinstance(n, (ast.ClassDef, ast.FunctionDef))} & names
+        assert not defined, (path, defined)
+        module = importlib.import_module(".".join(path.relative_to(root.parent).with_suffix("").parts))
+        exported = set(getattr(module, "__all__", ())) & names
+        assert not exported, (path, exported)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module == "ovgaussian.vocabulary":
+                unused = {a.name for a in node.names} - {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+                assert not unused, f"{path.name} imports {sorted(unused)} without using them (a re-export)"
 
 
 @pytest.mark.parametrize("k", [20, 50, 100])

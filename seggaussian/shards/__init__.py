@@ -19,14 +19,7 @@ This package re-exports the public read and write API, so ``from seggaussian imp
 """
 
 from seggaussian.shards.card import dataset_card
-from seggaussian.shards.files import (
-    read_footer,
-    read_fragment,
-    sha256_file,
-    write_bytes_atomic,
-    write_json_atomic,
-    write_parquet_atomic,
-)
+from seggaussian.shards.files import read_footer, read_fragment, sha256_file, write_parquet_atomic
 from seggaussian.shards.images import decode_label_map, decode_rgb, encode_label_map, encode_rgb, image_format
 from seggaussian.shards.inspection import inspect_dataset
 from seggaussian.shards.layout import CARD_NAME, MANIFEST_NAME, SPLITS, SPLITS_NAME, ShardError
@@ -42,6 +35,5 @@ __all__ = [
     "dataset_card", "decode_label_map", "decode_rgb", "encode_label_map", "encode_rgb", "find_split",
     "gaussians_table", "image_format", "inspect_dataset", "iter_scenes", "list_scenes", "read_footer",
     "read_fragment", "read_manifest", "read_scene", "sha256_file", "table_to_gaussians", "table_to_views",
-    "verify_file", "views_table", "write_bytes_atomic", "write_dataset", "write_json_atomic",
-    "write_parquet_atomic",
+    "verify_file", "views_table", "write_dataset", "write_parquet_atomic",
 ]

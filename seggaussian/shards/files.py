@@ -2,7 +2,8 @@
 metadata), the JSON files, and their sha256.
 
 Every file is written to a temporary name in its folder and renamed; files whose bytes would not change are
-not rewritten (their mtime stays).
+not rewritten (their mtime stays). The dataset's JSON files (manifest, splits, build records) are written by
+``seggaussian.atomic.write_json_atomic`` with keys sorted, ``only_if_changed`` and NaN/Inf as null.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ import pyarrow.parquet as pq
 
 from seggaussian import atomic
 from seggaussian.build_config import ShardConfig
-from seggaussian.jsonsafe import NAN_AS_NULL
 from seggaussian.shards.layout import ShardError
 from seggaussian.shards.schema import (
     META_CLASS_NAMES,
@@ -40,18 +40,6 @@ def sha256_file(path: Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
-
-
-def write_bytes_atomic(path: Path, data: bytes, *, only_if_changed: bool = True) -> bool:
-    """``atomic.write_bytes_atomic`` that by default leaves a file holding exactly ``data`` untouched
-    (mtime kept; returns False then)."""
-    return atomic.write_bytes_atomic(path, data, only_if_changed=only_if_changed)
-
-
-def write_json_atomic(path: Path, payload) -> bool:
-    """The dataset's JSON files (manifest, splits, cache records): ``atomic.write_json_atomic`` with keys sorted,
-    unchanged files left alone and NaN/Inf written as null."""
-    return atomic.write_json_atomic(path, payload, nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
 
 
 def footer_metadata(table: str, split: str | None, class_names, config_hash: str) -> dict[bytes, bytes]:

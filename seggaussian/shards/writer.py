@@ -12,10 +12,12 @@ from typing import NamedTuple
 import pyarrow.parquet as pq
 
 from seggaussian import atomic
+from seggaussian.atomic import write_bytes_atomic, write_json_atomic
 from seggaussian.build_config import ShardConfig
 from seggaussian.constants import IGNORE_LABEL
+from seggaussian.jsonsafe import NAN_AS_NULL
 from seggaussian.shards.card import dataset_card
-from seggaussian.shards.files import footer_metadata, read_fragment, sha256_file, write_bytes_atomic, write_json_atomic, write_parquet_atomic
+from seggaussian.shards.files import footer_metadata, read_fragment, sha256_file, write_parquet_atomic
 from seggaussian.shards.layout import CARD_NAME, MANIFEST_NAME, SHARD_NAME, SPLITS, ShardError, shard_name
 from seggaussian.shards.schema import GAUSSIANS_TABLE, SCHEMA_VERSION, VIEWS_TABLE
 
@@ -141,6 +143,7 @@ def write_dataset(
         "files": files,
         "scenes": dict(sorted(scene_entries.items())),
     }
-    write_json_atomic(dataset / MANIFEST_NAME, manifest)
-    write_bytes_atomic(dataset / CARD_NAME, dataset_card("SegGaussian dataset", by_split, class_names).encode())
+    write_json_atomic(dataset / MANIFEST_NAME, manifest, nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
+    write_bytes_atomic(dataset / CARD_NAME, dataset_card("SegGaussian dataset", by_split, class_names).encode(),
+                       only_if_changed=True)
     return manifest

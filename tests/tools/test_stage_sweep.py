@@ -15,7 +15,7 @@ import torch
 from seggaussian.build_config import TransferConfig
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.render import render_label_maps
-from seggaussian.render.blend import BlendWeights
+from seggaussian.render.results import BlendWeights
 from seggaussian.tools.pareto import (
     PARETO_TIME_TOLERANCE,
     QUALITY_TOLERANCE,
