@@ -12,7 +12,7 @@ from seggaussian.cameras import Camera
 from seggaussian.constants import SH_C0
 from seggaussian.fit_config import FitConfig
 from seggaussian.gaussians import Gaussians
-from seggaussian.transfer import nearest_neighbours
+from seggaussian.knn import nearest_neighbours
 
 #: Smallest initial nearest-neighbour distance (metres): duplicate points would otherwise give
 #: log(0) = -inf scales.

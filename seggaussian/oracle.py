@@ -13,7 +13,7 @@ import numpy as np
 from seggaussian.build_config import OracleConfig
 from seggaussian.constants import SH_C0
 from seggaussian.gaussians import Gaussians
-from seggaussian.transfer import nearest_neighbours
+from seggaussian.knn import nearest_neighbours
 
 #: Triangles with an area below this (m^2) get no oracle samples (their normal is undefined).
 MIN_TRIANGLE_AREA = 1e-12

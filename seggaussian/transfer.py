@@ -23,12 +23,13 @@ Conventions (documented again in ``data_specs/SHARDS.md``):
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from seggaussian.build_config import TransferConfig
 from seggaussian.constants import IGNORE_LABEL
+from seggaussian.knn import nearest_neighbours
 
 #: Distance written for a Gaussian that was never queried (outside the box, non-finite centre, or no
 #: candidate point): a finite, impossible distance instead of inf so that columns stay NaN/Inf-free.
@@ -41,11 +42,6 @@ REFERENCE_BLOCK = 256
 #: its nearest *distinct* point. A point with this many exact copies of itself (never seen in meshes,
 #: which repeat a vertex at most a few times at seams) is left out of the median and counted.
 SPACING_NEIGHBOURS = 8
-#: Nearest-neighbour backends of ``nearest_neighbours`` (``TransferConfig.backend``).
-KNN_BACKENDS = ("scipy", "open3d")
-
-#: ``query(x [Q, 3], k) -> (distances [Q, k] ascending, indices [Q, k])`` over a fixed set of candidates.
-KnnQuery = Callable[[np.ndarray, int], "tuple[np.ndarray, np.ndarray]"]
 
 
 class TransferStats(NamedTuple):
@@ -108,7 +104,7 @@ class TransferResult(NamedTuple):
     stats: TransferStats
 
 
-class _Prepared(NamedTuple):
+class PreparedInputs(NamedTuple):
     """Validated inputs shared by the fast path and the reference."""
 
     means: np.ndarray  # [N, 3] float64
@@ -134,11 +130,11 @@ def transfer_labels(
     Raises ValueError naming the argument for wrong shapes or non-finite points.
     """
     config = config or TransferConfig()
-    prep = _prepare(gaussian_means, points, semantic, instance, multilabel, config)
+    prep = prepare_inputs(gaussian_means, points, semantic, instance, multilabel, config)
     cand_points = prep.points if prep.all_candidates else prep.points[prep.candidate_index]
     query = nearest_neighbours(cand_points, config.backend)
     spacing = median_spacing(query, cand_points, config)
-    gate = _gate(spacing, config)
+    gate = distance_gate(spacing, config)
     query_mask, outside_box, nonfinite = _prefilter(prep.means, cand_points, max(config.box_margin, gate))
     n = len(prep.means)
     if len(cand_points) and n and query_mask.all():  # common case: no row copies
@@ -172,10 +168,10 @@ def transfer_labels_reference(
     the same gate to both through ``TransferConfig.max_distance``).
     """
     config = config or TransferConfig()
-    prep = _prepare(gaussian_means, points, semantic, instance, multilabel, config)
+    prep = prepare_inputs(gaussian_means, points, semantic, instance, multilabel, config)
     cand_points = prep.points[prep.candidate_index]
     spacing = _median_spacing_reference(cand_points)
-    gate = gate if gate is not None else _gate(spacing, config)
+    gate = gate if gate is not None else distance_gate(spacing, config)
     margin = max(config.box_margin, gate)
     n = len(prep.means)
     nearest = np.full(n, -1, np.int64)
@@ -200,64 +196,9 @@ def transfer_labels_reference(
     return _finish(prep, nearest, distances, spacing, gate, margin, int(outside.sum()), int((~finite).sum()))
 
 
-# --- k-nearest vote (a second transfer rule, compared with the shipped one by the transfer sweep) ---------
-def transfer_labels_vote(
-    gaussian_means: np.ndarray,  # [N, 3]
-    points: np.ndarray,  # [P, 3]
-    semantic: np.ndarray,  # [P]
-    k: int,
-    config: TransferConfig | None = None,
-) -> tuple[np.ndarray, float]:  # ([N] int32 labels, gate)
-    """Majority vote of the ``k`` nearest candidates within the distance gate (ties: the label of the
-    nearest voter). Same candidates (with ``candidates="all"`` unlabelled points vote for ignore), kNN
-    backend, spacing estimate and gate as ``transfer_labels``; with ``k = 1`` the labels equal its labels."""
-    config = config or TransferConfig()
-    prep = _prepare(gaussian_means, points, semantic, np.zeros(len(np.asarray(semantic)), np.int32), None, config)
-    cand_points, cand_semantic = prep.points[prep.candidate_index], prep.semantic[prep.candidate_index]
-    labels = np.full(len(prep.means), IGNORE_LABEL, np.int32)
-    if not len(cand_points) or not len(prep.means):
-        return labels, float(config.max_distance or config.gate_min)
-    query = nearest_neighbours(cand_points, config.backend)
-    gate = _gate(median_spacing(query, cand_points, config), config)
-    finite = np.flatnonzero(np.isfinite(prep.means).all(axis=1))
-    d, i = query(prep.means[finite], int(min(k, len(cand_points))))  # [Q, k], ascending distance
-    labels[finite] = vote(cand_semantic[i], d <= gate)
-    return labels, gate
-
-
-def vote(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``[Q]`` majority label of each row of ``labels`` ``[Q, k]`` over its ``valid`` slots (slots ordered
-    nearest first; ties go to the earliest slot; IGNORE_LABEL votes like any label); IGNORE_LABEL for rows
-    without a valid slot."""
-    counts = np.zeros(labels.shape, np.int64)
-    for j in range(labels.shape[1]):
-        counts += valid[:, j : j + 1] & (labels == labels[:, j : j + 1])
-    counts = np.where(valid, counts, -1)
-    best = np.argmax(counts, axis=1)  # first maximum = nearest voter among the tied labels
-    out = labels[np.arange(len(labels)), best].astype(np.int32)
-    return np.where(valid.any(axis=1), out, IGNORE_LABEL).astype(np.int32)
-
-
-def transfer_labels_vote_reference(means, points, semantic, k: int, gate: float, candidates: str = "all") -> np.ndarray:
-    """Brute-force reference of ``transfer_labels_vote`` for a given gate (tiny inputs only)."""
-    means, points = np.asarray(means, np.float64), np.asarray(points, np.float64)
-    semantic = np.asarray(semantic).astype(np.int32)
-    cand = np.ones(len(points), bool) if candidates == "all" else semantic != IGNORE_LABEL
-    cand_points, cand_semantic = points[cand], semantic[cand]
-    out = np.full(len(means), IGNORE_LABEL, np.int32)
-    for r, x in enumerate(means):
-        if not np.isfinite(x).all() or not len(cand_points):
-            continue
-        d = np.sqrt(((cand_points - x) ** 2).sum(axis=1))
-        voters = [int(cand_semantic[j]) for j in np.argsort(d, kind="stable")[:k] if d[j] <= gate]
-        if voters:
-            top = max(voters.count(v) for v in voters)
-            out[r] = next(v for v in voters if voters.count(v) == top)
-    return out
-
-
 # --- steps --------------------------------------------------------------------------------------
-def _prepare(means, points, semantic, instance, multilabel, config: TransferConfig) -> _Prepared:
+def prepare_inputs(means, points, semantic, instance, multilabel, config: TransferConfig) -> PreparedInputs:
+    """Checked float64/int32 copies of the inputs and the candidate points (ValueError naming a bad input)."""
     means = np.asarray(means, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
     if means.ndim != 2 or means.shape[1] != 3:
@@ -293,43 +234,7 @@ def _prepare(means, points, semantic, instance, multilabel, config: TransferConf
     else:
         raise ValueError(f"transfer: candidates must be 'labelled' or 'all', got {config.candidates!r}")
     candidate_index = candidate_index.astype(np.int64, copy=False)
-    return _Prepared(means, points, semantic, instance, multilabel, candidate_index, len(candidate_index) == p)
-
-
-def nearest_neighbours(cand_points: np.ndarray, backend: str) -> KnnQuery:
-    """The one k-nearest-neighbour search of the toolkit over ``cand_points`` ``[C, 3]``:
-    ``query(x [Q, 3], k) -> (distances [Q, k] float64 ascending, indices [Q, k] int64)``.
-
-    ``backend`` (``TransferConfig.backend``): ``scipy`` (cKDTree, all cores) or ``open3d`` (its NNS index;
-    it returns squared distances, square-rooted here). With no candidate every distance is inf and every
-    index -1."""
-    cand_points = np.ascontiguousarray(cand_points, dtype=np.float64)
-    if backend not in KNN_BACKENDS:
-        raise ValueError(f"transfer: backend must be 'scipy' or 'open3d', got {backend!r}")
-    if not len(cand_points):
-        return lambda x, k: (np.full((len(x), k), np.inf), np.full((len(x), k), -1, np.int64))
-    if backend == "scipy":
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(cand_points)
-
-        def query(x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-            d, i = tree.query(x, k=k, workers=-1)
-            return np.asarray(d, np.float64).reshape(len(x), k), np.asarray(i, np.int64).reshape(len(x), k)
-
-        return query
-    import open3d as o3d
-
-    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(cand_points))
-    nns.knn_index()
-
-    def query(x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        if not len(x):
-            return np.zeros((0, k)), np.zeros((0, k), np.int64)
-        i, d2 = nns.knn_search(o3d.core.Tensor(np.ascontiguousarray(x, dtype=np.float64)), k)
-        return np.sqrt(np.maximum(d2.numpy().astype(np.float64), 0.0)), i.numpy().astype(np.int64)
-
-    return query
+    return PreparedInputs(means, points, semantic, instance, multilabel, candidate_index, len(candidate_index) == p)
 
 
 def median_spacing(query, cand_points: np.ndarray, config: TransferConfig) -> float:
@@ -370,7 +275,8 @@ def _median_spacing_reference(cand_points: np.ndarray) -> float:
     return float(np.median(out))
 
 
-def _gate(spacing: float, config: TransferConfig) -> float:
+def distance_gate(spacing: float, config: TransferConfig) -> float:
+    """The transfer's distance gate: ``max_distance`` when given, else ``max(gate_min, gate_factor x spacing)``."""
     if config.max_distance is not None:
         if not config.max_distance > 0:
             raise ValueError(f"transfer: max_distance must be > 0, got {config.max_distance}")
@@ -396,7 +302,7 @@ def _prefilter(means: np.ndarray, cand_points: np.ndarray, margin: float) -> tup
     return query, int((finite & ~inside).sum()), int((~finite).sum())
 
 
-def _finish(prep: _Prepared, nearest, distances, spacing, gate, margin, outside_box, nonfinite) -> TransferResult:
+def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, outside_box, nonfinite) -> TransferResult:
     n = len(prep.means)
     queried = nearest >= 0
     within = queried & (distances <= gate)
@@ -500,46 +406,3 @@ def first_occurrences(points: np.ndarray) -> np.ndarray:
     keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
     _, first = np.unique(keys, return_index=True)
     return np.sort(first)
-
-
-# --- scoring against the mesh (per-scene accuracy report) --------------------------------------------
-def surface_labels(
-    query_points: np.ndarray,  # [Q, 3]
-    vertices: np.ndarray,  # [P, 3]
-    faces: np.ndarray | None,  # [F, 3]
-    semantic: np.ndarray,  # [P]
-) -> np.ndarray:
-    """Ground-truth class of each query point: the label of the vertex with the largest barycentric
-    weight on the closest mesh triangle (open3d raycasting scene); nearest vertex for point clouds.
-
-    Used to score transferred labels of fitted Gaussians (``label_accuracy``), never to produce them.
-    """
-    query_points = np.asarray(query_points, np.float64)
-    if not len(query_points):
-        return np.zeros(0, np.int32)
-    if faces is None or not len(faces):
-        _, i = nearest_neighbours(vertices, "scipy")(query_points, 1)
-        return np.asarray(semantic, np.int32)[i[:, 0]]
-    import open3d as o3d
-
-    mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(np.asarray(vertices, np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(np.asarray(faces, np.int32))
-    rc = o3d.t.geometry.RaycastingScene()
-    rc.add_triangles(mesh)
-    ans = rc.compute_closest_points(o3d.core.Tensor(query_points.astype(np.float32)))
-    tri = ans["primitive_ids"].numpy().astype(np.int64)
-    uv = ans["primitive_uvs"].numpy().astype(np.float64)
-    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-    corner = np.argmax(bary, axis=1)
-    vertex = np.asarray(faces, np.int64)[tri, corner]
-    return np.asarray(semantic, np.int32)[vertex]
-
-
-def label_accuracy(predicted: np.ndarray, truth: np.ndarray) -> dict:
-    """Share of Gaussians whose transferred class equals the ground truth, over those with a labelled
-    ground truth (a transferred IGNORE counts as wrong). ``accuracy`` is None when nothing is scorable."""
-    scored = truth != IGNORE_LABEL
-    n = int(scored.sum())
-    correct = int((predicted[scored] == truth[scored]).sum())
-    return {"scored": n, "correct": correct, "accuracy": (correct / n) if n else None}

@@ -316,7 +316,7 @@ def test_quats_from_z_axis_rotates_z_onto_the_normal():
 def test_oracle_samples_lie_on_the_mesh_with_their_surface_label():
     pytest.importorskip("open3d")
     from seggaussian.cameras import Camera, intrinsics, look_at
-    from seggaussian.transfer import surface_labels
+    from seggaussian.transfer_scoring import surface_labels
 
     # two labelled squares: floor (class 1) and a wall (class 2), seen by one camera
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 1, 0], [1, 1, 0], [1, 1, 1], [0, 1, 1.0]])

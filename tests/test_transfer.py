@@ -11,11 +11,10 @@ from seggaussian.transfer import (
     DISTANCE_NOT_MEASURED,
     densify_labelled_mesh,
     first_occurrences,
-    label_accuracy,
-    surface_labels,
     transfer_labels,
     transfer_labels_reference,
 )
+from seggaussian.transfer_scoring import label_accuracy, surface_labels
 
 
 def _random_inputs(rng, n=400, p=300, ignore_share=0.2, spread=1.0):

@@ -18,7 +18,8 @@ from seggaussian.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
 from seggaussian.shards.tables import gaussians_table
 from seggaussian.stages.gaussians import save_npz
-from seggaussian.transfer import densify_labelled_mesh, label_accuracy, surface_labels, transfer_labels
+from seggaussian.transfer import densify_labelled_mesh, transfer_labels
+from seggaussian.transfer_scoring import label_accuracy, surface_labels
 
 #: Files the stage writes into the scene's cache folder.
 OUTPUTS = ("gaussians.parquet", "labels.npz")

@@ -49,7 +49,7 @@ class TransferSweep:
     """Nearest-neighbour backends (``TransferConfig.backend``)."""
     vote_k: tuple[int, ...] = (1, 3, 5)
     """1 = the shipped nearest-point transfer; k > 1 = majority vote of the k nearest candidates
-    within the gate (ties go to the nearest), ``transfer.transfer_labels_vote``, on the same KD-tree."""
+    within the gate (ties go to the nearest), ``transfer_vote.transfer_labels_vote``, on the same KD-tree."""
     point_fraction: tuple[float, ...] = (1.0, 0.5, 0.25)
     """Share of the labelled points kept (seeded random subsample after mesh densification)."""
     mesh_sample_spacing: tuple[float, ...] = (0.0, 0.015, 0.03)

@@ -25,7 +25,9 @@ from seggaussian.constants import IGNORE_LABEL
 from seggaussian.tools.pareto import Trial, one_at_a_time
 from seggaussian.tools.sweep_config import StageSweepConfig
 from seggaussian.tools.sweep_data import Progress, oracle_labelled, read_task_scene, require_mesh
-from seggaussian.transfer import densify_labelled_mesh, label_accuracy, transfer_labels, transfer_labels_vote
+from seggaussian.transfer import densify_labelled_mesh, transfer_labels
+from seggaussian.transfer_scoring import label_accuracy
+from seggaussian.transfer_vote import transfer_labels_vote
 
 
 def noisy_oracle(scene, sweep, seed: int) -> tuple[np.ndarray, np.ndarray]:

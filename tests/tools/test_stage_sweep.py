@@ -30,7 +30,8 @@ from seggaussian.tools.sweep_config import StageSweepConfig, quick_config, with_
 from seggaussian.tools.sweep_data import SweepDataError, prepare_data
 from seggaussian.tools.sweep_render import labelled_only_blend
 from seggaussian.tools.sweep_report import default_verdict, format_table, write_markdown
-from seggaussian.transfer import transfer_labels, transfer_labels_vote, transfer_labels_vote_reference, vote
+from seggaussian.transfer import transfer_labels
+from seggaussian.transfer_vote import transfer_labels_vote, transfer_labels_vote_reference, vote
 
 I = IGNORE_LABEL
 
