@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_fuzz.py [--mutants 20000] [--seed 18] [--out benchmarks/results/fuzz.md]
 
 Seeds: the real PLYs in ../shared/realdata (or /work/shared/realdata) and files our writer makes
-(``seggaussian.tools.fuzz.ply_target``). Every mutant is classified as accepted-and-finite, clean error,
+(``seggaussian.tools.fuzz_ply.ply_target``). Every mutant is classified as accepted-and-finite, clean error,
 non-finite, crash or hang; the run fails (exit 1) on any crash, hang or non-finite acceptance. CI runs
 1,600 of the same mutants in tests/test_fuzz.py.
 """
@@ -28,7 +28,7 @@ def realdata() -> Path | None:
 
 
 def main() -> int:
-    from seggaussian.tools import fuzz
+    from seggaussian.tools import fuzz, fuzz_ply
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mutants", type=int, default=20000)
@@ -39,7 +39,7 @@ def main() -> int:
 
     root = realdata()
     real = sorted(root.glob("*.ply")) if root else []
-    target = fuzz.ply_target(real)
+    target = fuzz_ply.ply_target(real)
     start, start_cpu = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as work:
         report = fuzz.run_fuzz(target, args.mutants, args.seed, Path(work), timeout_s=args.timeout)

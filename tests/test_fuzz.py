@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seggaussian.tools import fuzz
+from seggaussian.tools import fuzz, fuzz_ply
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.ply import (
     PlyFormatError, read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile, write_gaussians_ply,
@@ -24,7 +24,7 @@ CI_MUTANTS = 1600
 
 @pytest.fixture(scope="module")
 def target():
-    return fuzz.ply_target(REAL_PLYS, seed=0)
+    return fuzz_ply.ply_target(REAL_PLYS, seed=0)
 
 
 @needs_realdata

@@ -25,7 +25,8 @@ from seggaussian.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians, write_gaussians
 from seggaussian.io.ply import PlyFormatError
 from seggaussian.io.spz import GZIP_MAGIC, encode_spz
-from seggaussian.tools.fuzz import BYTE_MUTATORS, PLY_MUTATORS, FuzzTarget, Mutator
+from seggaussian.tools.fuzz import BYTE_MUTATORS, FuzzTarget, Mutator
+from seggaussian.tools.fuzz_ply import PLY_MUTATORS
 
 __all__ = ["splat_targets", "SPLAT_TARGET_NAMES"]
 
