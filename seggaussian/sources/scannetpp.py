@@ -38,6 +38,7 @@ import numpy as np
 
 from seggaussian.cameras import Camera, intrinsics, invert_rigid
 from seggaussian.constants import IGNORE_LABEL, read_class_names
+from seggaussian.rotations import quats_to_rotmats, rotmats_to_quats
 from seggaussian.scene import Scene, View
 from seggaussian.sources._common import (
     EmptySceneError,
@@ -113,33 +114,15 @@ def undo_toolkit_transform(transform_matrix: np.ndarray) -> np.ndarray:
 
 
 def quaternion_to_rotation(qw: float, qx: float, qy: float, qz: float) -> np.ndarray:
-    """``[3, 3]`` rotation of a (normalized here) Hamilton quaternion, COLMAP order w, x, y, z."""
+    """``[3, 3]`` rotation of a Hamilton quaternion in COLMAP order w, x, y, z (not necessarily unit on disk:
+    normalized here); the formula is ``seggaussian.rotations``'."""
     q = np.array([qw, qx, qy, qz], dtype=np.float64)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return quats_to_rotmats((q / np.linalg.norm(q))[None])[0]
 
 
 def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """``[4]`` (w, x, y, z) with w >= 0 of a ``[3, 3]`` rotation (Shepperd's method)."""
-    m = np.asarray(rotation, dtype=np.float64)
-    trace = np.trace(m)
-    if trace > 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.asarray(q)
+    """``[4]`` unit (w, x, y, z) with w >= 0 (COLMAP's sign) of a ``[3, 3]`` rotation (``seggaussian.rotations``)."""
+    q = rotmats_to_quats(np.asarray(rotation, dtype=np.float64)[None])[0]
     return q if q[0] >= 0 else -q
 
 
