@@ -24,7 +24,6 @@ import math
 import re
 import signal
 import time
-import traceback
 from collections import Counter
 from pathlib import Path
 from typing import Callable, NamedTuple, Sequence
@@ -32,10 +31,9 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 
 from seggaussian.gaussians import Gaussians
+from seggaussian.tools.own_code import raised_by_own_code
 
 VERDICTS = ("accepted", "clean_error", "nonfinite", "crash", "hang")
-#: Packages whose frames count as "our code" when deciding whether an error was raised cleanly.
-OWN_PACKAGES = ("seggaussian", "ovgaussian")
 #: Default per-mutant time limit in seconds (the largest seed reads in well under 0.1 s).
 DEFAULT_TIMEOUT_S = 5.0
 
@@ -214,11 +212,6 @@ def _on_alarm(signum, frame):
     raise _Timeout()
 
 
-def _raised_by_own_code(exc: BaseException) -> bool:
-    frames = traceback.extract_tb(exc.__traceback__)
-    return bool(frames) and any(f"/{pkg}/" in Path(frames[-1].filename).as_posix() for pkg in OWN_PACKAGES)
-
-
 def _finite(g: Gaussians) -> bool:
     return all(np.isfinite(a).all() for a in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh))
 
@@ -233,7 +226,7 @@ def classify(target: FuzzTarget, path: Path, timeout_s: float) -> tuple[str, str
         return "hang", f"no answer within {timeout_s:g} s"
     except target.clean_errors as exc:
         message = str(exc)
-        if not _raised_by_own_code(exc):
+        if not raised_by_own_code(exc):
             return "crash", f"{type(exc).__name__} from a dependency: {message}"
         if str(path) not in message:
             return "crash", f"error does not name the file: {message}"

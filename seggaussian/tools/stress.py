@@ -19,7 +19,6 @@ tests with a small N. ``seggaussian stress`` is the command-line face.
 from __future__ import annotations
 
 import tempfile
-import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, NamedTuple, Sequence
@@ -30,6 +29,7 @@ from seggaussian.cameras import Camera, intrinsics, look_at
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.ply import PlyFormatError, read_gaussians_ply, write_gaussians_ply
 from seggaussian.render import compute_blend_weights, rasterize, render_features, render_gaussians, render_label_maps
+from seggaussian.tools.own_code import raised_by_own_code
 from seggaussian.transfer import transfer_labels
 
 #: Image size used for stress renders (small: the suite checks values, not speed).
@@ -40,9 +40,6 @@ FAR_OFFSET = 1e5
 FAR_OFFSET_TOLERANCE = 1e-3
 #: Outcomes that count as failures.
 FAILURES = ("nan_inf", "crash")
-#: The packages whose own ValueErrors count as clean refusals (matched in traceback paths; the model
-#: package's loss cases raise from ``ovgaussian/``).
-OWN_PACKAGES = ("seggaussian", "ovgaussian")
 
 
 @dataclass(frozen=True)
@@ -95,14 +92,6 @@ class NonFiniteOutput(Exception):
 
 
 # --- classification ------------------------------------------------------------------------------
-def _raised_by_own_code(exc: BaseException) -> bool:
-    frames = traceback.extract_tb(exc.__traceback__)
-    if not frames:
-        return False
-    path = Path(frames[-1].filename).as_posix()
-    return any(f"/{pkg}/" in path for pkg in OWN_PACKAGES)
-
-
 def classify(family: str, name: str, run: Callable[[], str | None]) -> CaseResult:
     """Run one case; ``run`` returns None (ok) or a repair summary, or raises."""
     try:
@@ -110,7 +99,7 @@ def classify(family: str, name: str, run: Callable[[], str | None]) -> CaseResul
     except NonFiniteOutput as exc:
         return CaseResult(family, name, "nan_inf", str(exc))
     except (ValueError, TypeError) as exc:
-        if _raised_by_own_code(exc):
+        if raised_by_own_code(exc):
             return CaseResult(family, name, "clean_error", str(exc))
         return CaseResult(family, name, "crash", f"{type(exc).__name__} from a dependency: {exc}")
     except Exception as exc:  # noqa: BLE001 - the suite's job is to catch everything else
