@@ -5,7 +5,7 @@
 Seeds: the real PLYs in ../shared/realdata (or /work/shared/realdata) and files our writer makes
 (``seggaussian.tools.fuzz_ply.ply_target``). Every mutant is classified as accepted-and-finite, clean error,
 non-finite, crash or hang; the run fails (exit 1) on any crash, hang or non-finite acceptance. CI runs
-1,600 of the same mutants in tests/test_fuzz.py.
+1,600 of the same mutants in tests/seggaussian/tools/test_fuzz.py.
 """
 
 from __future__ import annotations

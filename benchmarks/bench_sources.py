@@ -33,7 +33,7 @@ if str(REPO) not in sys.path:
 from seggaussian.constants import IGNORE_LABEL  # noqa: E402
 from seggaussian.sources import replica, scannetpp, synthetic  # noqa: E402
 
-#: Depth test of the round-trip check (metres), as in tests/test_sources_roundtrip.py.
+#: Depth test of the round-trip check (metres), as in tests/seggaussian/sources/test_sources_roundtrip.py.
 DEPTH_TOL = 0.002
 
 

@@ -4,7 +4,7 @@ A config field is documented either by a string right after it (``FitConfig``, `
 or by ``#:`` comment lines right before it (``BuildConfig``); ``seggaussian.field_docs`` reads both.
 ``config_option`` is ``click.option`` with ``help`` taken from ``field_docs(config)[field]``; the option remembers
 its field, so
-``tests/test_cli_help.py`` checks every such option of every command against the config it names.
+``tests/cli/test_cli_help.py`` checks every such option of every command against the config it names.
 """
 
 from __future__ import annotations

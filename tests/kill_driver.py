@@ -13,7 +13,11 @@ import os
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+TESTS = Path(__file__).resolve().parent
+# Run as a script, Python puts tests/ first on sys.path, where tests/seggaussian and tests/ovgaussian (the tests,
+# mirroring the packages) would shadow the packages: the repository root goes first, then test_train's folder
+# (its scene and config helpers).
+sys.path[:0] = [str(TESTS.parent), str(TESTS / "ovgaussian")]
 
 
 def job_build(root: str, out: str) -> None:

@@ -21,7 +21,7 @@ from seggaussian.classes import (
 )
 from seggaussian.constants import DATA_SPECS_DIR, UNSEEN_CLASSES
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
+SHARED = Path(__file__).resolve().parents[3] / "shared"
 REPLICA_CLASSES = SHARED / "reference" / "replica_classes_1_to_101.json"
 REPLICA_INFO = SHARED / "realdata" / "replica_info_semantic"
 

@@ -14,7 +14,7 @@ from seggaussian.io.ply import (
     PlyFormatError, read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile, write_gaussians_ply,
 )
 
-REALDATA = next((p for p in (Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata",
+REALDATA = next((p for p in (Path(__file__).resolve().parents[3] / ".." / "shared" / "realdata",
                              Path("/work/shared/realdata")) if p.is_dir()), None)
 REAL_PLYS = sorted(REALDATA.glob("*.ply")) if REALDATA else []
 needs_realdata = pytest.mark.skipif(len(REAL_PLYS) < 2, reason="real 3DGS PLYs not found in ../shared/realdata")

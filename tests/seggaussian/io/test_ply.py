@@ -25,7 +25,7 @@ from seggaussian.io.ply import (
 )
 from seggaussian.io.validate import validate_gaussians
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+REALDATA = Path(__file__).resolve().parents[4] / "shared" / "realdata"
 TRAIN_1000 = REALDATA / "loadersgl_train-1000.ply"
 DONUT = REALDATA / "v3dg_donut_fused_sh0.ply"
 needs_realdata = pytest.mark.skipif(not TRAIN_1000.exists() or not DONUT.exists(),

@@ -36,7 +36,7 @@ from seggaussian.io.compressed_ply import morton_order
 from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, bucket_layout, write_ksplat
 from seggaussian.io.ply import read_vertex_table, vertex_table_to_gaussians, write_gaussians_ply
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 CLI = ROOT / ".node" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
 REALDATA_DIRS = (ROOT.parent / "shared" / "realdata", Path("/work/shared/realdata"))
 REAL_FILES = ("loadersgl_train-1000.ply", "v3dg_donut_fused_sh0.ply")

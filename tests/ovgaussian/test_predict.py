@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from ovgaussian.predict import class_colours, paint_gaussians, parse_vocabulary, read_cameras
 from seggaussian.constants import IGNORE_LABEL, SH_C0
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+REALDATA = Path(__file__).resolve().parents[3] / "shared" / "realdata"
 VOCAB = "chair, table, sofa,  wooden floor"
 
 

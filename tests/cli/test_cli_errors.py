@@ -186,7 +186,7 @@ def test_file_size_limit_names_the_file_and_leaves_no_temp(inputs, tmp_path):
     out = tmp_path / "imported"
     proc = subprocess.run([sys.executable, "-m", "cli.seggaussian_cli", "import", str(inputs["ply"]),
                            "--out", str(out)], capture_output=True, text=True, preexec_fn=limit,
-                          cwd=Path(__file__).resolve().parents[1], timeout=120)
+                          cwd=Path(__file__).resolve().parents[2], timeout=120)
     assert proc.returncode == 1, proc.stderr
     assert "Traceback" not in proc.stderr
     (line,) = [x for x in proc.stderr.splitlines() if x.startswith("Error:")]

@@ -16,7 +16,7 @@ from seggaussian.render import rasterize
 from seggaussian.render.quicklook import QuicklookConfig, orbit_camera
 from test_render_common import GEOMETRY, random_scene
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+REALDATA = Path(__file__).resolve().parents[3] / "shared" / "realdata"
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py

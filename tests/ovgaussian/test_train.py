@@ -24,7 +24,7 @@ from seggaussian.gaussians import Gaussians
 from seggaussian.rotations import rotmats_to_quats
 from seggaussian.shards import SceneRecord, ViewRecord
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 NAMES = read_class_names()
 # (class name, box min, box max): a floor, walls, a table, a chair and an unseen sofa
 BOXES = (("floor", (-2, -2, -0.05), (2, 2, 0.0)), ("wall", (-2, 2, 0), (2, 2.05, 2.0)),
