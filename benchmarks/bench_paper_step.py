@@ -203,7 +203,8 @@ def run(args) -> dict:
                      "pixels_per_view": args.pixels, "preset": args.preset,
                      "parameters": sum(p.numel() for p in net.parameters())},
         "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "platform": platform.platform(),
-                    "loadavg_at_end": os.getloadavg()},
+                    "loadavg_at_end": os.getloadavg(),
+                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")},
         "setup_s": setup_s, "steps": steps, "step_wall_s_median": median,
         "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
         "phases_s_median": phases, "peak_rss_gb": peak_gb,
@@ -247,9 +248,17 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=2, help="measured steps after one warm-up step")
     parser.add_argument("--max-peak-gb", type=float, default=16.0)
     parser.add_argument("--max-step-s", type=float, default=60.0)
+    parser.add_argument("--omp-wait-policy", choices=("passive", "active", "default"), default="passive",
+                        help="OMP_WAIT_POLICY of torch's OpenMP threads (set before torch loads); 'passive' stops "
+                             "idle threads spinning, which on a shared machine burnt 3-7x the CPU of the sparse "
+                             "U-Net's GEMMs; 'default' leaves the environment as it is")
     parser.add_argument("--compare-text-loss", type=int, metavar="ROWS", default=None,
                         help="only time the 3D text loss of ROWS Gaussians, direct vs Gram form (interleaved)")
     args = parser.parse_args()
+    if args.omp_wait_policy != "default":
+        if "torch" in sys.modules:
+            raise RuntimeError("torch was imported before OMP_WAIT_POLICY could be set")
+        os.environ["OMP_WAIT_POLICY"] = args.omp_wait_policy.upper()
     if args.compare_text_loss:
         r = compare_text_loss(args.compare_text_loss, max(args.steps, 1))
         print(json.dumps(r))

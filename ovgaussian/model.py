@@ -28,6 +28,7 @@ import math
 from typing import Mapping
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ovgaussian.model_config import NUM_GAUSSIAN_ATTRIBUTES, OVGaussianNetConfig
@@ -44,8 +45,10 @@ COORD_NORMALIZATION_MIN_EXTENT = 1e-6
 #: Per-Gaussian stages (adapter, decoders) run in chunks of this many rows under activation
 #: checkpointing when gradients are recorded: a chunk's activations are recomputed in backward instead
 #: of kept (about 2.7 KB per Gaussian for the adapter, 4 KB for phi + its 384-d output: 20 GB at
-#: 3 x 1,000,000 Gaussians otherwise).
-CHECKPOINT_ROWS = 1 << 18
+#: 3 x 1,000,000 Gaussians otherwise). 32,768 rows keep a chunk's [rows, 96..128] activations in L3;
+#: per 1,000,000 Gaussians (one thread) forward + backward took adapter 11.8 -> 6.8 s CPU and 3D text
+#: loss 7.4 -> 5.4 s CPU against 262,144 rows; 8,192 and fewer rows were slower again (per-op overhead).
+CHECKPOINT_ROWS = 1 << 15
 
 
 def checkpointed_rows(fn, *tensors: Tensor, chunk_rows: int | None = None) -> list:
@@ -226,7 +229,30 @@ class VoxelToPointAdapter(nn.Module):
         self.mlp = nn.Sequential(*layers)
 
     def forward(self, voxel_features: Tensor, attributes: Tensor) -> Tensor:
-        """``voxel_features [N, S]`` (per Gaussian), ``attributes [N, A]`` -> semantic ``[N, S]``."""
+        """``voxel_features [N, S]`` (per Gaussian), ``attributes [N, A]`` -> semantic ``[N, S]``.
+
+        Same function as :meth:`forward_reference`, arranged for speed: the per-group token embeddings
+        are one GEMM by their block-diagonal weight, and the attention over the ``T`` tokens (``d = 4``
+        channels per head) is elementwise products and sums over ``[N, T, H, d]`` instead of
+        ``einsum``, which becomes millions of tiny batched matmuls plus layout copies (less
+        CPU per 1,000,000 Gaussians, forward + backward, measured 1.1-1.4x; ``benchmarks/results/paper_scale.md``).
+        """
+        n = attributes.shape[0]
+        weight = torch.block_diag(*[embed.weight for embed in self.token_embed])  # [T * A_tok, A]
+        bias = torch.cat([embed.bias for embed in self.token_embed])  # [T * A_tok]
+        t, h = len(self.token_embed), self.heads
+        tokens = F.linear(attributes, weight, bias).view(n, t, weight.shape[0] // t)  # [N, T, A_tok]
+        d = tokens.shape[2] // h
+        q = self.query(voxel_features).view(n, 1, h, d)  # [N, 1, H, d]
+        k = self.key(tokens).view(n, t, h, d)  # [N, T, H, d]
+        v = self.value(tokens).view(n, t, h, d)
+        weights = torch.softmax((k * q).sum(-1) / math.sqrt(d), dim=1)  # [N, T, H]
+        attended = (weights[..., None] * v).sum(1).reshape(n, h * d)  # [N, H * d]
+        m = self.out(attended)
+        return self.mlp(torch.cat([m, voxel_features], dim=1)) + voxel_features
+
+    def forward_reference(self, voxel_features: Tensor, attributes: Tensor) -> Tensor:
+        """:meth:`forward` written plainly (one embedding per group, ``einsum`` attention): the reference."""
         n = attributes.shape[0]
         chunks = torch.split(attributes, self.group_widths, dim=1)
         tokens = torch.stack([embed(c) for embed, c in zip(self.token_embed, chunks)], dim=1)  # [N, T, A]

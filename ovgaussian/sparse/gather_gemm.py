@@ -63,9 +63,13 @@ MIN_PAIRS_PER_ROW_FOR_GROUPS = 1.0
 #: Convolutions with fewer input channels than this use the residual-only plan (the per-offset
 #: method): with narrow rows the im2col gather and the small GEMMs do not pay for the grouping.
 MIN_GROUPED_CHANNELS = 16
-#: Gathered values per im2col block (1 MB of float32): small enough to stay in L2 between the gather
-#: and the GEMM that reads it (blocks of 512-1024 rows were fastest for 9 x 32 columns on the test VMs).
-GATHER_BLOCK_ELEMENTS = 1 << 18
+#: Gathered values per im2col block (4 MB of float32). Each block's GEMM is one parallel region of
+#: torch's 2 OpenMP threads; with 1 << 18 (about 270 rows at 8 x 96 columns) the threads' spin-waits
+#: between the many small GEMMs cost more than the work on a loaded machine. Measured on a 1,000,000-
+#: Gaussian room's finest level (56,725 voxels, 96 -> 96, forward + both gradients): 2 threads at load 6,
+#: 2.97 s CPU with 1 << 18, 0.98 s with 1 << 20; with OMP_WAIT_POLICY=PASSIVE or 1 thread both sizes
+#: take 0.36-0.44 s CPU (``benchmarks/results/paper_scale.md``).
+GATHER_BLOCK_ELEMENTS = 1 << 20
 #: Bits used per int64 word of a pattern bit mask (below 63: no sign bit involved).
 MASK_WORD_BITS = 60
 

@@ -86,6 +86,35 @@ def test_every_parameter_gets_finite_nonzero_gradient(use_adapter, use_coordinat
         assert p.grad.abs().sum() > 0, name
 
 
+@pytest.mark.parametrize("use_coordinates", [False, True])
+@pytest.mark.parametrize("rows", [0, 1, 257])
+def test_adapter_forward_and_backward_equal_the_reference(use_coordinates, rows):
+    """The fast adapter (block-diagonal token embedding, elementwise attention) against the einsum reference,
+    values and every gradient (inputs and parameters), also for 0 and 1 rows and for large attribute values."""
+    net = OVGaussianNet(OVGaussianNetConfig(**TINY, use_coordinates=use_coordinates, seed=3))
+    g = torch.Generator().manual_seed(rows)
+    width = net.config.num_attributes
+    features = torch.randn(rows, 16, generator=g, dtype=torch.float64)
+    attributes = torch.rand(rows, width, generator=g, dtype=torch.float64) * 4 - 2
+    if rows > 1:
+        attributes[0] *= 1e3  # saturated softmax
+    adapter = net.adapter.double()
+    outputs, grads = [], []
+    for forward in (adapter.forward, adapter.forward_reference):
+        f = features.clone().requires_grad_()
+        a = attributes.clone().requires_grad_()
+        out = forward(f, a)
+        weights = torch.randn(out.shape, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+        grads.append(torch.autograd.grad((out * weights).sum(), [f, a, *adapter.parameters()], allow_unused=True))
+        outputs.append(out.detach())
+    assert outputs[0].shape == (rows, 16)
+    torch.testing.assert_close(outputs[0], outputs[1], rtol=1e-12, atol=1e-12)
+    for fast, reference in zip(*grads):
+        if rows == 0 and reference is None:
+            continue
+        torch.testing.assert_close(fast, reference, rtol=1e-10, atol=1e-12)
+
+
 def test_adapter_and_decoder_shapes():
     config = OVGaussianNetConfig(**TINY)
     net = OVGaussianNet(config)
