@@ -45,12 +45,14 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @config_option(LossConfig, "temperature", "--temperature", type=click.FloatRange(min=0, min_open=True),
                default=LossConfig.temperature, show_default=True)
 @config_option(DataConfig, "verify", "--verify", is_flag=True)
+@config_option(TrainConfig, "keep_checkpoints", "--keep-checkpoints", type=click.IntRange(min=0),
+               default=TrainConfig.keep_checkpoints, show_default=True)
 @config_option(TrainConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
-            use_coordinates, class_balance, temperature, verify, progress, as_json):
+            use_coordinates, class_balance, temperature, verify, keep_checkpoints, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
@@ -60,6 +62,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         out=out, epochs=epochs, batch_scenes=batch_scenes, seed=seed, device=device, resume=resume,
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
         voxel_size=voxel_size, use_coordinates=use_coordinates,
+        keep_checkpoints=keep_checkpoints,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
                         verify=verify),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),

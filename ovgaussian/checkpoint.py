@@ -8,23 +8,31 @@ Layout of a run folder::
                                          optimizer.safetensors (SGD momentum buffers),
                                          state.json (epoch, global step, optimizer hyper-parameters)
     RUN/checkpoints/latest.json          {"epoch": 3, "path": "checkpoints/epoch-0003"}
+    RUN/checkpoints/best.json            the same for the epoch of lowest mean training loss so far
     RUN/caches/                          text embeddings, blend weights, teacher features
 
 Every file is written under a temporary name in its folder and renamed; a checkpoint folder is
 complete before ``latest.json`` points at it. No pickle: tensors in safetensors, the rest in JSON, written by
 ``seggaussian.atomic.write_json_atomic`` with NaN/Inf refused (``nan=NAN_IS_ERROR``: they must read back).
+
+Retention (``TrainConfig.keep_checkpoints = N``, 0 = off): after each save, the epoch folders other than
+the last ``N``, the best and the latest are removed, each by one rename to a temporary name (``seggaussian.atomic.
+remove_dir_atomic``), after ``latest.json`` and ``best.json`` point at kept folders; a kill at any point
+leaves complete checkpoints, pointers to kept folders, and at most a temporary the next run sweeps.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from ovgaussian.model import OVGaussianNet
 from ovgaussian.model_config import OVGaussianNetConfig
 from ovgaussian.train_config import config_from_dict
-from seggaussian.atomic import atomic_dir, atomic_path, sweep_temps, write_json_atomic
+from seggaussian.atomic import atomic_dir, atomic_path, remove_dir_atomic, sweep_temps, write_json_atomic
 from seggaussian.jsonsafe import NAN_IS_ERROR
 
 if TYPE_CHECKING:
@@ -34,6 +42,9 @@ CONFIG_NAME = "config.json"
 METRICS_NAME = "metrics.jsonl"
 CHECKPOINTS_DIR = "checkpoints"
 LATEST_NAME = "latest.json"
+BEST_NAME = "best.json"
+#: Checkpoint folder names: ``epoch-`` and the zero-padded epoch number (the only folders retention removes).
+EPOCH_FOLDER = re.compile(r"^epoch-(\d{4,})$")
 
 
 class CheckpointError(ValueError):
@@ -90,6 +101,57 @@ def save_checkpoint(run_dir: Path, epoch: int, net, optimizer, state: dict) -> P
     write_json_atomic(run_dir / CHECKPOINTS_DIR / LATEST_NAME,
                       {"epoch": epoch, "path": str(folder.relative_to(run_dir))}, nan=NAN_IS_ERROR)
     return folder
+
+
+def checkpoint_folders(run_dir: Path) -> dict[int, Path]:
+    """``{epoch: folder}`` of the run's complete checkpoint folders (those holding ``state.json``)."""
+    root = Path(run_dir) / CHECKPOINTS_DIR
+    folders = {}
+    if root.is_dir():
+        for entry in root.iterdir():
+            match = EPOCH_FOLDER.match(entry.name)
+            if match and entry.is_dir() and (entry / "state.json").is_file():
+                folders[int(match.group(1))] = entry
+    return folders
+
+
+def epoch_loss(folder: Path) -> float:
+    """The mean training loss of the checkpoint's epoch (``state.json`` metrics), +inf when it has none."""
+    loss = read_json(Path(folder) / "state.json").get("metrics", {}).get("loss")
+    return float(loss) if isinstance(loss, (int, float)) and math.isfinite(loss) else math.inf
+
+
+def retain_checkpoints(run_dir: Path, keep_last: int) -> list[Path]:
+    """Point ``best.json`` at the epoch of lowest training loss (ties: the earliest), then remove every
+    epoch folder but the last ``keep_last``, the best and the latest (``0``: remove none). Returns the
+    removed folders.
+
+    Only complete ``epoch-NNNN`` folders are considered; ``latest.json`` must already point at the newest.
+    """
+    if keep_last < 0:
+        raise ValueError(f"keep_last must be 0 (keep every folder) or more, got {keep_last}")
+    run_dir = Path(run_dir)
+    folders = checkpoint_folders(run_dir)
+    if not folders:
+        return []
+    best = min(folders, key=lambda epoch: (epoch_loss(folders[epoch]), epoch))
+    pointer = {"epoch": best, "path": str(folders[best].relative_to(run_dir)), "loss": epoch_loss(folders[best])}
+    best_path = run_dir / CHECKPOINTS_DIR / BEST_NAME
+    if not math.isfinite(pointer["loss"]):
+        pointer["loss"] = None
+    if not best_path.is_file() or read_json(best_path) != pointer:
+        write_json_atomic(best_path, pointer, nan=NAN_IS_ERROR)
+    if keep_last == 0:
+        return []
+    kept = set(sorted(folders)[-keep_last:]) | {best}
+    latest = latest_checkpoint(run_dir)
+    if latest is not None and EPOCH_FOLDER.match(latest.name):
+        kept.add(int(EPOCH_FOLDER.match(latest.name).group(1)))  # never the one resume would load
+    removed = []
+    for epoch in sorted(set(folders) - kept):
+        if remove_dir_atomic(folders[epoch]):
+            removed.append(folders[epoch])
+    return removed
 
 
 def sweep_run_temps(run_dir: Path) -> int:

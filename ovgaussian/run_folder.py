@@ -12,7 +12,7 @@ from ovgaussian.train_config import TrainConfig, config_to_dict
 from seggaussian.atomic import write_text_atomic
 
 #: Config fields that may change between an interrupted run and its ``--resume``.
-RESUMABLE_FIELDS = ("epochs", "resume", "stop_after_epochs", "progress", "device", "out")
+RESUMABLE_FIELDS = ("epochs", "resume", "stop_after_epochs", "progress", "device", "out", "keep_checkpoints")
 #: Per-step metric names (means over the scenes of the global batch).
 METRIC_NAMES = ("loss", "text_3d", "text_2d", "cosine")
 

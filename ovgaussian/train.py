@@ -41,7 +41,7 @@ from tqdm import tqdm
 from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, DATASET_INTERNAL_FOLDERS, folder_bytes
 from ovgaussian.checkpoint import (
     CONFIG_NAME, METRICS_NAME, CheckpointError, build_network, latest_checkpoint, load_checkpoint, read_json,
-    save_checkpoint, sweep_run_temps,
+    retain_checkpoints, save_checkpoint, sweep_run_temps,
 )
 from ovgaussian.data import TrainingData
 from ovgaussian.model_config import OVGaussianNetConfig
@@ -304,6 +304,7 @@ def train_epoch(run: _Run, epoch: int, global_step: int) -> tuple[dict, int, Pat
                                           "steps": len(batches), **epoch_metrics})
         checkpoint = save_checkpoint(run.run_dir, epoch + 1, run.net, run.optimizer,
                                      {"global_step": global_step, "metrics": epoch_metrics})
+        retain_checkpoints(run.run_dir, config.keep_checkpoints)
     barrier(run.group)
     return epoch_metrics, global_step, checkpoint
 
@@ -384,6 +385,7 @@ def train_in_process_group(
         write_json_atomic(run_dir / CONFIG_NAME, payload, nan=NAN_IS_ERROR)
         if saved is not None:
             truncate_metrics(metrics_path, start_epoch)
+            retain_checkpoints(run_dir, config.keep_checkpoints)  # a kill may have stopped the last removal
         else:
             metrics_path.unlink(missing_ok=True)
         for note in notes:

@@ -128,6 +128,9 @@ class TrainConfig:
     tells floor, wall and ceiling objects apart); off keeps the paper's 11 attributes."""
     progress: bool = True
     """Show a tqdm progress bar with the running losses."""
+    keep_checkpoints: int = 2
+    """Checkpoint folders kept in checkpoints/: the last N epochs plus the one of lowest mean training
+    loss (best.json points at it); the others are removed after each save. 0 keeps every epoch."""
     data: DataConfig = field(default_factory=DataConfig)
     """Data preparation (shards, vocabulary, caches, augmentation)."""
     text: TextConfig = field(default_factory=TextConfig)
@@ -138,6 +141,10 @@ class TrainConfig:
     """Loss temperature, weights and ablation switches."""
     optim: OptimConfig = field(default_factory=OptimConfig)
     """SGD optimizer and learning-rate schedule."""
+
+    def __post_init__(self) -> None:
+        if self.keep_checkpoints < 0:
+            raise ValueError(f"keep_checkpoints must be 0 (keep every epoch) or more, got {self.keep_checkpoints}")
 
 
 def config_to_dict(config) -> dict:

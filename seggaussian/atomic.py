@@ -185,6 +185,22 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def remove_dir_atomic(path: str | os.PathLike) -> bool:
+    """Remove the folder ``path`` as one step: it is renamed to a temporary name (gone from ``path`` at once,
+    never half-deleted there), then deleted; a kill during the deletion leaves only that temporary, which
+    ``sweep_temps`` removes. Returns False when ``path`` did not exist."""
+    path = Path(path)
+    doomed = temp_name(path)
+    try:
+        os.replace(path, doomed)
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise _named(exc, path) from None
+    shutil.rmtree(doomed, ignore_errors=True)
+    return True
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes, *, only_if_changed: bool = False) -> bool:
     """``data`` to ``path``, atomically and fsynced. With ``only_if_changed``, a file that already holds
     exactly these bytes is left alone (mtime kept) and False is returned."""
