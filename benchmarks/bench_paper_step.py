@@ -22,6 +22,10 @@ Budgets (exit status 1 when one is missed, with the figure printed): peak reside
 
     .venv/bin/python benchmarks/bench_paper_step.py                          # paper scale, JSON + table
     .venv/bin/python benchmarks/bench_paper_step.py --gaussians 100000       # reduced scale (development)
+    .venv/bin/python benchmarks/bench_paper_step.py --compare-adapter 1000000  # adapter: einsum reference vs fast
+
+torch's OpenMP threads wait passively (``--omp-wait-policy passive``, the default here): spinning threads
+burnt 3-4x the step's CPU on the shared 2-core machine (benchmarks/results/paper_scale.md).
 """
 
 from __future__ import annotations
@@ -239,6 +243,31 @@ def compare_text_loss(rows: int, repeats: int) -> dict:
             **{f"{k}_cpu_s": v[1] for k, v in totals.items()}}
 
 
+def compare_adapter(rows: int, repeats: int, chunk_rows: tuple[int, ...]) -> dict:
+    """Adapter forward + backward over ``rows`` Gaussians under activation checkpointing: the einsum reference
+    (``forward_reference``) vs ``forward``, at each checkpoint chunk size, interleaved; default widths."""
+    import torch
+
+    from ovgaussian.model import OVGaussianNet, checkpointed_rows
+
+    torch.manual_seed(0)
+    adapter = OVGaussianNet().adapter
+    features, attributes = torch.randn(rows, 16), torch.randn(rows, 11)
+    results = {}
+    for _ in range(repeats):
+        for chunk in chunk_rows:
+            for name in ("reference", "fast"):
+                fn = adapter.forward_reference if name == "reference" else adapter.forward
+                f = features.clone().requires_grad_()
+                t, c = time.perf_counter(), time.process_time()
+                torch.cat(checkpointed_rows(fn, f, attributes, chunk_rows=chunk)).sum().backward()
+                entry = results.setdefault(f"{name}@{chunk}", [0.0, 0.0])
+                entry[0] += (time.perf_counter() - t) / repeats
+                entry[1] += (time.process_time() - c) / repeats
+    return {"rows": rows, **{f"{k}_wall_s": v[0] for k, v in results.items()},
+            **{f"{k}_cpu_s": v[1] for k, v in results.items()}}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gaussians", type=int, default=1_000_000, help="Gaussians per scene")
@@ -252,6 +281,9 @@ def main() -> int:
                         help="OMP_WAIT_POLICY of torch's OpenMP threads (set before torch loads); 'passive' stops "
                              "idle threads spinning, which on a shared machine burnt 3-7x the CPU of the sparse "
                              "U-Net's GEMMs; 'default' leaves the environment as it is")
+    parser.add_argument("--compare-adapter", type=int, metavar="ROWS", default=None,
+                        help="only time the adapter fwd+bwd of ROWS Gaussians, einsum reference vs fast forward, "
+                             "at checkpoint chunks of 262,144 and 32,768 rows (interleaved)")
     parser.add_argument("--compare-text-loss", type=int, metavar="ROWS", default=None,
                         help="only time the 3D text loss of ROWS Gaussians, direct vs Gram form (interleaved)")
     args = parser.parse_args()
@@ -259,6 +291,12 @@ def main() -> int:
         if "torch" in sys.modules:
             raise RuntimeError("torch was imported before OMP_WAIT_POLICY could be set")
         os.environ["OMP_WAIT_POLICY"] = args.omp_wait_policy.upper()
+    if args.compare_adapter:
+        r = compare_adapter(args.compare_adapter, max(args.steps, 1), (1 << 18, 1 << 15))
+        print(json.dumps(r))
+        for key in sorted(k[:-6] for k in r if k.endswith("_cpu_s")):
+            print(f"adapter fwd+bwd, {r['rows']:,} rows, {key}: {r[key + '_wall_s']:.2f} s wall / {r[key + '_cpu_s']:.2f} s CPU")
+        return 0
     if args.compare_text_loss:
         r = compare_text_loss(args.compare_text_loss, max(args.steps, 1))
         print(json.dumps(r))
