@@ -11,8 +11,9 @@ by ``1 - alpha`` is needed except for the accumulated-alpha term (``1 - alpha >=
 Gradients are written to one slot per (tile, Gaussian) intersection by the thread owning the tile and
 summed serially afterwards: deterministic for any thread count.
 
-Kernels run with ``fastmath``: inputs must be finite, which the projection guarantees for the Gaussians
-it marks valid (only those are binned).
+Kernels run with fast-math flags (``FASTMATH``, without ``reassoc``, so a kernel gives the same bits whether
+numba compiled it in this process or loaded it from its cache): inputs must be finite, which the projection
+guarantees for the Gaussians it marks valid (only those are binned).
 
 The kernels use numba's parallel threading layer: calling them in a forked child of a process that
 already ran one (e.g. a DataLoader worker) can kill the child; use the ``spawn`` start method or no
@@ -49,7 +50,14 @@ GAUSSIANS_PER_CHUNK = 4096
 #: Bands of tile rows per thread when filling the tile lists (a few, for load balance).
 _BANDS_PER_THREAD = 2
 
-_JIT = dict(cache=True, fastmath=True, nogil=True, error_model="numpy")
+#: Fast-math flags of every kernel: all of LLVM's except ``reassoc``. With ``reassoc`` the optimizer may reorder
+#: float sums, and numba optimizes a ``prange`` body once when it compiles it fresh and once more when it links
+#: it into the caller's module, whose object code is what ``cache=True`` stores: a freshly compiled kernel and
+#: the same kernel loaded from the cache then summed in different orders (different gradients, a different fit;
+#: issue 16). Without ``reassoc`` the float arithmetic is the order written here, compiled or cached; the pixel
+#: sums that needed ``reassoc`` to vectorize are written as explicit pairwise trees (``_tree_sum``).
+FASTMATH = frozenset({"nnan", "ninf", "nsz", "arcp", "contract", "afn"})
+_JIT = dict(cache=True, fastmath=set(FASTMATH), nogil=True, error_model="numpy")
 
 
 @numba.njit(inline="always", **_JIT)
@@ -61,6 +69,20 @@ def _exp_neg(x):
     p = p * p
     p = p * p
     return p * p
+
+
+@numba.njit(inline="always", **_JIT)
+def _tree_sum(x):
+    """Sum of the ``_TILE_PIXELS`` (a power of two) values of ``x`` in a fixed pairwise order, overwriting ``x``.
+
+    Each level is an element-wise add of two halves, which LLVM vectorizes without reordering anything.
+    """
+    width = _TILE_PIXELS // 2
+    while width > 0:
+        for i in range(width):
+            x[i] = x[i] + x[i + width]
+        width //= 2
+    return x[0]
 
 
 @numba.njit(inline="always", **_JIT)
@@ -225,6 +247,7 @@ def _backward_kernel(
         c_dot = np.zeros(_TILE_PIXELS, np.float32)  # C_up_to_here . dL/dC
         col_dot = np.empty(_TILE_PIXELS, np.float32)
         weight = np.empty(_TILE_PIXELS, np.float32)
+        terms = np.empty((6, _TILE_PIXELS), np.float32)  # per-pixel terms of the six geometry gradients
         for k in range(start, min(end, start + max_stop)):
             g = gids[k]
             mx, my = means2d[g, 0], means2d[g, 1]
@@ -238,12 +261,6 @@ def _backward_kernel(
                 col = colors[g, ch]
                 for i in range(_TILE_PIXELS):
                     col_dot[i] += col * g_acc[ch, i]
-            d_mx = _ZERO
-            d_my = _ZERO
-            d_a = _ZERO
-            d_b = _ZERO
-            d_c = _ZERO
-            d_op = _ZERO
             for i in range(_TILE_PIXELS):
                 dx = px[i] - mx
                 dy = py[i] - my
@@ -263,26 +280,21 @@ def _backward_kernel(
                 d_alpha = tr[i] * col_dot[i] - (g_final[i] - c_after) * inv_one_minus
                 d_alpha = d_alpha + g_alpha[i] * t_final[i] * inv_one_minus
                 d_alpha = d_alpha * m * (_ONE - over)
-                d_op += d_alpha * e
                 d_s = -_HALF * d_alpha * op * e * positive
-                d_a += d_s * dx * dx
-                d_b += d_s * _TWO * dx * dy
-                d_c += d_s * dy * dy
-                d_mx -= d_s * (_TWO * ca * dx + cb2 * dy)
-                d_my -= d_s * (cb2 * dx + _TWO * cc * dy)
+                terms[0, i] = -d_s * (_TWO * ca * dx + cb2 * dy)
+                terms[1, i] = -d_s * (cb2 * dx + _TWO * cc * dy)
+                terms[2, i] = d_s * dx * dx
+                terms[3, i] = d_s * _TWO * dx * dy
+                terms[4, i] = d_s * dy * dy
+                terms[5, i] = d_alpha * e
                 c_dot[i] = c_after
                 tr[i] = tr[i] * (_ONE - m * alpha)
-            slot_geo[k, 0] = d_mx
-            slot_geo[k, 1] = d_my
-            slot_geo[k, 2] = d_a
-            slot_geo[k, 3] = d_b
-            slot_geo[k, 4] = d_c
-            slot_geo[k, 5] = d_op
+            for j in range(6):
+                slot_geo[k, j] = _tree_sum(terms[j])
             for ch in range(dim):
-                d_col = _ZERO
                 for i in range(_TILE_PIXELS):
-                    d_col += weight[i] * g_acc[ch, i]
-                slot_col[k, ch] = d_col
+                    terms[0, i] = weight[i] * g_acc[ch, i]
+                slot_col[k, ch] = _tree_sum(terms[0])
 
 
 @numba.njit(**_JIT)

@@ -1,0 +1,83 @@
+"""One short run printed as a hash, for the reproducibility tests (run in a fresh process per call).
+
+    python tests/repro_driver.py train OUT [--stop-after-epochs N] [--resume] [--epochs N]
+    python tests/repro_driver.py fit RAW SCENE OUT
+
+Prints one line: the sha256 of what the run wrote (train: every checkpoint tensor and the metrics lines;
+fit: the PLY bytes). The tests run it with an empty ``NUMBA_CACHE_DIR`` (every numba kernel compiled in
+that process) and again with the filled one (every kernel loaded from the cache).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+#: Fit length: enough steps for the rasterizer's backward kernel and one densification to run.
+FIT_ITERATIONS = 30
+
+
+def train_digest(out: Path) -> str:
+    """sha256 over every tensor of every checkpoint (sorted) and the step and epoch metrics of a run folder."""
+    from safetensors.torch import load_file
+
+    from ovgaussian.train import read_metrics
+
+    h = hashlib.sha256()
+    for path in sorted(out.glob("checkpoints/*/*.safetensors")):
+        tensors = load_file(str(path))
+        h.update(str(path.relative_to(out)).encode())
+        for key in sorted(tensors):
+            h.update(key.encode() + tensors[key].numpy().tobytes())
+    for kind in ("step", "epoch"):
+        h.update(json.dumps(read_metrics(out, kind), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def run_train(out: Path, epochs: int, stop_after_epochs: int | None, resume: bool) -> str:
+    from ovgaussian import data as D
+    from ovgaussian.train import train
+    from test_train import make_scene, text_stub, tiny_config, tiny_model_config
+
+    scenes = [make_scene(s, per_box=20, views=2) for s in range(2)]
+    extra = {} if stop_after_epochs is None else {"stop_after_epochs": stop_after_epochs}
+    train(tiny_config(out, epochs, resume=resume, **extra), source=D.InMemorySource(scenes),
+          model_config=tiny_model_config(12), text_embeddings=text_stub())
+    return train_digest(out)
+
+
+def run_fit(raw: Path, scene: str, out: Path) -> str:
+    from seggaussian.fit import fit_to_ply
+    from seggaussian.fit_config import FitConfig
+
+    config = FitConfig().with_iterations(FIT_ITERATIONS)
+    fit_to_ply("synthetic", raw, scene, out, config, seed=0, progress=False)
+    return hashlib.sha256(out.read_bytes()).hexdigest()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers(dest="job", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("out", type=Path)
+    t.add_argument("--epochs", type=int, default=2)
+    t.add_argument("--stop-after-epochs", type=int)
+    t.add_argument("--resume", action="store_true")
+    f = sub.add_parser("fit")
+    f.add_argument("raw", type=Path)
+    f.add_argument("scene")
+    f.add_argument("out", type=Path)
+    args = parser.parse_args()
+    if args.job == "train":
+        print(run_train(args.out, args.epochs, args.stop_after_epochs, args.resume))
+    else:
+        print(run_fit(args.raw, args.scene, args.out))
+
+
+if __name__ == "__main__":
+    main()
