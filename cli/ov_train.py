@@ -44,6 +44,7 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
                default=LossConfig.class_balance, show_default=True)
 @config_option(LossConfig, "temperature", "--temperature", type=click.FloatRange(min=0, min_open=True),
                default=LossConfig.temperature, show_default=True)
+@config_option(DataConfig, "holdout_classes", "--holdout-classes", type=str, default="")
 @config_option(DataConfig, "verify", "--verify", is_flag=True)
 @config_option(TrainConfig, "keep_checkpoints", "--keep-checkpoints", type=click.IntRange(min=0),
                default=TrainConfig.keep_checkpoints, show_default=True)
@@ -52,7 +53,8 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
-            use_coordinates, class_balance, temperature, verify, keep_checkpoints, progress, as_json):
+            use_coordinates, class_balance, temperature, holdout_classes, verify, keep_checkpoints,
+            progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
@@ -64,6 +66,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         voxel_size=voxel_size, use_coordinates=use_coordinates,
         keep_checkpoints=keep_checkpoints,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
+                        holdout_classes=tuple(n.strip() for n in holdout_classes.split(",") if n.strip()),
                         verify=verify),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),

@@ -38,11 +38,14 @@ from ovgaussian.bench_config import (
     BenchConfig,
 )
 from ovgaussian.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
+from ovgaussian.calibration import Calibration, StackedPredictor, calibrate
+from ovgaussian.checkpoint import CONFIG_NAME, read_json
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from ovgaussian.predict import load_model_predictor
+from ovgaussian.prompt_ensemble import PROMPT_TEMPLATES
 from ovgaussian.train_config import config_to_dict
 from ovgaussian.view_labels import BlendFunctions, default_blend_functions, stream_view_labels
-from ovgaussian.vocabulary import Vocabulary, benchmark_vocabulary, to_vocabulary_labels
+from ovgaussian.vocabulary import Vocabulary, benchmark_vocabulary, to_vocabulary_labels, training_vocabulary
 from seggaussian import shards
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.shards import sha256_file
@@ -356,15 +359,41 @@ class BenchReport(NamedTuple):
     row: str
 
 
+def calibrate_stacking(config: BenchConfig, templates=()) -> Calibration:
+    """Gamma of calibrated stacking from ``config.stacking_run`` on the train split (``ovgaussian.calibration``)."""
+    run_config = read_json(Path(config.stacking_run) / CONFIG_NAME)
+    data = run_config.get("train", {}).get("data", {})
+    holdout = tuple(data.get("holdout_classes") or ())
+    if not holdout:
+        raise ValueError(f"{config.stacking_run}: not a calibration run (trained without --holdout-classes)")
+    calibrator = load_model_predictor(config.stacking_run, device=config.device, prompt_templates=templates)
+    scenes = shards.iter_scenes(config.dataset, "train", views=False, verify=config.verify)
+    if config.max_scenes is not None:
+        scenes = (s for i, s in enumerate(scenes) if i < config.max_scenes)
+    return calibrate(calibrator, scenes, training_vocabulary(config.num_classes), holdout)
+
+
 def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
     """The predictor named by ``config`` and a JSON description of it (checkpoint path + sha256)."""
     if config.predictor == "model":
         if config.run is None:
             raise ValueError("bench: --run is needed to score the model (or pick a baseline --predictor)")
-        predictor = load_model_predictor(config.run, config.checkpoint, device=config.device)
+        templates = PROMPT_TEMPLATES if config.prompt_ensemble else ()
+        predictor = load_model_predictor(config.run, config.checkpoint, device=config.device,
+                                         prompt_templates=templates)
         weights = Path(predictor.checkpoint) / "model.safetensors"
-        return predictor, {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),
-                           "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None}
+        description = {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),
+                       "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None,
+                       "prompt_templates": list(templates)}
+        if config.stacking_run is not None:
+            calibration = calibrate_stacking(config, templates)
+            predictor = StackedPredictor(predictor, calibration.gamma)
+            description["stacking"] = {"run": str(config.stacking_run), "split": "train",
+                                       "protocol": "seen classes held out as pseudo-unseen in the stacking run; "
+                                                   "gamma maximizes the harmonic mean of their mIoU and the other "
+                                                   "seen classes' mIoU on the train split; unseen labels unread",
+                                       **calibration.as_dict()}
+        return predictor, description
 
     train = shards.iter_scenes(config.dataset, "train", views=False, verify=config.verify)
     if config.predictor == "majority":

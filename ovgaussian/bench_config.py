@@ -39,6 +39,10 @@ class BenchConfig:
     """A checkpoint folder of the run (RUN/checkpoints/epoch-XXXX); None takes the run's latest checkpoint."""
     predictor: Literal["model", "majority", "nearest-colour"] = "model"
     """What is scored: the trained model, or a non-learned baseline fitted on the train split (baseline.py)."""
+    prompt_ensemble: bool = False
+    """Open vocabulary: embed each class name under several prompt templates, averaged (ovgaussian.prompt_ensemble)."""
+    stacking_run: Optional[Path] = None
+    """Open vocabulary, calibrated stacking: a run trained with --holdout-classes; gamma is chosen with it on the train split (never on unseen labels), recorded in the report, and subtracted from the seen classes' scores (ovgaussian.calibration)."""
     metrics: tuple[str, ...] = METRICS
     """Metrics to compute (subset of CSA, OVA, NVA, CDA)."""
     dims: tuple[str, ...] = ("3d", "2d")

@@ -23,6 +23,7 @@ import torch
 from ovgaussian.checkpoint import load_trained_model
 from ovgaussian.model import gaussian_attributes
 from ovgaussian.predict_config import PredictConfig
+from ovgaussian.prompt_ensemble import ensemble_text_embeddings
 from ovgaussian.text import load_or_encode_texts
 from ovgaussian.train_config import TextConfig, config_from_dict
 from ovgaussian.view_labels import default_blend_functions, stream_view_labels
@@ -50,8 +51,9 @@ class ModelPredictor:
     name = "model"
 
     def __init__(self, model, text_config, *, checkpoint: Path | None = None, text_cache: Path | None = None,
-                 device: str = "cpu") -> None:
+                 device: str = "cpu", prompt_templates: Sequence[str] = ()) -> None:
         self.model = model.eval().to(device)
+        self.prompt_templates = tuple(prompt_templates)  # non-empty: a prompt ensemble (prompt_ensemble.py)
         self.text_config = text_config
         self.checkpoint = checkpoint
         self.text_cache = text_cache
@@ -87,7 +89,12 @@ class ModelPredictor:
         """``[C, D]`` L2-normalized text embeddings (cached per vocabulary)."""
         key = tuple(names)
         if key not in self._embeddings:
-            self._embeddings[key] = load_or_encode_texts(list(names), self.text_config, self.text_cache).to(self.device)
+            if self.prompt_templates:
+                embeddings = ensemble_text_embeddings(list(names), self.text_config, self.text_cache,
+                                                      self.prompt_templates)
+            else:
+                embeddings = load_or_encode_texts(list(names), self.text_config, self.text_cache)
+            self._embeddings[key] = embeddings.to(self.device)
         return self._embeddings[key]
 
     def score_names(self, vectors: np.ndarray, names: Sequence[str]) -> np.ndarray:
@@ -103,13 +110,15 @@ class ModelPredictor:
         return self.score_names(vectors, [self._class_names[int(i)] for i in class_ids])
 
 
-def load_model_predictor(run: Path, checkpoint: Path | None = None, device: str = "cpu") -> ModelPredictor:
-    """The model of a training run (its latest checkpoint folder unless ``checkpoint`` is given)."""
+def load_model_predictor(run: Path, checkpoint: Path | None = None, device: str = "cpu",
+                         prompt_templates: Sequence[str] = ()) -> ModelPredictor:
+    """The model of a training run (its latest checkpoint folder unless ``checkpoint`` is given); a non-empty
+    ``prompt_templates`` scores against a prompt ensemble."""
     run = Path(run)
     trained = load_trained_model(run, checkpoint, device=device)
     text_config = config_from_dict(TextConfig, trained.run_config.get("train", {}).get("text", {}))
     return ModelPredictor(trained.net, text_config, checkpoint=trained.checkpoint, text_cache=run / "caches",
-                          device=device)
+                          device=device, prompt_templates=prompt_templates)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -352,7 +352,7 @@ def train_in_process_group(
         ensure_writable_dir(run_dir)  # fail before reading data and models, not after
         sweep_run_temps(run_dir)  # half-written checkpoints and files of a killed earlier run
 
-    vocabulary = training_vocabulary(config.data.num_classes)
+    vocabulary = training_vocabulary(config.data.num_classes, config.data.holdout_classes)
     source = source if source is not None else ShardSource(config.data.dataset, config.data.split, config.data.verify)
     scan = scan_split(config, source, vocabulary, notes)
     saved = saved_run(config, run_dir, scan)

@@ -22,6 +22,8 @@ class DataConfig:
     """Split whose scenes are trained on (``train``); only views with role ``train`` are used."""
     num_classes: int = 20
     """Benchmark vocabulary size K (20, 50 or 100); the seen classes are the K minus the unseen ones."""
+    holdout_classes: tuple[str, ...] = ()
+    """Seen classes held out as pseudo-unseen (not supervised, as the unseen ones): a calibration run for calibrated stacking (ovgaussian.calibration)."""
     blend_top_k: int = 16
     """Contributors kept per pixel in the blend weights W (M = W S), computed per step at the sampled pixels."""
     pixels_per_view: Optional[int] = None

@@ -61,10 +61,15 @@ def benchmark_vocabulary(num_classes: int) -> Vocabulary:
     return make_vocabulary(benchmark_class_ids(num_classes), num_classes=num_classes)
 
 
-def training_vocabulary(num_classes: int) -> Vocabulary:
-    """The seen classes of the K-class benchmark vocabulary (the benchmark's minus the unseen), ascending ids."""
+def training_vocabulary(num_classes: int, holdout: Sequence[str] = ()) -> Vocabulary:
+    """The seen classes of the K-class benchmark vocabulary (the benchmark's minus the unseen), ascending ids,
+    minus the ``holdout`` names (pseudo-unseen classes of a calibration run; each must be a seen class)."""
     names = read_class_names()
     seen = [i for i in benchmark_class_ids(num_classes) if names[i] not in UNSEEN_CLASSES]
+    unknown = sorted(set(holdout) - {names[i] for i in seen})
+    if unknown:
+        raise ValueError(f"--holdout-classes: {unknown} are not seen classes of the K={num_classes} vocabulary")
+    seen = [i for i in seen if names[i] not in holdout]
     return make_vocabulary(seen, names, num_classes)
 
 

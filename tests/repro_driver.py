@@ -40,13 +40,13 @@ def train_digest(out: Path) -> str:
 
 
 def run_train(out: Path, epochs: int, stop_after_epochs: int | None, resume: bool) -> str:
-    from ovgaussian import data as D
+    from ovgaussian.scene_source import InMemorySource
     from ovgaussian.train import train
     from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
     scenes = [make_scene(s, per_box=20, views=2) for s in range(2)]
     extra = {} if stop_after_epochs is None else {"stop_after_epochs": stop_after_epochs}
-    train(tiny_config(out, epochs, resume=resume, **extra), source=D.InMemorySource(scenes),
+    train(tiny_config(out, epochs, resume=resume, **extra), source=InMemorySource(scenes),
           model_config=tiny_model_config(12), text_embeddings=text_stub())
     return train_digest(out)
 

@@ -1,0 +1,134 @@
+"""Open vocabulary without image-language weights: calibrated stacking (legal gamma) and prompt ensembles."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+import torch
+
+from ovgaussian.calibration import StackedPredictor, calibrate, choose_gamma, stack_scores
+from ovgaussian.vocabulary import benchmark_vocabulary, training_vocabulary
+from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+
+NAMES = read_class_names()
+
+
+class _Gaussians(NamedTuple):
+    extras: dict
+
+
+class _Scene(NamedTuple):
+    scene_id: str
+    gaussians: _Gaussians
+    vectors: np.ndarray
+
+
+class _ClassScorePredictor:
+    """Per-Gaussian vectors are per-top-100-class scores; classify picks the requested classes' columns."""
+
+    name = "stand-in"
+
+    def encode(self, scene):
+        return scene.vectors
+
+    def classify(self, vectors, class_ids):
+        return vectors[:, np.asarray(class_ids)]
+
+
+def _scenes(rng, held: list[int], count=3, n=3000):
+    """Scenes whose Gaussians belong to benchmark classes (unseen ones included); held-out and unseen classes
+    score 0.25 lower on their true class than seen classes do, as for a model trained without them."""
+    ids = benchmark_vocabulary(20).class_ids
+    scenes = []
+    for s in range(count):
+        labels = rng.choice(ids, n)
+        scores = rng.normal(0.0, 0.1, (n, len(NAMES))).astype(np.float32)
+        bonus = np.where(np.isin(labels, held) | np.isin(labels, [NAMES.index(u) for u in UNSEEN_CLASSES]),
+                         0.25, 0.5)
+        scores[np.arange(n), labels] += bonus
+        scenes.append(_Scene(f"s{s}", _Gaussians({"semantic": labels.astype(np.int32)}), scores))
+    return scenes
+
+
+def test_gamma_is_chosen_without_reading_unseen_labels():
+    rng = np.random.default_rng(0)
+    vocabulary = training_vocabulary(20)
+    held_names = vocabulary.names[3:5]
+    scenes = _scenes(rng, [NAMES.index(n) for n in held_names])
+    full = calibrate(_ClassScorePredictor(), scenes, vocabulary, held_names)
+    # the unseen labels removed from the calibration data (IGNORE), and alternatively replaced by noise
+    unseen_ids = [NAMES.index(u) for u in UNSEEN_CLASSES]
+    removed = [s._replace(gaussians=_Gaussians({"semantic": np.where(np.isin(s.gaussians.extras["semantic"], unseen_ids),
+                                                                      IGNORE_LABEL, s.gaussians.extras["semantic"])}))
+               for s in scenes]
+    assert calibrate(_ClassScorePredictor(), removed, vocabulary, held_names) == full
+    assert 0.1 <= full.gamma <= 0.4  # the held-out classes' margin (0.25) is recovered
+    assert full.pseudo_unseen_miou > 0.5 and full.seen_miou > 0.5
+    assert len(full.curve) == len(full.candidates) and max(full.curve) == full.harmonic_mean
+    assert not set(full.classes) & set(UNSEEN_CLASSES)
+    with pytest.raises(ValueError, match="unseen"):
+        calibrate(_ClassScorePredictor(), scenes, benchmark_vocabulary(20), held_names)
+    with pytest.raises(ValueError, match="held-out"):
+        calibrate(_ClassScorePredictor(), scenes, vocabulary, ())
+
+
+def test_choose_gamma_recovers_a_known_margin_and_zero_without_one():
+    rng = np.random.default_rng(1)
+    n, classes = 4000, 6
+    labels = rng.integers(0, classes, n)
+    scores = rng.normal(0, 0.05, (n, classes)).astype(np.float32)
+    scores[np.arange(n), labels] += 0.3
+    held = np.array([4, 5])
+    # no margin: gamma 0 is best (ties go to the smallest)
+    gamma, h, *_ = choose_gamma(scores, labels, held)
+    assert gamma == 0.0 and h > 0.99
+    shifted = scores.copy()
+    shifted[:, :4] += 0.35  # the kept classes outscore everything by 0.35: the held-out ones never win at gamma 0
+    gamma, h, seen, unseen, curve = choose_gamma(shifted, labels, held)
+    assert curve[0] < 0.5 and 0.3 <= gamma <= 0.5 and h > 0.9
+    assert np.array_equal(np.argmax(stack_scores(shifted, np.arange(6) < 4, gamma), 1), np.argmax(scores, 1))
+
+
+def test_stacked_predictor_lowers_only_the_seen_classes():
+    ids = benchmark_vocabulary(20).class_ids
+    vectors = np.zeros((2, len(NAMES)), np.float32)
+    out = StackedPredictor(_ClassScorePredictor(), 0.2).classify(vectors, ids)
+    unseen = np.array([NAMES[i] in UNSEEN_CLASSES for i in ids])
+    assert np.allclose(out[:, unseen], 0.0) and np.allclose(out[:, ~unseen], -0.2)
+
+
+def test_holdout_classes_leave_the_training_vocabulary():
+    full = training_vocabulary(20)
+    held = training_vocabulary(20, full.names[:2])
+    assert set(held.names) == set(full.names) - set(full.names[:2])
+    with pytest.raises(ValueError, match="not seen classes"):
+        training_vocabulary(20, ("sofa",))
+
+
+def test_prompt_ensemble_is_the_renormalized_mean_of_cached_templates(tmp_path, monkeypatch):
+    from ovgaussian import text
+    from ovgaussian.prompt_ensemble import ensemble_text_embeddings
+    from ovgaussian.train_config import TextConfig
+
+    calls = []
+
+    def fake_encode(names, config):
+        calls.append(config.prompt_template)
+        g = torch.Generator().manual_seed(len(config.prompt_template))
+        e = torch.randn(len(names), 8, generator=g)
+        return e / e.norm(dim=1, keepdim=True)
+
+    monkeypatch.setattr(text, "encode_texts", fake_encode)
+    monkeypatch.setattr(text, "encoder_key", lambda config: "fake")
+    templates = ("a {name}.", "the {name} here.", "one {name}")
+    names = ["chair", "table"]
+    out = ensemble_text_embeddings(names, TextConfig(), tmp_path, templates)
+    parts = torch.stack([fake_encode(names, TextConfig(prompt_template=t)) for t in templates])
+    expected = parts.mean(0) / parts.mean(0).norm(dim=1, keepdim=True)
+    assert torch.allclose(out, expected) and torch.allclose(out.norm(dim=1), torch.ones(2))
+    calls.clear()
+    again = ensemble_text_embeddings(names, TextConfig(), tmp_path, templates)
+    assert torch.equal(again, out) and calls == []  # every template's embeddings came from the cache
+    assert len(list(tmp_path.glob("text_*.safetensors"))) == len(templates)
