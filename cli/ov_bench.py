@@ -18,6 +18,7 @@ from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "predictor", "--predictor", type=click.Choice(["model", "majority", "nearest-colour"]),
                default="model", show_default=True)
 @config_option(BenchConfig, "prompt_ensemble", "--prompt-ensemble", is_flag=True)
+@config_option(BenchConfig, "generative", "--generative", is_flag=True)
 @config_option(BenchConfig, "stacking_run", "--stacking-run", type=click.Path(path_type=Path, file_okay=False),
                default=None)
 @click.option("--metric", "metric", type=click.Choice([*METRICS, "all"], case_sensitive=False), default="all",
@@ -36,7 +37,7 @@ from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(dataset, run, checkpoint, predictor, prompt_ensemble, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
+def command(dataset, run, checkpoint, predictor, prompt_ensemble, generative, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
             out, label, verify, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
     from ovgaussian.bench import run_bench, table1_header, table1_row
@@ -47,7 +48,8 @@ def command(dataset, run, checkpoint, predictor, prompt_ensemble, stacking_run, 
     if predictor == "model" and run is None:
         raise click.UsageError("--run is required with --predictor model")
     config = BenchConfig(dataset=dataset, run=run, checkpoint=checkpoint, predictor=predictor,
-                         prompt_ensemble=prompt_ensemble, stacking_run=stacking_run, metrics=metrics,
+                         prompt_ensemble=prompt_ensemble, generative=generative, stacking_run=stacking_run,
+                         metrics=metrics,
                          dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,
                          max_scenes=max_scenes, progress=progress and not as_json, verify=verify)
     report = run_bench(config)

@@ -40,6 +40,7 @@ from ovgaussian.bench_config import (
 from ovgaussian.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
 from ovgaussian.calibration import Calibration, StackedPredictor, calibrate
 from ovgaussian.checkpoint import CONFIG_NAME, read_json
+from ovgaussian.feature_synthesis import fit_generative_predictor
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from ovgaussian.predict import load_model_predictor
 from ovgaussian.prompt_ensemble import PROMPT_TEMPLATES
@@ -367,10 +368,15 @@ def calibrate_stacking(config: BenchConfig, templates=()) -> Calibration:
     if not holdout:
         raise ValueError(f"{config.stacking_run}: not a calibration run (trained without --holdout-classes)")
     calibrator = load_model_predictor(config.stacking_run, device=config.device, prompt_templates=templates)
+    return calibrate(calibrator, _train_scenes(config), training_vocabulary(config.num_classes), holdout)
+
+
+def _train_scenes(config: BenchConfig):
+    """The train split's scenes (Gaussians only) that the open-vocabulary methods fit on."""
     scenes = shards.iter_scenes(config.dataset, "train", views=False, verify=config.verify)
     if config.max_scenes is not None:
         scenes = (s for i, s in enumerate(scenes) if i < config.max_scenes)
-    return calibrate(calibrator, scenes, training_vocabulary(config.num_classes), holdout)
+    return scenes
 
 
 def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
@@ -385,6 +391,11 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
         description = {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),
                        "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None,
                        "prompt_templates": list(templates)}
+        if config.generative:
+            train_scenes = _train_scenes(config)
+            predictor, record = fit_generative_predictor(predictor, train_scenes, benchmark_vocabulary(config.num_classes),
+                                                         training_vocabulary(config.num_classes), config.synthesis)
+            description["generative"] = record
         if config.stacking_run is not None:
             calibration = calibrate_stacking(config, templates)
             predictor = StackedPredictor(predictor, calibration.gamma)

@@ -6,7 +6,7 @@ The protocol these settings drive is written down in ``data_specs/BENCHMARK.md``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -28,6 +28,34 @@ DEFAULT_BAND_ROWS = 64
 
 
 @dataclass(frozen=True)
+class SynthesisConfig:
+    """Generative zero-shot feature synthesis (ovgaussian.feature_synthesis): generator and classifier training."""
+
+    noise_width: int = 32
+    """Width of the generator's Gaussian noise input (concatenated to the class's text embedding)."""
+    hidden_width: int = 256
+    """Width of the generator's hidden layer."""
+    generator_steps: int = 1500
+    """Adam steps of the generator (GMMN: multi-bandwidth Gaussian-kernel MMD per seen class)."""
+    classes_per_step: int = 8
+    """Seen classes whose MMD is summed per generator step."""
+    samples_per_class: int = 128
+    """Real and generated features per class in one MMD term."""
+    kernel_bandwidths: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 4.0)
+    """Bandwidths of the MMD's Gaussian kernels, in units of the standardized features."""
+    learning_rate: float = 1e-3
+    """Adam learning rate of the generator and of the classifier."""
+    real_per_class: int = 2000
+    """Real features per seen class kept (seeded subsample of the train split's Gaussians)."""
+    synthetic_per_class: int = 2000
+    """Generated features per unseen class for the classifier."""
+    classifier_steps: int = 400
+    """Full-batch Adam steps of the softmax classifier on real seen + synthetic unseen features."""
+    seed: int = 0
+    """Seed of the subsample, the noise and the initializations."""
+
+
+@dataclass(frozen=True)
 class BenchConfig:
     """One benchmark evaluation."""
 
@@ -43,6 +71,10 @@ class BenchConfig:
     """Open vocabulary: embed each class name under several prompt templates, averaged (ovgaussian.prompt_ensemble)."""
     stacking_run: Optional[Path] = None
     """Open vocabulary, calibrated stacking: a run trained with --holdout-classes; gamma is chosen with it on the train split (never on unseen labels), recorded in the report, and subtracted from the seen classes' scores (ovgaussian.calibration)."""
+    generative: bool = False
+    """Open vocabulary, generative zero-shot synthesis: a generator learns text embedding -> feature on the seen classes of the train split, synthesizes unseen-class features, and a classifier retrained on real seen + synthetic unseen features scores (ovgaussian.feature_synthesis)."""
+    synthesis: SynthesisConfig = field(default_factory=SynthesisConfig)
+    """Settings of the generative method."""
     metrics: tuple[str, ...] = METRICS
     """Metrics to compute (subset of CSA, OVA, NVA, CDA)."""
     dims: tuple[str, ...] = ("3d", "2d")

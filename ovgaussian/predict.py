@@ -20,10 +20,11 @@ import cv2
 import numpy as np
 import torch
 
+from ovgaussian.calibration import stack_scores
 from ovgaussian.checkpoint import load_trained_model
 from ovgaussian.model import gaussian_attributes
 from ovgaussian.predict_config import PredictConfig
-from ovgaussian.prompt_ensemble import ensemble_text_embeddings
+from ovgaussian.prompt_ensemble import PROMPT_TEMPLATES, ensemble_text_embeddings
 from ovgaussian.text import load_or_encode_texts
 from ovgaussian.train_config import TextConfig, config_from_dict
 from ovgaussian.view_labels import default_blend_functions, stream_view_labels
@@ -51,9 +52,10 @@ class ModelPredictor:
     name = "model"
 
     def __init__(self, model, text_config, *, checkpoint: Path | None = None, text_cache: Path | None = None,
-                 device: str = "cpu", prompt_templates: Sequence[str] = ()) -> None:
+                 device: str = "cpu", prompt_templates: Sequence[str] = (), trained_names: Sequence[str] = ()) -> None:
         self.model = model.eval().to(device)
         self.prompt_templates = tuple(prompt_templates)  # non-empty: a prompt ensemble (prompt_ensemble.py)
+        self.trained_names: frozenset[str] = frozenset(trained_names)  # the classes the run was trained on
         self.text_config = text_config
         self.checkpoint = checkpoint
         self.text_cache = text_cache
@@ -97,13 +99,18 @@ class ModelPredictor:
             self._embeddings[key] = embeddings.to(self.device)
         return self._embeddings[key]
 
+    def decode(self, vectors: np.ndarray) -> np.ndarray:
+        """``[M, S]`` semantic vectors -> ``[M, D]`` L2-normalized ``phi(s)``: the space of the text embeddings."""
+        with torch.no_grad():
+            decoded = self.model.phi(torch.as_tensor(np.asarray(vectors), dtype=torch.float32, device=self.device))
+            decoded = decoded / decoded.norm(dim=-1, keepdim=True).clamp_min(COSINE_NORM_EPS)
+        return decoded.cpu().numpy()
+
     def score_names(self, vectors: np.ndarray, names: Sequence[str]) -> np.ndarray:
         """``[M, S]`` semantic vectors (per Gaussian or rendered per pixel) -> ``[M, C]`` cosine scores."""
         text = self.text_embeddings(names)
         with torch.no_grad():
-            decoded = self.model.phi(torch.as_tensor(np.asarray(vectors), dtype=torch.float32, device=self.device))
-            decoded = decoded / decoded.norm(dim=-1, keepdim=True).clamp_min(COSINE_NORM_EPS)
-            scores = decoded @ text.T
+            scores = torch.from_numpy(self.decode(vectors)).to(self.device) @ text.T
         return scores.cpu().numpy()
 
     def classify(self, vectors: np.ndarray, class_ids: np.ndarray) -> np.ndarray:
@@ -118,7 +125,8 @@ def load_model_predictor(run: Path, checkpoint: Path | None = None, device: str 
     trained = load_trained_model(run, checkpoint, device=device)
     text_config = config_from_dict(TextConfig, trained.run_config.get("train", {}).get("text", {}))
     return ModelPredictor(trained.net, text_config, checkpoint=trained.checkpoint, text_cache=run / "caches",
-                          device=device, prompt_templates=prompt_templates)
+                          device=device, prompt_templates=prompt_templates,
+                          trained_names=trained.run_config.get("vocabulary", {}).get("names", ()))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -234,7 +242,12 @@ def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig,
     if not names:
         raise ValueError("predict: empty vocabulary")
     vectors = predictor.encode_gaussians(gaussians)
-    labels = argmax_labels(lambda v: predictor.score_names(v, names), vectors, config.chunk_rows)
+    trained = np.array([n in predictor.trained_names for n in names])  # seen classes: lowered by stacking's gamma
+
+    def scores(v: np.ndarray) -> np.ndarray:
+        return stack_scores(predictor.score_names(v, names), trained, config.stacking_gamma)
+
+    labels = argmax_labels(scores, vectors, config.chunk_rows)
     if config.color_by == "semantic":
         painted = paint_gaussians(gaussians, labels, class_colours(len(names)), config.colour_mode)
     else:  # keep the scene's colours; only the label property is added
@@ -247,7 +260,7 @@ def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig,
         for name, camera in cameras:  # streamed: band_rows rows of a view's blend weights at a time
             blender = functions.blend(gaussians, camera, config.blend_top_k)
             label_maps[name] = stream_view_labels(
-                lambda rendered: argmax_labels(lambda v: predictor.score_names(v, names), rendered, config.chunk_rows),
+                lambda rendered: argmax_labels(scores, rendered, config.chunk_rows),
                 vectors, blender, functions, config.min_alpha, config.band_rows)
     return PredictResult(names, labels.astype(np.int32), painted,
                          {n: counts[i] / total for i, n in enumerate(names)},
@@ -302,7 +315,8 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
                          "file cannot hold; use --colours f_dc or both, or a .ply output")
     gaussians, report, in_format = read_gaussians(scene_path, on_invalid=config.on_invalid)
     if predictor is None:
-        predictor = load_model_predictor(config.run, config.checkpoint, device=config.device)
+        predictor = load_model_predictor(config.run, config.checkpoint, device=config.device,
+                                         prompt_templates=PROMPT_TEMPLATES if config.prompt_ensemble else ())
     result = label_gaussians(predictor, gaussians, config, cameras)
     # the vocabulary goes into the header so the file explains its own labels
     comments = tuple(f"ovgaussian semantic {i} = {name}" for i, name in enumerate(result.vocabulary))

@@ -19,6 +19,10 @@ class PredictConfig:
     """A checkpoint folder (RUN/checkpoints/epoch-XXXX); None takes the run's latest."""
     vocabulary: tuple[str, ...] = ()
     """Free-text class names the Gaussians are labelled with (label i = vocabulary[i])."""
+    prompt_ensemble: bool = False
+    """Open vocabulary: embed each class name under several prompt templates, averaged (ovgaussian.prompt_ensemble)."""
+    stacking_gamma: float = 0.0
+    """Open vocabulary, calibrated stacking: subtract this from the scores of the names the run was trained on (take the gamma that `ovgaussian bench --stacking-run` records); 0: plain argmax."""
     colour_mode: Literal["f_dc", "rgb", "both"] = "both"
     """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
     red/green/blue properties, or both."""
