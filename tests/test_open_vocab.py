@@ -168,3 +168,26 @@ def test_generator_synthesizes_unseen_features_with_the_right_statistics(one_tor
     test = text[test_labels] @ A.T + torch.randn(test_labels.numel(), width, generator=g) @ S.T
     accuracy = (classifier.logits(test).argmax(1) == test_labels).float().mean()
     assert accuracy > 0.4  # measured 0.62; chance among 24 classes: 0.04
+
+
+def test_predict_stacking_gamma_lowers_the_trained_names_only():
+    from ovgaussian.predict import label_gaussians
+    from ovgaussian.predict_config import PredictConfig
+    from seggaussian.gaussians import Gaussians
+
+    class Stub:
+        trained_names = frozenset({"chair", "table"})
+
+        def encode_gaussians(self, gaussians):
+            return np.zeros((len(gaussians), 3), np.float32)
+
+        def score_names(self, vectors, names):  # chair 0.5, table 0.1, sofa 0.4 for every Gaussian
+            return np.tile(np.array([[0.5, 0.1, 0.4]], np.float32), (len(vectors), 1))
+
+    n = 4
+    gaussians = Gaussians.from_arrays(np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3)),
+                                      np.zeros(n), np.zeros((n, 1, 3)))
+    names = ("chair", "table", "sofa")
+    plain = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names))
+    stacked = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names, stacking_gamma=0.2))
+    assert set(plain.labels.tolist()) == {0} and set(stacked.labels.tolist()) == {2}
