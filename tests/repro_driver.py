@@ -1,6 +1,6 @@
 """One short run printed as a hash, for the reproducibility tests (run in a fresh process per call).
 
-    python tests/repro_driver.py train OUT [--stop-after-epochs N] [--resume] [--epochs N]
+    python tests/repro_driver.py train OUT [--epochs N]
     python tests/repro_driver.py fit RAW SCENE OUT
 
 Prints one line: the sha256 of what the run wrote (train: every checkpoint tensor and the metrics lines;
@@ -39,14 +39,13 @@ def train_digest(out: Path) -> str:
     return h.hexdigest()
 
 
-def run_train(out: Path, epochs: int, stop_after_epochs: int | None, resume: bool) -> str:
+def run_train(out: Path, epochs: int) -> str:
     from ovgaussian.scene_source import InMemorySource
     from ovgaussian.train import train
     from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
     scenes = [make_scene(s, per_box=20, views=2) for s in range(2)]
-    extra = {} if stop_after_epochs is None else {"stop_after_epochs": stop_after_epochs}
-    train(tiny_config(out, epochs, resume=resume, **extra), source=InMemorySource(scenes),
+    train(tiny_config(out, epochs), source=InMemorySource(scenes),
           model_config=tiny_model_config(12), text_embeddings=text_stub())
     return train_digest(out)
 
@@ -66,15 +65,13 @@ def main() -> None:
     t = sub.add_parser("train")
     t.add_argument("out", type=Path)
     t.add_argument("--epochs", type=int, default=2)
-    t.add_argument("--stop-after-epochs", type=int)
-    t.add_argument("--resume", action="store_true")
     f = sub.add_parser("fit")
     f.add_argument("raw", type=Path)
     f.add_argument("scene")
     f.add_argument("out", type=Path)
     args = parser.parse_args()
     if args.job == "train":
-        print(run_train(args.out, args.epochs, args.stop_after_epochs, args.resume))
+        print(run_train(args.out, args.epochs))
     else:
         print(run_fit(args.raw, args.scene, args.out))
 

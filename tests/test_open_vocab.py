@@ -191,3 +191,36 @@ def test_predict_stacking_gamma_lowers_the_trained_names_only():
     plain = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names))
     stacked = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names, stacking_gamma=0.2))
     assert set(plain.labels.tolist()) == {0} and set(stacked.labels.tolist()) == {2}
+
+
+def test_bench_scores_each_method_and_records_the_calibration(tmp_path):
+    """End to end on shards: a run, a calibration run with a held-out class, bench with stacking + generative."""
+    from click.testing import CliRunner
+
+    from cli.ovgaussian_cli import main
+    from ovgaussian.bench import run_bench
+    from ovgaussian.bench_config import BenchConfig, SynthesisConfig
+    from test_train import _write_shards, make_scene
+
+    data = tmp_path / "data"
+    _write_shards(data, [make_scene(s, per_box=20, views=2) for s in range(2)])
+    common = ["train", "--data", str(data), "--epochs", "1", "--model-preset", "slim", "--pixels-per-view", "64",
+              "--batch-scenes", "2", "--no-progress"]
+    for out, extra in (("run", []), ("calrun", ["--holdout-classes", "table"])):
+        result = CliRunner().invoke(main, common + ["--out", str(tmp_path / out)] + extra)
+        assert result.exit_code == 0, result.output
+    bad = CliRunner().invoke(main, ["bench", "--data", str(data), "--run", str(tmp_path / "run"), "--stacking-run",
+                                    str(tmp_path / "run"), "--metric", "NVA", "--dim", "2d", "--no-progress"])
+    assert bad.exit_code != 0 and "not a calibration run" in bad.output and "Traceback" not in bad.output
+    config = BenchConfig(dataset=data, run=tmp_path / "run", metrics=("NVA",), dims=("2d",), max_views_per_scene=1,
+                         progress=False, generative=True, stacking_run=tmp_path / "calrun",
+                         synthesis=SynthesisConfig(generator_steps=20, samples_per_class=32, real_per_class=200,
+                                                   synthetic_per_class=100, classifier_steps=20))
+    report = run_bench(config)
+    predictor = report.payload["predictor"]
+    stacking = predictor["stacking"]
+    assert stacking["pseudo_unseen"] == ["table"] and stacking["gamma"] in stacking["candidates"]
+    assert stacking["split"] == "train" and not set(stacking["classes"]) & set(UNSEEN_CLASSES)
+    assert set(predictor["generative"]["synthesized_classes"]) == set(UNSEEN_CLASSES) & set(benchmark_vocabulary(20).names)
+    assert predictor["prompt_templates"] == []  # the prompt ensemble is tested above (each template: one encoder run)
+    assert report.payload["row"]["2d_NVA"] is not None
