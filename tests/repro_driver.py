@@ -26,7 +26,7 @@ def train_digest(out: Path) -> str:
     """sha256 over every tensor of every checkpoint (sorted) and the step and epoch metrics of a run folder."""
     from safetensors.torch import load_file
 
-    from ovgaussian.train import read_metrics
+    from ovgaussian.run_folder import read_metrics
 
     h = hashlib.sha256()
     for path in sorted(out.glob("checkpoints/*/*.safetensors")):
