@@ -16,7 +16,10 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+TESTS = Path(__file__).resolve().parent
+# As a script, Python puts tests/ first on sys.path, where tests/ovgaussian would shadow the package: the
+# repository root goes first, then the folder of test_train (as kill_driver.py does).
+sys.path[:0] = [str(TESTS.parent), str(TESTS / "ovgaussian")]
 
 #: Fit length: enough steps for the rasterizer's backward kernel and one densification to run.
 FIT_ITERATIONS = 30
