@@ -34,11 +34,12 @@ from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
               help="JSON report path (default: RUN/bench-K<classes>.json, or DATA/bench-<predictor>-K<classes>.json).")
 @click.option("--label", default=None, help="Row label of the printed table (default: the run folder or predictor).")
 @config_option(BenchConfig, "verify", "--verify", is_flag=True)
+@config_option(BenchConfig, "device", "--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @config_option(BenchConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
 def command(dataset, run, checkpoint, predictor, prompt_ensemble, generative, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
-            out, label, verify, progress, as_json):
+            out, label, verify, device, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
     from ovgaussian.bench import run_bench, table1_header, table1_row
     from seggaussian.atomic import write_json_atomic
@@ -51,7 +52,7 @@ def command(dataset, run, checkpoint, predictor, prompt_ensemble, generative, st
                          prompt_ensemble=prompt_ensemble, generative=generative, stacking_run=stacking_run,
                          metrics=metrics,
                          dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,
-                         max_scenes=max_scenes, progress=progress and not as_json, verify=verify)
+                         max_scenes=max_scenes, progress=progress and not as_json, verify=verify, device=device)
     report = run_bench(config)
     if out is None:
         out = (run / f"bench-K{num_classes}.json") if predictor == "model" else \

@@ -38,10 +38,11 @@ from ovgaussian.predict_config import PredictConfig
 @config_option(PredictConfig, "stacking_gamma", "--stacking-gamma", type=click.FloatRange(min=0), default=0.0,
                show_default=True)
 @config_option(PredictConfig, "min_alpha", "--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True)
+@config_option(PredictConfig, "device", "--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @json_option
 @guarded
 def command(scene, run, checkpoint, vocab, out, output_format, spz_version, color_by, cameras, views_dir, colour_mode,
-            on_invalid, prompt_ensemble, stacking_gamma, min_alpha, as_json):
+            on_invalid, prompt_ensemble, stacking_gamma, min_alpha, device, as_json):
     """Open-vocabulary segmentation of SCENE (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat) with a trained run."""
     from ovgaussian.predict import parse_vocabulary, run_predict
 
@@ -49,7 +50,7 @@ def command(scene, run, checkpoint, vocab, out, output_format, spz_version, colo
     config = PredictConfig(run=run, checkpoint=checkpoint, vocabulary=names, colour_mode=colour_mode,
                            min_alpha=min_alpha, on_invalid=on_invalid, color_by=color_by,
                            output_format=output_format, spz_version=int(spz_version),
-                           prompt_ensemble=prompt_ensemble, stacking_gamma=stacking_gamma)
+                           prompt_ensemble=prompt_ensemble, stacking_gamma=stacking_gamma, device=device)
     report = run_predict(scene, out, config, cameras_path=cameras, views_dir=views_dir)
     shares = sorted(report.summary["shares"].items(), key=lambda kv: -kv[1])
     details = "\n".join(f"{name:>24s}  {100 * share:6.2f}%  ({report.summary['counts'][name]})" for name, share in shares)

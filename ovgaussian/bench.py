@@ -40,6 +40,7 @@ from ovgaussian.bench_config import (
 from ovgaussian.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
 from ovgaussian.calibration import Calibration, StackedPredictor, calibrate
 from ovgaussian.checkpoint import CONFIG_NAME, read_json
+from ovgaussian.devices import resolve_device
 from ovgaussian.feature_synthesis import fit_generative_predictor
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
 from ovgaussian.predict import load_model_predictor
@@ -419,6 +420,7 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
 def run_bench(config: BenchConfig, predictor: Predictor | None = None, *,
               functions: BlendFunctions | None = None) -> BenchReport:
     """Evaluate the configured predictor on the dataset's splits; nothing is written (the CLI writes the report)."""
+    resolve_device(config.device)  # before any scene is read
     vocabulary = benchmark_vocabulary(config.num_classes)
     description = {"kind": getattr(predictor, "name", "custom")}
     if predictor is None:

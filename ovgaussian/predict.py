@@ -22,6 +22,7 @@ import torch
 
 from ovgaussian.calibration import stack_scores
 from ovgaussian.checkpoint import load_trained_model
+from ovgaussian.devices import resolve_device
 from ovgaussian.model import gaussian_attributes
 from ovgaussian.predict_config import PredictConfig
 from ovgaussian.prompt_ensemble import PROMPT_TEMPLATES, ensemble_text_embeddings
@@ -122,6 +123,7 @@ def load_model_predictor(run: Path, checkpoint: Path | None = None, device: str 
     """The model of a training run (its latest checkpoint folder unless ``checkpoint`` is given); a non-empty
     ``prompt_templates`` scores against a prompt ensemble."""
     run = Path(run)
+    resolve_device(device)
     trained = load_trained_model(run, checkpoint, device=device)
     text_config = config_from_dict(TextConfig, trained.run_config.get("train", {}).get("text", {}))
     return ModelPredictor(trained.net, text_config, checkpoint=trained.checkpoint, text_cache=run / "caches",
@@ -305,6 +307,7 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
     """Read ``scene_path`` (any splat format), label it with the run's model, write ``out`` (PLY unless
     ``config.output_format`` or the name asks for another format), the legend and optional label-map PNGs."""
     scene_path, out = Path(scene_path), Path(out)
+    resolve_device(config.device)  # before the scene is read
     if scene_path.resolve() == out.resolve():
         raise ValueError(f"{out}: refusing to overwrite the input scene")
     ensure_writable_dir(out.parent)  # fail before the model runs, not after it

@@ -44,6 +44,7 @@ from ovgaussian.checkpoint import (
     retain_checkpoints, save_checkpoint, sweep_run_temps,
 )
 from ovgaussian.data import TrainingData
+from ovgaussian.devices import resolve_device
 from ovgaussian.model_config import OVGaussianNetConfig
 from ovgaussian.process_group import (
     ProcessGroup, barrier, broadcast_module, init_process_group, reduce_sums, sum_gradients,
@@ -130,8 +131,8 @@ def check_text_space(config: TrainConfig) -> None:
 
 def join_processes(config: TrainConfig) -> tuple[ProcessGroup, torch.device]:
     """This process's rank and its device (under torchrun on CUDA: the GPU of ``LOCAL_RANK``)."""
+    device = resolve_device(config.device)
     group = init_process_group(config.device)
-    device = torch.device(config.device)
     if config.device == "cuda" and group.world_size > 1:
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
         device = torch.device("cuda", torch.cuda.current_device())
@@ -315,6 +316,7 @@ def train(config: TrainConfig, **kwargs) -> TrainResult:
     Under torchrun, the process group this call creates is destroyed when it returns or fails: a gloo group
     left alive at interpreter exit can abort the process ("terminate called without an active exception").
     """
+    resolve_device(config.device)  # before any data is read
     owns_group = torchrun_world_size() > 1 and not dist.is_initialized()
     try:
         return train_in_process_group(config, **kwargs)

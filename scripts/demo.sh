@@ -40,6 +40,10 @@ step "split: train / val / xval"
 $BIN/seggaussian split --data "$OUT/dataset" | tail -n 1
 
 step "train: $EPOCHS epochs, slim widths, ${VOXEL} m voxels, coordinates, class balance $BALANCE, lr $LR"
+if [ -e "$OUT/run" ]; then  # a re-run of the demo trains afresh (the build above is incremental, training is not)
+  echo "   replacing the previous demo run $OUT/run"
+  rm -rf "$OUT/run"
+fi
 $BIN/ovgaussian train --data "$OUT/dataset" --out "$OUT/run" --epochs "$EPOCHS" --classes "$CLASSES" \
     --model-preset slim --pixels-per-view 4096 --voxel-size "$VOXEL" --use-coordinates \
     --class-balance "$BALANCE" --lr "$LR" --no-progress | tail -n 1
