@@ -16,11 +16,15 @@ Directions checked:
   counts and bounds of our decode agree with the reference's;
 * files written by other programs (tests/data/splat_transform_fixtures: the reference repository's own
   fixtures: SPZ v3/v4 from Niantic's library via @adobe/spz, a hand-assembled level-0 .ksplat with a bucket,
-  legacy SPZ and .splat files; see its SOURCES.md): our decode equals the reference's.
+  legacy SPZ and .splat files; see its SOURCES.md): our decode equals the reference's;
+* splat files from the open web in other formats (../shared/realdata/web_splats, see its SOURCES.md: SuperSplat
+  compressed PLYs and an SPZ v4 capture from playcanvas/engine, a tiny SPZ v4 from loaders.gl): detected by
+  content, counts, bounds and every value equal to the reference's decode, validation passes.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 from concurrent.futures import ThreadPoolExecutor
@@ -40,6 +44,15 @@ ROOT = Path(__file__).resolve().parents[3]
 CLI = ROOT / ".node" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
 REALDATA_DIRS = (ROOT.parent / "shared" / "realdata", Path("/work/shared/realdata"))
 REAL_FILES = ("loadersgl_train-1000.ply", "v3dg_donut_fused_sh0.ply")
+#: Splat files from the open web (not in the repository: fetched data stays in shared/). The environment variable
+#: SEGGAUSSIAN_WEB_SPLATS points elsewhere (a checkout without the shared folder beside it).
+WEB_SPLAT_DIRS = tuple(Path(p) for p in os.environ.get("SEGGAUSSIAN_WEB_SPLATS", "").split(os.pathsep) if p) + (
+    ROOT.parent / "shared" / "realdata" / "web_splats", Path("/work/shared/realdata/web_splats"))
+#: name -> (format detected by content, Gaussian count from the file's header; see web_splats/SOURCES.md)
+WEB_SPLATS = {"guitar.compressed.ply": ("compressed_ply", 90_854), "biker.compressed.ply": ("compressed_ply", 152_746),
+              "biker.spz": ("spz", 152_746), "two-splats.spz": ("spz", 2)}
+#: SPZ positions are fixed point with 12 fractional bits (biker.spz's header): half a step of rounding.
+SPZ_HALF_STEP = 0.5 / 4096
 FIXTURES = ROOT / "tests" / "data" / "splat_transform_fixtures"
 FIXTURE_FILES = ("minimal-raw.spz", "minimal-v2.spz", "minimal-v3.spz", "minimal-v4.spz", "minimal.ksplat",
                  "minimal.splat")
@@ -59,6 +72,10 @@ needs_reference = pytest.mark.skipif(
 
 def _realdata() -> Path | None:
     return next((d for d in REALDATA_DIRS if all((d / f).is_file() for f in REAL_FILES)), None)
+
+
+def _web_splats() -> Path | None:
+    return next((d for d in WEB_SPLAT_DIRS if any((d / f).is_file() for f in WEB_SPLATS)), None)
 
 
 def convert_all(jobs: list[tuple[Path, Path, tuple[str, ...]]]) -> None:
@@ -159,6 +176,11 @@ def reference_files(tmp_path_factory):
     for name in FIXTURE_FILES:                  # copied: the reference's decode is written beside each file
         shutil.copyfile(FIXTURES / name, d / f"fixture_{name}")
         files[f"fixture_{name}"] = d / f"fixture_{name}"
+    web = _web_splats()
+    for name in WEB_SPLATS if web is not None else ():
+        if (web / name).is_file():
+            shutil.copyfile(web / name, d / f"web_{name}")
+            files[f"web_{name}"] = d / f"web_{name}"
     convert_all(jobs)
     # the reference decodes every non-PLY file back to a plain PLY
     convert_all([(path, path.with_name(path.name + ".ref.ply"), ()) for path in files.values()])
@@ -330,3 +352,49 @@ def test_our_compressed_ply_has_the_reference_writers_order(reference_files, deg
     edges = np.arange(0, len(ours), 256)
     np.testing.assert_allclose(np.minimum.reduceat(ours.means, edges), np.minimum.reduceat(theirs.means, edges),
                                atol=1e-4)
+
+
+@needs_reference
+@pytest.mark.parametrize("name", WEB_SPLATS)
+def test_web_splats_decode_like_the_reference(reference_files, name):
+    """Captures from public repositories, written by SuperSplat and PlayCanvas's SPZ conversion, not by us."""
+    files, _ = reference_files
+    if f"web_{name}" not in files:
+        pytest.skip(f"{name} not found in {' or '.join(map(str, WEB_SPLAT_DIRS))} (see the report of #15c)")
+    path = files[f"web_{name}"]
+    expected_format, expected_count = WEB_SPLATS[name]
+    assert detect_format(path) == expected_format
+    renamed = path.with_name(path.name + ".bin")           # detection is by content, not by name
+    shutil.copyfile(path, renamed)
+    ours, fmt = read_gaussians_raw(renamed)
+    assert fmt == expected_format
+    ref = reference_decode(path)
+    # both decode the same bytes: counts equal, every value (and so the bounds) within float32 rounding
+    assert len(ours) == len(ref) == expected_count
+    _compare_decodes(ours, ref, name)
+    atol = 8 * float(np.finfo(np.float32).eps) * float(np.abs(ref.means).max())
+    np.testing.assert_allclose(ours.means.min(0), ref.means.min(0), atol=atol, rtol=0, err_msg=name)
+    np.testing.assert_allclose(ours.means.max(0), ref.means.max(0), atol=atol, rtol=0, err_msg=name)
+    loaded = read_gaussians(path, on_invalid="report")     # real files pass validation untouched
+    assert loaded.report.ok and loaded.report.num_dropped == 0 and len(loaded.gaussians) == expected_count
+
+
+@needs_reference
+def test_web_biker_spz_and_compressed_ply_hold_the_same_capture(reference_files):
+    """biker.spz is PlayCanvas's SPZ v4 conversion of the capture in biker.compressed.ply (SOURCES.md)."""
+    files, _ = reference_files
+    if "web_biker.spz" not in files or "web_biker.compressed.ply" not in files:
+        pytest.skip(f"biker.spz / biker.compressed.ply not found in {' or '.join(map(str, WEB_SPLAT_DIRS))}")
+    spz, _ = read_gaussians_raw(files["web_biker.spz"])
+    cply, _ = read_gaussians_raw(files["web_biker.compressed.ply"])
+    assert len(spz) == len(cply)
+    # SPZ stores y and z negated (its RUB axes). A compressed PLY's extreme Gaussians decode exactly to the
+    # chunk bounds, so the two files' bounds differ only by SPZ's rounding to its fixed-point grid
+    flip = np.array([1, -1, -1], dtype=np.float32)
+    lo = np.minimum(spz.means.min(0) * flip, spz.means.max(0) * flip)
+    hi = np.maximum(spz.means.min(0) * flip, spz.means.max(0) * flip)
+    np.testing.assert_allclose(lo, cply.means.min(0), atol=SPZ_HALF_STEP + 1e-6, rtol=0)
+    np.testing.assert_allclose(hi, cply.means.max(0), atol=SPZ_HALF_STEP + 1e-6, rtol=0)
+    # and the same mean opacity and colour within the byte steps of both formats
+    assert abs(float(spz.opacities().mean()) - float(cply.opacities().mean())) < 1 / 255
+    np.testing.assert_allclose(spz.dc_colors().mean(0), cply.dc_colors().mean(0), atol=1 / 255)
