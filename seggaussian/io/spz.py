@@ -29,8 +29,9 @@ Quantisation steps: positions ``2^-fractional_bits`` (1/4096 m as written here),
 sqrt(2))`` (v3+) or 1/127.5 (v2).
 
 Reading: gzip is inflated by ISA-L (the ``isal`` package, about twice zlib's speed), in a worker thread
-while the blocks already inflated are decoded (``seggaussian.io.inflate``); the decode is numpy on whole
-blocks (table look-ups and one gather for the smallest-three rotations).
+while the blocks already inflated are decoded (``seggaussian.io.inflate``). Positions, smallest-three
+rotations and SH go through one-pass compiled loops (``seggaussian.io.spz_kernels``), bit-identical to the
+numpy references kept here (``decode_*_reference``); the rest is numpy on whole blocks.
 
 Writing: versions 2 and 3 (gzip) and 4 (zstd), 12 fractional bits; extras are dropped. zstd comes from
 the ``zstandard`` package.
@@ -48,6 +49,7 @@ from isal import isal_zlib
 
 from seggaussian.atomic import write_bytes_atomic
 from seggaussian.gaussians import Gaussians
+from seggaussian.io import spz_kernels
 from seggaussian.io.inflate import GZIP_WBITS, BackgroundGunzip
 from seggaussian.io.splat_common import SplatFormatError, logit_from_unit, read_file_bytes, unit_from_logit
 
@@ -209,8 +211,13 @@ _SLOTS_WXYZ = np.array([[3 if c == largest else [i for i in (3, 2, 1, 0) if i !=
                          for c in (3, 0, 1, 2)] for largest in range(4)], dtype=np.intp)
 
 
-def _decode_rotations_v3(packed: np.ndarray) -> np.ndarray:
-    """``[N]`` uint32 smallest-three -> ``[N, 4]`` float32 (w, x, y, z): table look-ups and one gather."""
+#: Value of every SH byte, ``(b - 128) / 128`` (exact in float32).
+_SH_BYTE_VALUE = ((np.arange(256, dtype=np.float32) - np.float32(128.0)) * np.float32(1.0 / 128.0)).astype(np.float32)
+
+
+def decode_rotations_v3_reference(packed: np.ndarray) -> np.ndarray:
+    """``[N]`` uint32 smallest-three -> ``[N, 4]`` float32 (w, x, y, z): table look-ups and one gather (the
+    numpy reference of ``spz_kernels.decode_rotations_v3``)."""
     n = packed.shape[0]
     values = np.empty((n, 4), np.float32)                  # field 0, field 1, field 2, largest
     for j in range(3):
@@ -220,43 +227,61 @@ def _decode_rotations_v3(packed: np.ndarray) -> np.ndarray:
     return np.take_along_axis(values, _SLOTS_WXYZ[(packed >> np.uint32(30)).astype(np.intp)], axis=1)
 
 
+def decode_fixed24_reference(raw: np.ndarray, n: int, fractional_bits: int) -> np.ndarray:
+    """``[N * 9]`` bytes of little-endian signed 24-bit fixed point -> ``[N, 3]`` float32 ``q / 2^bits`` (the
+    numpy reference of ``spz_kernels.decode_fixed24``)."""
+    b = raw.reshape(n, 3, 3).astype(np.int32)
+    fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
+    fixed = (fixed ^ 0x800000) - 0x800000                                      # sign-extend 24 bits
+    return (fixed * np.float32(1.0 / (1 << fractional_bits))).astype(np.float32)
+
+
+def decode_sh_rows_reference(rest_bytes: np.ndarray, dc: np.ndarray) -> np.ndarray:
+    """``[M, 3 (K - 1)]`` uint8 SH bytes and ``[M, 3]`` float32 DC -> ``[M, 3 K]`` float32 rows ``(b - 128) / 128``
+    after the DC (the numpy reference of ``spz_kernels.decode_sh_rows``)."""
+    out = np.empty((rest_bytes.shape[0], rest_bytes.shape[1] + 3), np.float32)
+    out[:, :3] = dc
+    np.subtract(rest_bytes, np.float32(128.0), out=out[:, 3:], dtype=np.float32, casting="unsafe")
+    out[:, 3:] *= np.float32(1.0 / 128.0)
+    return out
+
+
 def _decode_blocks(header: dict, blocks: dict[str, np.ndarray], ready) -> Gaussians:
     """Decode the attribute blocks; ``ready(name, nbytes)`` returns once ``blocks[name][:nbytes]`` holds data
     (a no-op for an in-memory payload, a wait on the inflating thread for a gzip stream)."""
     n, version, degree = header["num_points"], header["version"], header["sh_degree"]
     ready("positions", blocks["positions"].size)
+    means = np.empty((n, 3), np.float32)
     if version == 1:
-        means = blocks["positions"].view("<f2").reshape(n, 3).astype(np.float32)
+        means[:] = blocks["positions"].view("<f2").reshape(n, 3)
     else:
-        b = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
-        fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
-        fixed = (fixed ^ 0x800000) - 0x800000                                  # sign-extend 24 bits
-        means = (fixed * np.float32(1.0 / (1 << header["fractional_bits"]))).astype(np.float32)
+        spz_kernels.decode_fixed24(blocks["positions"], np.float32(1.0 / (1 << header["fractional_bits"])),
+                                   means.reshape(-1))
     ready("alphas", n)
     opacity_logits = logit_from_unit(blocks["alphas"] * np.float32(1.0 / 255.0))
     k = (degree + 1) ** 2
-    sh = np.empty((n, k, 3), np.float32)
     ready("colors", 3 * n)
-    sh[:, 0, :] = ((blocks["colors"].reshape(n, 3) * np.float32(1.0 / 255.0) - np.float32(0.5))
-                   / np.float32(SPZ_COLOR_SCALE))
+    dc = (blocks["colors"].reshape(n, 3) * np.float32(1.0 / 255.0) - np.float32(0.5)) / np.float32(SPZ_COLOR_SCALE)
     ready("scales", 3 * n)
-    log_scales = (blocks["scales"].reshape(n, 3) * np.float32(1.0 / 16.0) - np.float32(10.0)).astype(np.float32)
+    log_scales = (blocks["scales"].reshape(n, 3) * np.float32(1.0 / 16.0) - np.float32(10.0)).astype(np.float32,
+                                                                                                   copy=False)
     ready("rotations", blocks["rotations"].size)
     if version >= 3:
-        quats = _decode_rotations_v3(blocks["rotations"].view("<u4"))
+        quats = np.empty((n, 4), np.float32)
+        spz_kernels.decode_rotations_v3(blocks["rotations"].view("<u4"), _FIELD_DECODE, _SLOTS_WXYZ, quats)
     else:
         xyz = blocks["rotations"].reshape(n, 3) * np.float32(1.0 / 127.5) - np.float32(1.0)
-        w = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", xyz, xyz)))
-        quats = np.concatenate([w[:, None], xyz], axis=1).astype(np.float32)
-    if k > 1:           # (b - 128) / 128 straight into the output: two passes, no temporary (1/128 is exact)
-        rest_bytes = blocks["sh"].reshape(n, k - 1, 3)
-        rows = max(1, SH_ROWS_BYTES // (3 * (k - 1)))      # in row bands, each decoded as soon as it arrives
-        for start in range(0, n, rows):
-            stop = min(n, start + rows)
-            ready("sh", stop * 3 * (k - 1))
-            rest = sh[start:stop, 1:, :]
-            np.subtract(rest_bytes[start:stop], np.float32(128.0), out=rest, dtype=np.float32, casting="unsafe")
-            rest *= np.float32(1.0 / 128.0)
+        quats = np.empty((n, 4), np.float32)
+        quats[:, 0] = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", xyz, xyz)))
+        quats[:, 1:] = xyz
+    sh = np.empty((n, k, 3), np.float32)
+    rows_out = sh.reshape(n, 3 * k)
+    rest_bytes = blocks["sh"].reshape(n, 3 * (k - 1))
+    rows = max(1, SH_ROWS_BYTES // (3 * k))                # in row bands, each decoded as soon as it arrives
+    for start in range(0, n, rows):
+        stop = min(n, start + rows)
+        ready("sh", stop * 3 * (k - 1))
+        spz_kernels.decode_sh_rows(rest_bytes[start:stop], dc[start:stop], _SH_BYTE_VALUE, rows_out[start:stop])
     return Gaussians(means, quats, log_scales, opacity_logits, sh)
 
 

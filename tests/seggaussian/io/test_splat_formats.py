@@ -190,6 +190,44 @@ def test_spz_v3_rotations_and_sh_match_a_per_record_reference():
                 assert fast.sh[i, 1 + j, c] == (sh_bytes[(i * (k - 1) + j) * 3 + c] - 128) / 128
 
 
+def test_spz_kernels_equal_their_numpy_references_bit_for_bit():
+    """The compiled SPZ loops against the numpy references in spz.py: same float32 bits (NaN-free, sign of
+    zero included), on every largest index with extreme fields, 24-bit extremes at 0/12/24 fraction bits,
+    every SH byte value, and empty inputs."""
+    from seggaussian.io import spz, spz_kernels
+
+    rng = np.random.default_rng(11)
+    bits = lambda a: np.ascontiguousarray(a, np.float32).view(np.uint32)  # noqa: E731
+    # smallest-three rotations
+    fields = np.array([0, 1, 510, 511, 512, 513, 1022, 1023], np.uint32)
+    a, b, c, largest = np.meshgrid(fields, fields, fields, np.arange(4, dtype=np.uint32), indexing="ij")
+    edge = (largest << np.uint32(30)) | (c << np.uint32(20)) | (b << np.uint32(10)) | a
+    packed = np.concatenate([edge.ravel(), rng.integers(0, 2**32, 50_000, dtype=np.uint64).astype(np.uint32)])
+    for words in (packed, packed[:0]):
+        out = np.empty((len(words), 4), np.float32)
+        spz_kernels.decode_rotations_v3(words, spz._FIELD_DECODE, spz._SLOTS_WXYZ, out)
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_rotations_v3_reference(words)))
+    # signed 24-bit fixed point positions
+    corners = np.array([0, 1, 0x7FFFFF, 0x800000, 0x800001, 0xFFFFFF], np.uint32)
+    values = np.concatenate([corners, rng.integers(0, 1 << 24, 30_000).astype(np.uint32)])
+    raw = np.stack([values & 255, (values >> 8) & 255, values >> 16], axis=1).astype(np.uint8).ravel()
+    n = len(values) // 3
+    for fractional_bits in (0, 12, 24):
+        out = np.empty((n, 3), np.float32)
+        spz_kernels.decode_fixed24(raw, np.float32(1.0 / (1 << fractional_bits)), out.reshape(-1))
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_fixed24_reference(raw, n, fractional_bits)))
+    assert spz.decode_fixed24_reference(raw, n, 12).reshape(-1)[3] == -2048.0        # 0x800000: the most negative
+    # SH rows: every byte value, DC copied as is (negative zero too), degree 0 (no rest bytes), empty
+    rest = rng.integers(0, 256, (1000, 45), dtype=np.uint8)
+    rest.reshape(-1)[:256] = np.arange(256)
+    dc = rng.normal(size=(1000, 3)).astype(np.float32)
+    dc[0] = [-0.0, 0.0, np.float32(1e-40)]
+    for r, d in ((rest, dc), (rest[:, :0], dc), (rest[:0], dc[:0])):
+        out = np.empty((r.shape[0], r.shape[1] + 3), np.float32)
+        spz_kernels.decode_sh_rows(r, d, spz._SH_BYTE_VALUE, out)
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_sh_rows_reference(r, d)))
+
+
 def test_unknown_and_empty_files_name_the_file(tmp_path):
     for content, message in ((b"", "empty file"), (b"hello world", "unknown splat format"),
                              (gzip.compress(b"ply\nformat ascii 1.0\n"), "gzip file whose content is not SPZ"),
