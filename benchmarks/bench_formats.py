@@ -5,9 +5,7 @@
 For each format the script writes random Gaussians (SH degree ``--sh-degree``) with our writer until the
 file holds at least ``--mb`` MB, then times, with a warm page cache (medians over ``--repeats``):
 
-* ``decode``: ``io.formats.read_gaussians_raw`` (bytes -> Gaussians; for SPZ including gunzip / zstd; SPZ
-  versions 2-3 inflate in a worker thread while the main thread decodes, so their wall time can be below
-  their CPU time on an idle machine);
+* ``decode``: ``io.formats.read_gaussians_raw`` (file -> Gaussians; for SPZ including gunzip / zstd);
 * ``read``: ``io.formats.read_gaussians`` (content detection + decode + validation), what every command runs.
 
 MB/s is file bytes per second; for SPZ the decompressed payload rate is printed too. Process CPU time

@@ -228,6 +228,38 @@ def test_spz_kernels_equal_their_numpy_references_bit_for_bit():
         np.testing.assert_array_equal(bits(out), bits(spz.decode_sh_rows_reference(r, d)))
 
 
+def test_spz_gzip_streams_libdeflate_and_zlib_agree_and_faults_name_the_problem(monkeypatch):
+    """libdeflate's one-call inflate against the plain payload, gzip header fields included; every stream fault
+    it refuses (or hides: bytes after the member) reaches zlib's message."""
+    import io
+
+    from seggaussian.io import spz
+    from seggaussian.io.spz import decode_spz, encode_spz
+
+    g = _gaussians(n=300, degree=2, seed=5)
+    data = encode_spz(g, 3)
+    payload = gzip.decompress(data)
+    named = io.BytesIO()                                   # FNAME and MTIME set, as gzip(1) writes them
+    with gzip.GzipFile(filename="scene.spz", mode="wb", fileobj=named, mtime=1) as f:
+        f.write(payload)
+    plain = decode_spz(payload)
+    zlib_path = spz._gunzip_zlib
+    monkeypatch.setattr(spz, "_gunzip_zlib", lambda *a: pytest.fail("a valid stream took the zlib path"))
+    for stream in (data, named.getvalue(), data + data):   # a repeated member ends in the same trailer: as one
+        got = decode_spz(stream)
+        for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(plain, field))
+    monkeypatch.setattr(spz, "_gunzip_zlib", zlib_path)
+    crc, length = struct.unpack("<II", data[-8:])
+    for stream, message in ((data + b"xyz", "3 bytes after the gzip stream"),
+                            (data[:-5], "truncated gzip stream"),
+                            (data[:-8] + struct.pack("<II", crc ^ 1, length), "broken gzip stream"),
+                            (data[:-8] + struct.pack("<II", crc, 0xFFFFFFFF), "broken gzip stream"),
+                            (data[:-8] + struct.pack("<II", crc, length - 1), "broken gzip stream")):
+        with pytest.raises(SplatFormatError, match=message):
+            decode_spz(stream, "x.spz")
+
+
 def test_unknown_and_empty_files_name_the_file(tmp_path):
     for content, message in ((b"", "empty file"), (b"hello world", "unknown splat format"),
                              (gzip.compress(b"ply\nformat ascii 1.0\n"), "gzip file whose content is not SPZ"),
