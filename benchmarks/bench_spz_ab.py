@@ -6,7 +6,9 @@
 On a shared machine two separate runs are not comparable; this one decodes the same files with both
 readers in one process, alternating, and prints the median wall and process CPU time of each. The other
 revision's ``seggaussian/io/spz.py`` is taken with ``git show REV:...`` and loaded beside ours (it uses the
-same helper modules of this checkout). Both decodes must be bit-identical, or the script stops.
+same helper modules of this checkout; an ``io`` module it imports that this checkout no longer has is loaded
+from that revision too, and its third-party imports must be installed: a revision before the libdeflate
+change needs ``pip install isal``). Both decodes must be bit-identical, or the script stops.
 """
 
 from __future__ import annotations
@@ -37,14 +39,24 @@ def main() -> None:
     parser.add_argument("--sh-degree", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{args.against}:seggaussian/io/spz.py"],
-                            capture_output=True, text=True, check=True).stdout
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "spz_other.py"
-        path.write_text(source)
-        spec = importlib.util.spec_from_file_location("spz_other", path)
-        other = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(other)
+    def load(rev_path: str, name: str):
+        source = subprocess.run(["git", "-C", str(ROOT), "show", f"{args.against}:{rev_path}"],
+                                capture_output=True, text=True, check=True).stdout
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / f"{name.rsplit('.', 1)[-1]}.py"
+            path.write_text(source)
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules.setdefault(name, module)
+            spec.loader.exec_module(module)
+        return module
+
+    listing = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", args.against, "seggaussian/io/"],
+                             capture_output=True, text=True, check=True).stdout.split()
+    for rev_path in listing:                   # io modules of that revision that this checkout no longer has
+        if rev_path.endswith(".py") and not (ROOT / rev_path).exists():
+            load(rev_path, "seggaussian.io." + Path(rev_path).stem)
+    other = load("seggaussian/io/spz.py", "spz_other")
     g = _gaussians(args.gaussians, args.sh_degree)
     print(f"{args.gaussians} Gaussians, SH degree {args.sh_degree}; median of {args.repeats}, interleaved")
     for version in (2, 3, 4):

@@ -29,8 +29,8 @@ Quantisation steps: positions ``2^-fractional_bits`` (1/4096 m as written here),
 sqrt(2))`` (v3+) or 1/127.5 (v2).
 
 Reading: gzip is inflated in one call by libdeflate (the ``deflate`` package: about 1.6x zlib's speed and
-1.25x ISA-L's on SPZ payloads), zlib naming the problem when a stream is refused. Positions, smallest-three
-rotations and SH go through one-pass compiled loops (``seggaussian.io.spz_kernels``), bit-identical to the
+1.25x ISA-L's on SPZ payloads), zlib naming the problem when a stream is refused. Positions, rotations and
+SH go through one-pass compiled loops (``seggaussian.io.spz_kernels``), bit-identical to the
 numpy references kept here (``decode_*_reference``); the rest is numpy on whole blocks.
 
 Writing: versions 2 and 3 (gzip) and 4 (zstd), 12 fractional bits; extras are dropped. zstd comes from
@@ -251,6 +251,14 @@ def decode_rotations_v3_reference(packed: np.ndarray) -> np.ndarray:
     return np.take_along_axis(values, _SLOTS_WXYZ[(packed >> np.uint32(30)).astype(np.intp)], axis=1)
 
 
+def decode_rotations_v2_reference(raw: np.ndarray) -> np.ndarray:
+    """``[N, 3]`` uint8 x, y, z -> ``[N, 4]`` float32 (w, x, y, z), w = sqrt(1 - |xyz|^2) (the numpy reference of
+    ``spz_kernels.decode_rotations_v2``)."""
+    xyz = raw * np.float32(1.0 / 127.5) - np.float32(1.0)
+    w = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", xyz, xyz)))
+    return np.concatenate([w[:, None], xyz], axis=1).astype(np.float32)
+
+
 def decode_fixed24_reference(raw: np.ndarray, n: int, fractional_bits: int) -> np.ndarray:
     """``[N * 9]`` bytes of little-endian signed 24-bit fixed point -> ``[N, 3]`` float32 ``q / 2^bits`` (the
     numpy reference of ``spz_kernels.decode_fixed24``)."""
@@ -287,9 +295,7 @@ def _decode_blocks(header: dict, blocks: dict[str, np.ndarray]) -> Gaussians:
     if version >= 3:
         spz_kernels.decode_rotations_v3(blocks["rotations"].view("<u4"), _FIELD_DECODE, _SLOTS_WXYZ, quats)
     else:
-        xyz = blocks["rotations"].reshape(n, 3) * np.float32(1.0 / 127.5) - np.float32(1.0)
-        quats[:, 0] = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", xyz, xyz)))
-        quats[:, 1:] = xyz
+        spz_kernels.decode_rotations_v2(blocks["rotations"].reshape(n, 3), quats)
     k = (degree + 1) ** 2
     sh = np.empty((n, k, 3), np.float32)
     spz_kernels.decode_sh_rows(blocks["sh"].reshape(n, 3 * (k - 1)), dc, _SH_BYTE_VALUE, sh.reshape(n, 3 * k))

@@ -1,8 +1,8 @@
-"""Compiled (numba) decode loops of the SPZ reader: positions, smallest-three rotations, SH rows.
+"""Compiled (numba) decode loops of the SPZ reader: positions, rotations (v2 and smallest-three), SH rows.
 
 Each is one pass over the bytes with its output written once, where the numpy forms in
-``seggaussian.io.spz`` (``decode_fixed24_reference``, ``decode_rotations_v3_reference``,
-``decode_sh_rows_reference``) make several passes and gathers over ``[N, ...]`` temporaries. They compute
+``seggaussian.io.spz`` (``decode_fixed24_reference``, ``decode_rotations_v2_reference``,
+``decode_rotations_v3_reference``, ``decode_sh_rows_reference``) make several passes and gathers over ``[N, ...]`` temporaries. They compute
 the same float32 operations in the same order, so the results are bit-identical to those references
 (tests/seggaussian/io/test_splat_formats.py checks every bit pattern class; benchmarks/bench_spz_ab.py
 checks whole files). Serial, ``nogil``: a gzip stream keeps inflating in its worker thread meanwhile.
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["decode_fixed24", "decode_rotations_v3", "decode_sh_rows"]
+__all__ = ["decode_fixed24", "decode_rotations_v2", "decode_rotations_v3", "decode_sh_rows"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -27,6 +27,19 @@ def decode_fixed24(raw: np.ndarray, scale: np.float32, out: np.ndarray) -> None:
         if q >= 0x800000:
             q -= 0x1000000
         out[i] = np.float32(q) * scale
+
+
+@numba.njit(**_JIT)
+def decode_rotations_v2(raw: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``raw``: ``[N, 3]`` uint8 x, y, z as ``b / 127.5 - 1``; ``out``: ``[N, 4]`` float32 (w, x, y, z), w the
+    non-negative ``sqrt(1 - x^2 - y^2 - z^2)``."""
+    scale, zero, one = np.float32(1.0 / 127.5), np.float32(0.0), np.float32(1.0)
+    for i in range(raw.shape[0]):
+        x = np.float32(raw[i, 0]) * scale - one
+        y = np.float32(raw[i, 1]) * scale - one
+        z = np.float32(raw[i, 2]) * scale - one
+        out[i, 0] = np.sqrt(max(zero, one - (x * x + y * y + z * z)))
+        out[i, 1], out[i, 2], out[i, 3] = x, y, z
 
 
 @numba.njit(**_JIT)

@@ -207,6 +207,13 @@ def test_spz_kernels_equal_their_numpy_references_bit_for_bit():
         out = np.empty((len(words), 4), np.float32)
         spz_kernels.decode_rotations_v3(words, spz._FIELD_DECODE, spz._SLOTS_WXYZ, out)
         np.testing.assert_array_equal(bits(out), bits(spz.decode_rotations_v3_reference(words)))
+    # v2 rotations: every byte value in every component
+    raw = np.concatenate([np.repeat(np.arange(256, dtype=np.uint8)[:, None], 3, axis=1),
+                          rng.integers(0, 256, (20_000, 3), dtype=np.uint8)])
+    for r in (raw, raw[:0]):
+        out = np.empty((len(r), 4), np.float32)
+        spz_kernels.decode_rotations_v2(r, out)
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_rotations_v2_reference(r)))
     # signed 24-bit fixed point positions
     corners = np.array([0, 1, 0x7FFFFF, 0x800000, 0x800001, 0xFFFFFF], np.uint32)
     values = np.concatenate([corners, rng.integers(0, 1 << 24, 30_000).astype(np.uint32)])
