@@ -46,8 +46,9 @@ REALDATA_DIRS = (ROOT.parent / "shared" / "realdata", Path("/work/shared/realdat
 REAL_FILES = ("loadersgl_train-1000.ply", "v3dg_donut_fused_sh0.ply")
 #: Splat files from the open web (not in the repository: fetched data stays in shared/). The environment variable
 #: SEGGAUSSIAN_WEB_SPLATS points elsewhere (a checkout without the shared folder beside it).
-WEB_SPLAT_DIRS = tuple(Path(p) for p in os.environ.get("SEGGAUSSIAN_WEB_SPLATS", "").split(os.pathsep) if p) + (
-    ROOT.parent / "shared" / "realdata" / "web_splats", Path("/work/shared/realdata/web_splats"))
+WEB_SPLAT_DIRS = tuple(dict.fromkeys(
+    [Path(p) for p in os.environ.get("SEGGAUSSIAN_WEB_SPLATS", "").split(os.pathsep) if p]
+    + [(ROOT.parent / "shared" / "realdata" / "web_splats").resolve(), Path("/work/shared/realdata/web_splats")]))
 #: name -> (format detected by content, Gaussian count from the file's header; see web_splats/SOURCES.md)
 WEB_SPLATS = {"guitar.compressed.ply": ("compressed_ply", 90_854), "biker.compressed.ply": ("compressed_ply", 152_746),
               "biker.spz": ("spz", 152_746), "two-splats.spz": ("spz", 2)}
@@ -360,7 +361,8 @@ def test_web_splats_decode_like_the_reference(reference_files, name):
     """Captures from public repositories, written by SuperSplat and PlayCanvas's SPZ conversion, not by us."""
     files, _ = reference_files
     if f"web_{name}" not in files:
-        pytest.skip(f"{name} not found in {' or '.join(map(str, WEB_SPLAT_DIRS))} (see the report of #15c)")
+        pytest.skip(f"{name} not found in {' or '.join(map(str, WEB_SPLAT_DIRS))} (captures from playcanvas/engine and "
+                    "visgl/loaders.gl, kept in shared/realdata/web_splats with a SOURCES.md, not in the repository)")
     path = files[f"web_{name}"]
     expected_format, expected_count = WEB_SPLATS[name]
     assert detect_format(path) == expected_format
