@@ -12,3 +12,12 @@ _os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 # It only takes effect when this package is imported before torch starts its thread pool, as every
 # `seggaussian` / `ovgaussian` command does. A user's own setting wins.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+# numba's kernel cache in a folder named by the digest of every numba module's source, so an update never
+# runs a stale cached kernel (numba checks only the jitted function's own file; seggaussian/numba_cache.py).
+if "NUMBA_CACHE_DIR" not in _os.environ:
+    from seggaussian.numba_cache import default_numba_cache_dir as _default_numba_cache_dir
+
+    _folder = _default_numba_cache_dir()
+    if _folder is not None:
+        _os.environ["NUMBA_CACHE_DIR"] = _folder

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -42,3 +43,68 @@ def test_the_ovgaussian_command_gets_the_defaults_before_torch_loads():
     out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True,
                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__)))).stdout.split()
     assert out == ["False", "PASSIVE"]
+
+
+# --- numba's kernel cache folder (seggaussian/numba_cache.py) ------------------------------------------------
+
+HELPER = "import numba\n\n@numba.njit(cache=True)\ndef offset():\n    return {value}\n"
+KERNEL = ("import numba\nfrom seggaussian.helper import offset\n\n@numba.njit(cache=True)\n"
+          "def kernel(x):\n    return x + offset()\n")
+RUN_KERNEL = "import sys; sys.path.insert(0, sys.argv[1]); from seggaussian.kernel import kernel; print(kernel(1))"
+
+
+def _tree(root, value: int):
+    package = root / "seggaussian"
+    package.mkdir(parents=True, exist_ok=True)
+    (package / "__init__.py").write_text("")
+    (package / "helper.py").write_text(HELPER.format(value=value))
+    (package / "kernel.py").write_text(KERNEL)
+    (package / "plain.py").write_text("X = 1\n")
+
+
+def _run_kernel(root, cache_dir) -> str:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir))
+    return subprocess.run([sys.executable, "-c", RUN_KERNEL, str(root)], env=env, check=True, capture_output=True,
+                          text=True).stdout.strip()
+
+
+def test_the_cache_folder_follows_every_numba_module_and_only_those(tmp_path):
+    from seggaussian.numba_cache import kernel_source_digest
+
+    _tree(tmp_path, 10)
+    before = kernel_source_digest(tmp_path)
+    (tmp_path / "seggaussian" / "plain.py").write_text("X = 2\n")          # no numba: same kernels
+    assert kernel_source_digest(tmp_path) == before
+    (tmp_path / "seggaussian" / "helper.py").write_text(HELPER.format(value=20))
+    assert kernel_source_digest(tmp_path) != before
+
+
+def test_an_updated_helper_module_is_never_served_from_a_stale_cache(tmp_path):
+    from seggaussian.numba_cache import kernel_source_digest
+
+    root, shared_cache = tmp_path / "src", tmp_path / "one-folder"
+    _tree(root, 10)
+    first = tmp_path / kernel_source_digest(root)
+    assert _run_kernel(root, first) == "11" == _run_kernel(root, shared_cache)
+    (root / "seggaussian" / "helper.py").write_text(HELPER.format(value=20))
+    # numba alone (one cache folder whatever the sources) serves the kernel compiled against the old helper
+    assert _run_kernel(root, shared_cache) == "11"
+    # a folder named by the digest compiles afresh
+    assert _run_kernel(root, tmp_path / kernel_source_digest(root)) == "21"
+
+
+def test_importing_seggaussian_names_a_cache_folder_under_the_user_cache(tmp_path):
+    code = "import seggaussian, os; print(os.environ.get('NUMBA_CACHE_DIR'))"
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True).stdout
+    folder = Path(out.strip())
+    assert folder.parent == tmp_path / "cache" / "seggaussian" / "numba" and folder.is_dir()
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "mine")                         # the user's own setting wins
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True).stdout
+    assert out.strip() == str(tmp_path / "mine")
+    del env["NUMBA_CACHE_DIR"]
+    (tmp_path / "blocked").write_text("a file where the cache folder would go")
+    env["XDG_CACHE_HOME"] = str(tmp_path / "blocked")                       # unusable: numba keeps its default
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True).stdout
+    assert out.strip() == "None"

@@ -1,0 +1,59 @@
+"""Where numba keeps its compiled kernels: a folder named by the kernels' source, so an update never runs stale code.
+
+numba's on-disk cache (``cache=True``) checks only the source file of the jitted function itself. A kernel that
+calls jitted helpers from another module is inlined with them at compile time, so after an update of the helper
+module alone the cached kernel still runs the old helper (seen in this project: the pixel blend weights stopped
+equalling the full-view ones after a change elsewhere, until the ``*.nbi`` / ``*.nbc`` files were deleted).
+
+The cache folder is therefore ``<user cache>/seggaussian/numba/<digest>``, where the digest covers the path and
+bytes of every module of ``seggaussian`` and ``ovgaussian`` that mentions numba (a jitted function can only call
+jitted functions, so every module whose code can be inlined into a kernel is among them). Any change to one of
+them starts a fresh folder; unchanged code keeps reusing its kernels. Set before numba is imported
+(``seggaussian/__init__.py``); a ``NUMBA_CACHE_DIR`` the user exported wins.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+#: The packages whose numba modules feed the digest (siblings in the source tree and in an installed wheel).
+PACKAGES = ("seggaussian", "ovgaussian")
+#: Hex digits of the digest in the folder name.
+DIGEST_CHARS = 16
+
+
+def kernel_source_digest(root: Path) -> str:
+    """Digest of the relative path and bytes of every ``*.py`` under ``root/<package>`` that mentions numba."""
+    digest = hashlib.sha256()
+    for package in PACKAGES:
+        for path in sorted((root / package).rglob("*.py")):
+            data = path.read_bytes()
+            if b"numba" in data:
+                digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+                digest.update(len(data).to_bytes(8, "little") + data)
+    return digest.hexdigest()[:DIGEST_CHARS]
+
+
+def user_cache_root() -> Path:
+    """``$XDG_CACHE_HOME`` or ``~/.cache`` (the convention numba's own user-wide cache follows)."""
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return Path(xdg) if xdg else Path.home() / ".cache"
+
+
+def numba_cache_dir(root: Path | None = None) -> Path:
+    """The cache folder for the kernels of the source tree (or installation) at ``root``."""
+    root = Path(__file__).resolve().parent.parent if root is None else Path(root)
+    return user_cache_root() / "seggaussian" / "numba" / kernel_source_digest(root)
+
+
+def default_numba_cache_dir() -> str | None:
+    """The folder to export as ``NUMBA_CACHE_DIR``, created if needed; None when it cannot be used (no home,
+    a read-only cache): numba then keeps its own default (``__pycache__`` beside the sources)."""
+    try:
+        folder = numba_cache_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+    except (OSError, RuntimeError):  # RuntimeError: Path.home() without HOME or a passwd entry
+        return None
+    return str(folder) if os.access(folder, os.W_OK) else None
