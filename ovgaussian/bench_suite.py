@@ -323,7 +323,8 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
         "checks": {name: {"passed": ok, "detail": detail} for name, (ok, detail) in result.items()},
         "times": [t._asdict() for t in times],
         "total": {"wall_s": wall, "cpu_s": cpu, "load_average_start": load_at_start,
-                  "load_average_end": list(os.getloadavg()), "cores": os.cpu_count()},
+                  "load_average_end": list(os.getloadavg()), "cores": os.cpu_count(),
+                  "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")},
     }
     write_json_atomic(out / "suite.json", summary)
     write_text_atomic(out / "table1.md", table1)
