@@ -106,10 +106,11 @@ class SuiteConfig:
     """Views per room (ScanNet++ rooms: a quarter of them are novel views for NVA)."""
     gaussians: int = 40000
     """Oracle Gaussians sampled per room."""
-    epochs: int = 10
-    """Epochs of every run (10 x 15 steps of 3 rooms; one schedule for all runs). Measured about 2.5 s CPU per
-    step at 40,000 Gaussians per room with passive OpenMP threads, so the three runs take about 20 min of CPU and
-    the whole profile fits 60 minutes on 2 cores (see benchmarks/results/bench_suite.md)."""
+    epochs: int = 20
+    """Epochs of every run (20 x 15 steps of 3 rooms; one schedule for all runs). Measured with passive OpenMP
+    threads: the full run's 300 steps take 648 s CPU and its training loss levels off (0.70-0.75 over the last 5
+    epochs); at 10 epochs it was still falling and 2D CSA did not clear nearest colour. The whole profile fits
+    60 minutes on 2 cores (benchmarks/results/bench_suite.md)."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
