@@ -108,7 +108,8 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
         out=config.out / "runs" / spec.name, epochs=config.epochs, batch_scenes=config.batch_scenes,
         seed=config.seed, model_preset=config.model_preset, use_adapter=spec.use_adapter,
         voxel_size=config.voxel_size, use_coordinates=config.use_coordinates, progress=False,
-        data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view),
+        data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
+                        holdout_classes=spec.holdout_classes),
         loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
                         class_balance=config.class_balance),
         optim=OptimConfig(lr=config.lr),
@@ -135,6 +136,8 @@ def bench_config(config: SuiteConfig, dataset: Path, row: Table1Row | None = Non
     if row is not None:
         fields.update(predictor=row.predictor, run=None if row.run is None else config.out / "runs" / row.run)
         fields.update(dict(row.options))
+        if row.stacking_run is not None:
+            fields.update(stacking_run=config.out / "runs" / row.stacking_run)
     if run is not None:
         fields.update(run=run)
     if metrics is not None:
@@ -217,9 +220,18 @@ def present_seen_classes(payload: dict, dim: str = "3d") -> list[str]:
     return [n for i, n in enumerate(names) if counts[i].sum() > 0 and n not in unseen]
 
 
-def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run_reports: dict) -> dict:
-    """The model-quality checks of issue #16: ``{name: (passed, detail)}``."""
+def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run_reports: dict,
+           stacking_labels: tuple[str, ...] = ()) -> dict:
+    """The model-quality checks of issue #16: ``{name: (passed, detail)}``. ``stacking_labels``: the Table-1
+    rows scored with calibrated stacking (OVA > 0 in 3D and 2D, gamma recorded in the report)."""
     out = {}
+    for label in stacking_labels:
+        payload = reports[label]
+        gamma = (payload.get("predictor") or {}).get("stacking", {}).get("gamma")
+        ova = {dim: interval_of(payload, dim, "OVA") for dim in ("3d", "2d")}
+        out[f"OVA > 0 in 3D and 2D with calibrated stacking ({label}), gamma recorded"] = (
+            gamma is not None and all(i.value is not None and i.value > 0 for i in ova.values()),
+            f"gamma {gamma}; " + "; ".join(f"{d.upper()} OVA {_cell(i)}" for d, i in ova.items()))
     full = reports[full_label]
     for dim, metric in NON_OVA_COLUMNS:
         mine = interval_of(full, dim, metric)
@@ -278,7 +290,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
 
     dataset = stage("data: synth + build + split", build_data, config)
     sizes = split_sizes(dataset)
-    needed = {row.run for row in TABLE1_ROWS if row.run is not None}
+    needed = {name for row in TABLE1_ROWS for name in (row.run, row.stacking_run) if name is not None}
     if config.ablation:
         needed |= {row.run for row in ABLATION_ROWS}
     runs = {}
@@ -294,7 +306,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     run_reports = {}
     if config.ablation:
         for name in sorted({row.run for row in ABLATION_ROWS}):
-            full_row = next((r for r in TABLE1_ROWS if r.run == name and not r.options), None)
+            full_row = next((r for r in TABLE1_ROWS if r.run == name and not r.options and not r.stacking_run), None)
             if full_row is not None:
                 run_reports[name] = reports[full_row.label]
                 continue
@@ -302,14 +314,15 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
             run_reports[name] = stage(f"bench: ablation {name}", bench_row, config, bench,
                                       reports_dir / f"ablation-{name}.json")
 
-    full_label = next(r.label for r in TABLE1_ROWS if r.run == "full" and not r.options)
+    full_label = next(r.label for r in TABLE1_ROWS if r.run == "full" and not r.options and not r.stacking_run)
     baselines = tuple(r.label for r in TABLE1_ROWS if r.predictor != "model")
     table1 = format_table1(reports)
     ablation = format_ablation(run_reports, vs_available=False) if config.ablation else ""
     classes = format_classes(reports)
     result = {"profile size (at least 40 train, 10 val, 8 xval rooms)": (
         all(sizes[k] >= n for k, n in MIN_SCENES.items()), ", ".join(f"{sizes[k]} {k}" for k in MIN_SCENES)),
-        **checks(reports, full_label, baselines, run_reports)}
+        **checks(reports, full_label, baselines, run_reports,
+                 tuple(r.label for r in TABLE1_ROWS if r.stacking_run is not None))}
     wall, cpu = time.perf_counter() - started[0], _cpu_seconds() - started[1]
     summary = {
         "config": config_to_dict(config),

@@ -76,3 +76,26 @@ def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
     for name, c in configs.items():
         assert (c.epochs, c.optim.lr, c.data.pixels_per_view) == (full.epochs, full.optim.lr, full.data.pixels_per_view)
     assert not configs["no-adapter"].use_adapter and configs["text-2d-only"].loss.no_3dt_align
+
+
+def test_calibrated_stacking_row_uses_the_calibration_run_and_is_checked_for_ova():
+    config = SuiteConfig(out=Path("/tmp/profile"))
+    row = next(r for r in TABLE1_ROWS if r.stacking_run is not None)
+    bench = S.bench_config(config, Path("/tmp/profile/dataset"), row)
+    assert bench.run == Path("/tmp/profile/runs/full")
+    assert bench.stacking_run == Path("/tmp/profile/runs") / row.stacking_run
+    calibration = next(spec for spec in RUNS if spec.name == row.stacking_run)
+    held_out = S.train_config(config, calibration, Path("/tmp/d")).data.holdout_classes
+    assert held_out and not S.train_config(config, RUNS[0], Path("/tmp/d")).data.holdout_classes
+    assert {r.options for r in TABLE1_ROWS} >= {(("prompt_ensemble", True),), (("generative", True),)}
+    base = {k: 0.2 for k in ALL}
+    stacked = payload({**base, ("3d", "OVA"): 0.05, ("2d", "OVA"): 0.04})
+    stacked["predictor"] = {"stacking": {"gamma": 0.3}}
+    reports = {"full": payload(base), "stacked": stacked}
+    name = "OVA > 0 in 3D and 2D with calibrated stacking (stacked), gamma recorded"
+    assert S.checks(reports, "full", (), {}, ("stacked",))[name][0]
+    no_gamma = dict(reports, stacked={**stacked, "predictor": {}})
+    assert not S.checks(no_gamma, "full", (), {}, ("stacked",))[name][0]
+    zero_2d = payload({**base, ("3d", "OVA"): 0.05, ("2d", "OVA"): 0.0})
+    zero_2d["predictor"] = stacked["predictor"]
+    assert not S.checks(dict(reports, stacked=zero_2d), "full", (), {}, ("stacked",))[name][0]
