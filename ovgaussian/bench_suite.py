@@ -14,14 +14,18 @@ Stages, each reused when its output already exists in ``SuiteConfig.out`` (so an
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import resource
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable, NamedTuple
 
+import numba
 import numpy as np
+import torch
 
 from ovgaussian.bench import run_bench
 from ovgaussian.bench_config import TABLE1_COLUMNS, BenchConfig
@@ -75,6 +79,54 @@ class SuiteReport(NamedTuple):
 def _cpu_seconds() -> float:
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+class Task(NamedTuple):
+    """One stage of the profile: ``fn(*args)``, named ``name`` in the log and in ``suite.json``."""
+
+    name: str
+    fn: Callable
+    args: tuple
+
+
+def _timed(task: Task, threads: int | None) -> tuple[object, float, float]:
+    """(value, wall s, CPU s of this process) of one task; with ``threads``, torch and numba use that many."""
+    if threads is not None:
+        torch.set_num_threads(threads)
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    t0, c0 = time.perf_counter(), own.ru_utime + own.ru_stime
+    value = task.fn(*task.args)
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    return value, time.perf_counter() - t0, own.ru_utime + own.ru_stime - c0
+
+
+def run_tasks(tasks: list[Task], jobs: int, say: Callable[[str], None]) -> tuple[list, list[StageTime]]:
+    """Values and times of independent tasks, in ``tasks`` order. ``jobs`` > 1: that many spawned processes run
+    them at once, each with ``cpu_count // jobs`` torch and numba threads (one training per core costs less CPU
+    than one training on two cores: benchmarks/results/bench_suite.md); ``jobs`` 1: one after the other here."""
+    if jobs <= 1 or len(tasks) <= 1:
+        values, times = [], []
+        for task in tasks:
+            say(task.name)
+            value, wall, cpu = _timed(task, None)
+            values.append(value)
+            times.append(StageTime(task.name, wall, cpu))
+        return values, times
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+    # spawn: numba's threading layer and torch's threads do not survive fork
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = []
+        for task in tasks:
+            say(f"{task.name} (queued)")
+            futures.append(pool.submit(_timed, task, threads))
+        values, times = [], []
+        for task, future in zip(tasks, futures):
+            value, wall, cpu = future.result()
+            say(f"{task.name}: done, {wall:.0f} s wall, {cpu:.0f} s CPU")
+            values.append(value)
+            times.append(StageTime(task.name, wall, cpu))
+    return values, times
 
 
 # --- stages -------------------------------------------------------------------------------------------
@@ -293,26 +345,28 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     needed = {name for row in TABLE1_ROWS for name in (row.run, row.stacking_run) if name is not None}
     if config.ablation:
         needed |= {row.run for row in ABLATION_ROWS}
-    runs = {}
-    for spec in RUNS:
-        if spec.name in needed:
-            runs[spec.name] = stage(f"train: {spec.name}", train_run, config, spec, dataset)
+    specs = [spec for spec in RUNS if spec.name in needed]
+    values, run_times = run_tasks([Task(f"train: {spec.name}", train_run, (config, spec, dataset)) for spec in specs],
+                                  config.jobs, lambda m: say(f"[{time.perf_counter() - started[0]:.0f} s] {m}"))
+    times += run_times
+    runs = {spec.name: run for spec, run in zip(specs, values)}
 
     reports_dir = out / "reports"
-    reports = {}
-    for index, row in enumerate(TABLE1_ROWS):
-        path = reports_dir / f"table1-{index:02d}.json"
-        reports[row.label] = stage(f"bench: {row.label}", bench_row, config, bench_config(config, dataset, row), path)
-    run_reports = {}
-    if config.ablation:
-        for name in sorted({row.run for row in ABLATION_ROWS}):
-            full_row = next((r for r in TABLE1_ROWS if r.run == name and not r.options and not r.stacking_run), None)
-            if full_row is not None:
-                run_reports[name] = reports[full_row.label]
-                continue
-            bench = bench_config(config, dataset, run=runs[name], metrics=("CSA", "NVA"))
-            run_reports[name] = stage(f"bench: ablation {name}", bench_row, config, bench,
-                                      reports_dir / f"ablation-{name}.json")
+    tasks = [Task(f"bench: {row.label}", bench_row,
+                  (config, bench_config(config, dataset, row), reports_dir / f"table1-{index:02d}.json"))
+             for index, row in enumerate(TABLE1_ROWS)]
+    plain_rows = {r.run: r.label for r in TABLE1_ROWS if r.run is not None and not r.options and not r.stacking_run}
+    ablation_runs = sorted({row.run for row in ABLATION_ROWS}) if config.ablation else []
+    tasks += [Task(f"bench: ablation {name}", bench_row,
+                   (config, bench_config(config, dataset, run=runs[name], metrics=("CSA", "NVA")),
+                    reports_dir / f"ablation-{name}.json"))
+              for name in ablation_runs if name not in plain_rows]
+    values, bench_times = run_tasks(tasks, config.jobs,
+                                    lambda m: say(f"[{time.perf_counter() - started[0]:.0f} s] {m}"))
+    times += bench_times
+    reports = {row.label: payload for row, payload in zip(TABLE1_ROWS, values)}
+    extra = dict(zip((n for n in ablation_runs if n not in plain_rows), values[len(TABLE1_ROWS):]))
+    run_reports = {name: reports[plain_rows[name]] if name in plain_rows else extra[name] for name in ablation_runs}
 
     full_label = next(r.label for r in TABLE1_ROWS if r.run == "full" and not r.options and not r.stacking_run)
     baselines = tuple(r.label for r in TABLE1_ROWS if r.predictor != "model")

@@ -99,3 +99,16 @@ def test_calibrated_stacking_row_uses_the_calibration_run_and_is_checked_for_ova
     zero_2d = payload({**base, ("3d", "OVA"): 0.05, ("2d", "OVA"): 0.0})
     zero_2d["predictor"] = stacked["predictor"]
     assert not S.checks(dict(reports, stacked=zero_2d), "full", (), {}, ("stacked",))[name][0]
+
+
+def test_tasks_give_their_values_in_order_with_one_or_two_processes():
+    import os
+
+    tasks = [S.Task(f"t{i}", os.getpid, ()) for i in range(3)] + [S.Task("sum", sum, ((1, 2, 3),))]
+    said = []
+    values, times = S.run_tasks(tasks, 1, said.append)
+    assert values == [os.getpid()] * 3 + [6] and [t.name for t in times] == ["t0", "t1", "t2", "sum"]
+    values, times = S.run_tasks(tasks, 2, said.append)
+    assert values[3] == 6 and os.getpid() not in values[:3] and 1 <= len(set(values[:3])) <= 2
+    assert [t.name for t in times] == ["t0", "t1", "t2", "sum"] and all(t.wall >= 0 and t.cpu >= 0 for t in times)
+    assert any("sum: done" in m for m in said)
