@@ -138,8 +138,10 @@ class SuiteConfig:
     """Voxel edge in metres of the network's finest level."""
     use_coordinates: bool = True
     """Give the network the normalized Gaussian positions."""
-    class_balance: float = 0.5
-    """Exponent of the class weights of the text cross-entropies."""
+    class_balance: float = 0.75
+    """Exponent of the class weights of the text cross-entropies. Measured on the full run (20 epochs, same data,
+    val 3D IoU): 0.5 -> 0.75 raises box 4.3 -> 18.8, monitor 6.5 -> 15.1, chair 22.3 -> 25.5 at the same 3D CSA
+    (31.1 -> 31.3); 1.0 collapses window into window frame (window IoU 0, 3D CSA 25.5)."""
     num_classes: int = 20
     """Vocabulary size K."""
     max_views: int = 4
