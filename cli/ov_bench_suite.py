@@ -44,11 +44,10 @@ def command(out, scenes, replica_scenes, gaussians, epochs, max_views, ablation,
                          max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)
     report = run_suite(config, log=(lambda m: click.echo(m, err=True)) if progress and not as_json else None)
     passed = sum(ok for ok, _ in report.checks.values())
-    wall = sum(t.wall for t in report.times)
-    cpu = sum(t.cpu for t in report.times)
+    wall, cpu = report.wall, report.cpu
     finish(f"bench-suite: {len(report.reports)} reports, checks {passed}/{len(report.checks)} passed, "
            f"{wall:.0f} s wall, {cpu:.0f} s CPU -> {report.out}",
            {"out": str(report.out), "checks": {k: {"passed": ok, "detail": d} for k, (ok, d) in report.checks.items()},
-            "times": [t._asdict() for t in report.times]}, as_json,
+            "times": [t._asdict() for t in report.times], "wall_s": wall, "cpu_s": cpu}, as_json,
            details=report.table1 + "\n" + report.ablation + "\n" + "".join(
                f"- [{'x' if ok else ' '}] {k}: {d}\n" for k, (ok, d) in report.checks.items()))

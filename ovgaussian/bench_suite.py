@@ -64,7 +64,8 @@ class SuiteReport(NamedTuple):
         reports: ``{row label: bench JSON payload}`` of Table 1 and ``{run name: payload}`` of the ablation.
         table1, ablation, classes: the markdown tables.
         checks: ``{check: (passed, detail)}``.
-        times: one StageTime per stage.
+        times: one StageTime per stage (stages of one step overlap when ``SuiteConfig.jobs`` > 1).
+        wall, cpu: seconds of the whole profile (CPU of this process and its worker processes).
     """
 
     out: Path
@@ -74,6 +75,8 @@ class SuiteReport(NamedTuple):
     classes: str
     checks: dict
     times: tuple[StageTime, ...]
+    wall: float
+    cpu: float
 
 
 def _cpu_seconds() -> float:
@@ -399,4 +402,4 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     write_text_atomic(out / "classes.md", classes)
     write_text_atomic(out / "checks.md", format_checks(result))
     return SuiteReport(out, {**reports, **{f"ablation {k}": v for k, v in run_reports.items()}}, table1, ablation,
-                       classes, result, tuple(times))
+                       classes, result, tuple(times), wall, cpu)
