@@ -4,9 +4,10 @@ Stages, each reused when its output already exists in ``SuiteConfig.out`` (so an
 
 1. ``seggaussian synth`` of ScanNet++- and Replica-layout rooms, ``seggaussian build --gaussians oracle`` and
    the train / val / xval split (the ScanNet++-layout rooms train:val, every Replica-layout room xval);
-2. one training run per :data:`ovgaussian.suite_config.RUNS` entry, all on the same schedule;
-3. ``ovgaussian bench`` of every Table-1 row and of every ablation run, each metric with its 95 % percentile
-   bootstrap interval over scenes (``ovgaussian.bootstrap``);
+2. one training run per :data:`ovgaussian.suite_config.RUNS` entry, all on the same schedule, ``SuiteConfig.jobs``
+   at a time in spawned processes (:func:`run_tasks`);
+3. ``ovgaussian bench`` of every Table-1 row and of every ablation run, ``SuiteConfig.jobs`` at a time, each
+   metric with its 95 % percentile bootstrap interval over scenes (``ovgaussian.bootstrap``);
 4. ``table1.md``, ``ablation.md``, ``classes.md`` (per-class 3D IoU on the val rooms), the checks of issue #16
    and ``suite.json`` with the CPU and wall time of every stage.
 """

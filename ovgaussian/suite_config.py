@@ -5,8 +5,8 @@ The profile's tables are lists of row specifications, so that a new method is on
 - :data:`TABLE1_ROWS`: Table 1. A row names a predictor (a baseline, or a model run of :data:`RUNS`) and the
   ``BenchConfig`` options it is scored with. The open-vocabulary methods of issue #16 (calibrated stacking,
   generative feature synthesis, prompt ensembles) each add one ``Table1Row`` scoring the ``full`` run with
-  their bench option, e.g. ``Table1Row("full + calibrated stacking", run="full",
-  options=(("open_vocabulary", "calibrated-stacking"),))``.
+  their bench option, e.g. ``Table1Row("full + prompt ensemble", run="full", options=(("prompt_ensemble", True),))``;
+  calibrated stacking names its calibration run (``stacking_run="calibration"``).
 - :data:`ABLATION_ROWS`: the paper's Table 2 (switches added one at a time). Without local CLIP weights the
   visual-semantic loss is off in every run, so the "V-S" row is the "none" run and says so.
 
