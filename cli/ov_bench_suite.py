@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import click
@@ -12,10 +11,6 @@ from cli._output import finish, guarded, json_option
 from ovgaussian.suite_config import SuiteConfig
 
 D = SuiteConfig()
-#: OpenMP wait policy of torch's threads, set before torch loads unless the user set one. Under load the default
-#: (spinning) policy burns CPU while a thread waits: one suite epoch (15 steps of 3 x 40,000 Gaussians) took
-#: 143.5 s CPU spinning and 38.2 s CPU passive (benchmarks/results/bench_suite.md).
-OMP_WAIT_POLICY = "PASSIVE"
 
 
 @click.command("bench-suite")
@@ -37,7 +32,7 @@ OMP_WAIT_POLICY = "PASSIVE"
 @guarded
 def command(out, scenes, replica_scenes, gaussians, epochs, max_views, ablation, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
-    os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
+    # OpenMP threads wait passively: set for every command when the package loads (seggaussian/__init__.py)
     from ovgaussian.bench_suite import run_suite
 
     config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, gaussians=gaussians, epochs=epochs,
