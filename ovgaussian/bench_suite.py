@@ -1,6 +1,7 @@
 """The benchmark profile (``ovgaussian bench-suite``): Table 1 and the paper's Table 2 with 95 % intervals.
 
-Stages, each reused when its output already exists in ``SuiteConfig.out`` (so an interrupted profile goes on):
+Stages, each reused when its output already exists in ``SuiteConfig.out`` (so an interrupted profile goes on; a
+folder made with other settings is refused, see :func:`check_settings`):
 
 1. ``seggaussian synth`` of ScanNet++- and Replica-layout rooms, ``seggaussian build --gaussians oracle`` and
    the train / val / xval split (the ScanNet++-layout rooms train:val, every Replica-layout room xval);
@@ -327,12 +328,36 @@ def format_checks(result: dict) -> str:
 # --- the profile --------------------------------------------------------------------------------------
 
 
+#: The settings a profile folder was made with (written on its first run, compared on every later one).
+SETTINGS_NAME = "suite-settings.json"
+#: SuiteConfig fields that change no result: where it is written, the progress display, processes at a time.
+SETTINGS_IGNORED = ("out", "progress", "jobs")
+
+
+def check_settings(config: SuiteConfig) -> None:
+    """Record ``config`` in a new profile folder; refuse to go on in one made with other settings (its rooms,
+    runs and reports are reused by existence, so they would silently belong to the old settings)."""
+    path = Path(config.out) / SETTINGS_NAME
+    settings = {k: v for k, v in json.loads(json.dumps(config_to_dict(config), default=str)).items()
+                if k not in SETTINGS_IGNORED}
+    if not path.is_file():
+        write_json_atomic(path, settings)
+        return
+    before = json.loads(path.read_text())
+    changed = [f"{k} {before.get(k)!r} -> {settings.get(k)!r}" for k in sorted(set(before) | set(settings))
+               if before.get(k) != settings.get(k)]
+    if changed:
+        raise ValueError(f"{config.out}: holds a profile made with other settings ({'; '.join(changed)}); "
+                         "use a new --out, or the settings recorded in " + SETTINGS_NAME)
+
+
 def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> SuiteReport:
     """Run (or finish) the whole profile; see the module docstring. Library entry point of ``bench-suite``."""
     say = log or (lambda message: None)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     config = replace(config, out=out)
+    check_settings(config)
     times: list[StageTime] = []
     started = (time.perf_counter(), _cpu_seconds())
     load_at_start = list(os.getloadavg())

@@ -1,9 +1,12 @@
 """The benchmark profile's rows, tables and checks, on hand-made bench payloads (the stages themselves are
 the bench, train and build code, tested elsewhere; the profile runs them in benchmarks/, not in CI)."""
 
+import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from ovgaussian import bench_suite as S
 from ovgaussian.suite_config import ABLATION_ROWS, RUNS, TABLE1_ROWS, SuiteConfig, Table1Row
@@ -112,3 +115,17 @@ def test_tasks_give_their_values_in_order_with_one_or_two_processes():
     assert values[3] == 6 and os.getpid() not in values[:3] and 1 <= len(set(values[:3])) <= 2
     assert [t.name for t in times] == ["t0", "t1", "t2", "sum"] and all(t.wall >= 0 and t.cpu >= 0 for t in times)
     assert any("sum: done" in m for m in said)
+
+
+def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
+    from ovgaussian.bench_suite import SETTINGS_NAME, check_settings
+
+    config = SuiteConfig(out=tmp_path, progress=False)
+    check_settings(config)                                     # first run: recorded
+    recorded = json.loads((tmp_path / SETTINGS_NAME).read_text())
+    assert recorded["replica_scenes"] == config.replica_scenes and "out" not in recorded
+    check_settings(replace(config, jobs=1, progress=True))    # display and processes change no result
+    with pytest.raises(ValueError, match=r"other settings \(replica_scenes 16 -> 8\); use a new --out"):
+        check_settings(replace(config, replica_scenes=8))
+    with pytest.raises(ValueError, match="class_balance"):
+        check_settings(replace(config, class_balance=0.5))
