@@ -2,8 +2,8 @@
 
 A stage key is sha256 of (the scene's input fingerprint, the upstream stage's key, the stage's settings, the
 digest of the stage's code). The code digest is taken from the source: every module of the seggaussian
-package that the stage's entry module imports, transitively (``module_closure``: a walk of the ``import``
-statements with ``ast``, those inside functions included, so a lazy import counts as code the stage runs),
+package that the stage's entry module imports, transitively (``seggaussian.module_closure``: a walk of the
+``import`` statements with ``ast``, those inside functions included, so a lazy import counts as code the stage runs),
 plus the data files of ``data_specs/`` when the closure holds ``seggaussian.constants`` (the one module that
 reads them). A change anywhere in a stage's code therefore invalidates that stage and those downstream of it,
 and no other; there is no version number to bump by hand.
@@ -11,12 +11,12 @@ and no other; there is no version number to bump by hand.
 
 from __future__ import annotations
 
-import ast
 import hashlib
 import json
 from pathlib import Path
 
 import seggaussian
+from seggaussian import module_closure as module_closure_mod
 from seggaussian.atomic import write_json_atomic
 from seggaussian.constants import DATA_SPECS_DIR
 
@@ -28,8 +28,10 @@ DATA_SPECS_READER = "seggaussian.constants"
 #: The suffixes of data_specs/ files that code reads (prose, the package marker and bytecode stay out of the key).
 DATA_SUFFIXES = (".txt", ".json", ".csv")
 
-#: (path, size, mtime_ns) -> seggaussian modules the file imports (parsing is the slow part of a digest).
-_IMPORTS_MEMO: dict[tuple, frozenset] = {}
+
+def module_file(name: str, package_dir: Path | None = None) -> Path | None:
+    """The source file of a seggaussian module (``.py`` or a package's ``__init__.py``), or None."""
+    return module_closure_mod.module_file(name, (package_dir or PACKAGE_DIR).parent)
 
 
 def sha256_json(payload) -> str:
@@ -37,59 +39,13 @@ def sha256_json(payload) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def module_file(name: str, package_dir: Path | None = None) -> Path | None:
-    """The source file of a seggaussian module (``.py`` or a package's ``__init__.py``), or None."""
-    base = (package_dir or PACKAGE_DIR).joinpath(*name.split(".")[1:])
-    for path in (base / "__init__.py", base.with_suffix(".py")):
-        if path.is_file():
-            return path
-    return None
-
-
-def _imports(name: str, path: Path, package_dir: Path) -> frozenset:
-    """The seggaussian modules that the module ``name`` (file ``path``) imports, with their parent packages."""
-    st = path.stat()
-    memo_key = (str(path), st.st_size, st.st_mtime_ns)
-    if memo_key in _IMPORTS_MEMO:
-        return _IMPORTS_MEMO[memo_key]
-    tree = ast.parse(path.read_bytes(), str(path))
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    found: set[str] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            found.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")[: len(package.split(".")) - node.level + 1]
-                module = ".".join(base + ([node.module] if node.module else []))
-            else:
-                module = node.module or ""
-            found.add(module)
-            # ``from pkg import sub`` imports the submodule ``pkg.sub`` when there is one
-            found.update(f"{module}.{alias.name}" for alias in node.names
-                         if module_file(f"{module}.{alias.name}", package_dir) is not None)
-    ours = {m for m in found if m == PACKAGE or m.startswith(PACKAGE + ".")}
-    with_parents = {".".join(m.split(".")[:i]) for m in ours for i in range(1, m.count(".") + 2)}
-    result = frozenset(m for m in with_parents if module_file(m, package_dir) is not None)
-    _IMPORTS_MEMO[memo_key] = result
-    return result
-
-
 def module_closure(entry: str, package_dir: Path | None = None) -> tuple[str, ...]:
-    """Sorted names of ``entry`` and every seggaussian module it imports, transitively (parent packages
-    included: importing ``a.b.c`` runs ``a/__init__.py`` and ``a/b/__init__.py``)."""
-    package_dir = package_dir or PACKAGE_DIR
-    if module_file(entry, package_dir) is None:
-        raise ModuleNotFoundError(f"build cache: no module {entry} in {package_dir}")
-    seen: set[str] = set()
-    todo = [entry] + [".".join(entry.split(".")[:i]) for i in range(1, entry.count(".") + 1)]
-    while todo:
-        name = todo.pop()
-        if name in seen:
-            continue
-        seen.add(name)
-        todo.extend(_imports(name, module_file(name, package_dir), package_dir) - seen)
-    return tuple(sorted(seen))
+    """Sorted names of ``entry`` and every seggaussian module it imports, transitively
+    (``seggaussian.module_closure``; ``package_dir`` is the package folder, by default this installation's)."""
+    try:
+        return module_closure_mod.module_closure(entry, (package_dir or PACKAGE_DIR).parent)
+    except ModuleNotFoundError as error:
+        raise ModuleNotFoundError(f"build cache: {error}") from None
 
 
 def data_specs_hash() -> str:

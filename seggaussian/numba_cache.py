@@ -6,9 +6,10 @@ module alone the cached kernel still runs the old helper (seen in this project: 
 equalling the full-view ones after a change elsewhere, until the ``*.nbi`` / ``*.nbc`` files were deleted).
 
 The cache folder is therefore ``<user cache>/seggaussian/numba/<digest>``, where the digest covers the path and
-bytes of every module of ``seggaussian`` and ``ovgaussian`` that mentions numba (a jitted function can only call
-jitted functions, so every module whose code can be inlined into a kernel is among them). Any change to one of
-them starts a fresh folder; unchanged code keeps reusing its kernels. Set before numba is imported
+bytes of every module that defines a kernel (``@numba.njit``) in ``seggaussian`` or ``ovgaussian`` and of every
+module of its package that it imports, transitively (``seggaussian.module_closure``): the helpers it inlines and
+the constants it freezes at compile time (``ALPHA_MIN`` from ``seggaussian.constants``, ...). Any change to one of
+them starts a fresh folder; other changes keep reusing the compiled kernels. Set before numba is imported
 (``seggaussian/__init__.py``); a ``NUMBA_CACHE_DIR`` the user exported wins.
 """
 
@@ -16,23 +17,39 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 from pathlib import Path
 
-#: The packages whose numba modules feed the digest (siblings in the source tree and in an installed wheel).
+from seggaussian.module_closure import module_closure, module_file
+
+#: The packages whose kernels feed the digest (siblings in the source tree and in an installed wheel).
 PACKAGES = ("seggaussian", "ovgaussian")
+#: How a module defines a numba kernel in this project: every jitted function is declared with this decorator.
+KERNEL_DECORATOR = re.compile(rb"^[ \t]*@numba\.njit\b", re.MULTILINE)
 #: Hex digits of the digest in the folder name.
 DIGEST_CHARS = 16
 
 
-def kernel_source_digest(root: Path) -> str:
-    """Digest of the relative path and bytes of every ``*.py`` under ``root/<package>`` that mentions numba."""
-    digest = hashlib.sha256()
+def kernel_modules(root: Path) -> tuple[str, ...]:
+    """Names of the modules under ``root/<package>`` that define a numba kernel."""
+    found = []
     for package in PACKAGES:
         for path in sorted((root / package).rglob("*.py")):
-            data = path.read_bytes()
-            if b"numba" in data:
-                digest.update(path.relative_to(root).as_posix().encode() + b"\0")
-                digest.update(len(data).to_bytes(8, "little") + data)
+            if KERNEL_DECORATOR.search(path.read_bytes()):
+                parts = path.relative_to(root).with_suffix("").parts
+                found.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return tuple(found)
+
+
+def kernel_source_digest(root: Path) -> str:
+    """Digest of the relative path and bytes of every kernel module under ``root`` and of its import closure."""
+    closure = sorted({name for entry in kernel_modules(root) for name in module_closure(entry, root)})
+    digest = hashlib.sha256()
+    for name in closure:
+        path = module_file(name, root)
+        data = path.read_bytes()
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(len(data).to_bytes(8, "little") + data)
     return digest.hexdigest()[:DIGEST_CHARS]
 
 

@@ -108,3 +108,19 @@ def test_importing_seggaussian_names_a_cache_folder_under_the_user_cache(tmp_pat
     env["XDG_CACHE_HOME"] = str(tmp_path / "blocked")                       # unusable: numba keeps its default
     out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True).stdout
     assert out.strip() == "None"
+
+
+def test_the_digest_covers_what_kernels_import_and_not_what_only_names_numba(tmp_path):
+    from seggaussian.numba_cache import kernel_modules, kernel_source_digest
+
+    _tree(tmp_path, 10)
+    package = tmp_path / "seggaussian"
+    (package / "constants.py").write_text("LIMIT = 1.0\n")                 # frozen into a kernel at compile time
+    (package / "kernel.py").write_text(KERNEL.replace("import numba\n", "import numba\nfrom seggaussian.constants import LIMIT\n"))
+    (package / "threads.py").write_text("import numba\n\ndef use(n):\n    numba.set_num_threads(n)\n")
+    assert kernel_modules(tmp_path) == ("seggaussian.helper", "seggaussian.kernel")
+    before = kernel_source_digest(tmp_path)
+    (package / "threads.py").write_text("import numba\n\ndef use(n):\n    numba.set_num_threads(max(n, 1))\n")
+    assert kernel_source_digest(tmp_path) == before                        # names numba, defines no kernel
+    (package / "constants.py").write_text("LIMIT = 2.0\n")
+    assert kernel_source_digest(tmp_path) != before                        # no numba in it, but a kernel reads it
