@@ -38,7 +38,7 @@ def test_run_folder_after_a_demo_like_training_stays_within_the_cache_budget(tmp
     encoder and a MaskCLIP teacher, as scripts/demo.sh does at a smaller size: the run's caches (text
     embeddings, patch-resolution teacher features) are at most 10 % of the dataset, and no per-view
     blend weights are written anywhere."""
-    from transformers import CLIPConfig, CLIPModel
+    from tiny_clip import random_clip
 
     from ovgaussian.teacher import DenseTeacher
     from ovgaussian.train import train
@@ -53,13 +53,8 @@ def test_run_folder_after_a_demo_like_training_stays_within_the_cache_budget(tmp
     dataset = tmp_path / "dataset"
     build_mod.build_dataset(BuildConfig(source="synthetic", root=raw, out=dataset, gaussians="oracle",
                                         progress=False, oracle=OracleConfig(num_gaussians=3000)))
-    torch.manual_seed(0)
-    clip = CLIPModel(CLIPConfig(
-        text_config=dict(hidden_size=16, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2,
-                         vocab_size=40, max_position_embeddings=8, bos_token_id=0, eos_token_id=1, pad_token_id=1),
-        vision_config=dict(hidden_size=16, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2,
-                           image_size=32, patch_size=16),
-        projection_dim=512)).eval()  # ViT-B/16's patch size and feature width: the cache bytes of the real one
+    # ViT-B/16's patch size and feature width: the cache bytes of the real one
+    clip = random_clip(image_size=32, patch_size=16, projection_dim=512)
     teacher = DenseTeacher(clip, TeacherConfig(short_side=64))
     run = tmp_path / "run"
     result = train(TrainConfig(data=DataConfig(dataset=dataset, pixels_per_view=512), out=run, epochs=2,
@@ -79,7 +74,7 @@ def test_run_folder_after_a_demo_like_training_stays_within_the_cache_budget(tmp
 def test_teacher_cache_stops_at_the_budget_and_features_stay_exact(tmp_path):
     """Past the budget, teacher features are computed per use (counted), equal to the cached ones."""
     import numpy as np
-    from transformers import CLIPConfig, CLIPModel
+    from tiny_clip import random_clip
 
     from ovgaussian.data import TrainingData
     from ovgaussian.scene_source import InMemorySource
@@ -88,13 +83,7 @@ def test_teacher_cache_stops_at_the_budget_and_features_stay_exact(tmp_path):
     from ovgaussian.vocabulary import training_vocabulary
     from test_train import make_scene
 
-    torch.manual_seed(0)
-    clip = CLIPModel(CLIPConfig(
-        text_config=dict(hidden_size=16, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2,
-                         vocab_size=40, max_position_embeddings=8, bos_token_id=0, eos_token_id=1, pad_token_id=1),
-        vision_config=dict(hidden_size=16, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2,
-                           image_size=16, patch_size=8),
-        projection_dim=20)).eval()
+    clip = random_clip()
     teacher = DenseTeacher(clip, TeacherConfig(short_side=16))
     scenes = [make_scene(0, per_box=10, views=4)]  # 3 train views
     grid = teacher.compute_patch_features(scenes[0].views[0].rgb).patch_features

@@ -489,20 +489,14 @@ def test_synchronized_batch_norm_matches_local_batch_norm_in_one_process(tmp_pat
 
 
 def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
-    from transformers import CLIPConfig, CLIPModel
+    from tiny_clip import random_clip
 
     from ovgaussian.checkpoint import load_trained_model
     from ovgaussian.run_folder import read_metrics
     from ovgaussian.teacher import DenseTeacher
     from ovgaussian.train import train
 
-    torch.manual_seed(0)
-    clip = CLIPModel(CLIPConfig(
-        text_config=dict(hidden_size=16, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2,
-                         vocab_size=40, max_position_embeddings=8, bos_token_id=0, eos_token_id=1, pad_token_id=1),
-        vision_config=dict(hidden_size=16, intermediate_size=16, num_hidden_layers=2, num_attention_heads=2,
-                           image_size=16, patch_size=8),
-        projection_dim=20)).eval()
+    clip = random_clip(vision_layers=2)
     teacher = DenseTeacher(clip, TeacherConfig(short_side=16))
     result = train(tiny_config(tmp_path / "run", 1), source=InMemorySource(scenes), teacher=teacher,
                    model_config=tiny_model_config(12), text_embeddings=text_stub())
