@@ -322,6 +322,18 @@ def test_our_ksplat_files_are_read_by_the_reference(reference_files, level, degr
     assert (_sign_free_quat_error(ours.quats, original.quats) <= float_step + 1e-6).all()
 
 
+def _decode_by_content_like_the_reference(path: Path, expected_format: str, name: str):
+    """(ours, the reference's) decodes of a file written by another program: ours reads a copy whose name says
+    nothing (detection is by content), must name ``expected_format``, and must equal the reference's decode."""
+    renamed = path.with_name(path.name + ".bin")
+    shutil.copyfile(path, renamed)
+    ours, fmt = read_gaussians_raw(renamed)
+    assert fmt == expected_format
+    ref = reference_decode(path)
+    _compare_decodes(ours, ref, name)
+    return ours, ref
+
+
 @needs_reference
 @pytest.mark.parametrize("name", FIXTURE_FILES)
 def test_files_written_by_other_programs_decode_like_the_reference(reference_files, name):
@@ -331,12 +343,7 @@ def test_files_written_by_other_programs_decode_like_the_reference(reference_fil
                     "repository's fixtures; fetched data is kept in shared/, not in this repository)")
     path = files[f"fixture_{name}"]
     expected = {"spz": "spz", "ksplat": "ksplat", "splat": "splat"}[name.rsplit(".", 1)[1]]
-    renamed = path.with_name(path.name + ".bin")           # detection is by content, not by name
-    shutil.copyfile(path, renamed)
-    ours, fmt = read_gaussians_raw(renamed)
-    assert fmt == expected
-    ref = reference_decode(path)
-    _compare_decodes(ours, ref, name)
+    ours, ref = _decode_by_content_like_the_reference(path, expected, name)
     np.testing.assert_array_equal(ours.means.min(0), ref.means.min(0))
     np.testing.assert_array_equal(ours.means.max(0), ref.means.max(0))
     loaded = read_gaussians(path)                          # and it passes validation
@@ -376,14 +383,9 @@ def test_web_splats_decode_like_the_reference(reference_files, name):
     path = files[f"web_{name}"]
     expected_format, expected_count = WEB_SPLATS[name]
     assert detect_format(path) == expected_format
-    renamed = path.with_name(path.name + ".bin")           # detection is by content, not by name
-    shutil.copyfile(path, renamed)
-    ours, fmt = read_gaussians_raw(renamed)
-    assert fmt == expected_format
-    ref = reference_decode(path)
+    ours, ref = _decode_by_content_like_the_reference(path, expected_format, name)
     # both decode the same bytes: counts equal, every value (and so the bounds) within float32 rounding
     assert len(ours) == len(ref) == expected_count
-    _compare_decodes(ours, ref, name)
     atol = 8 * float(np.finfo(np.float32).eps) * float(np.abs(ref.means).max())
     np.testing.assert_allclose(ours.means.min(0), ref.means.min(0), atol=atol, rtol=0, err_msg=name)
     np.testing.assert_allclose(ours.means.max(0), ref.means.max(0), atol=atol, rtol=0, err_msg=name)
