@@ -4,10 +4,11 @@ types, formats, extra elements, line endings) and seed files, real and written b
 
 from __future__ import annotations
 
+import functools
 import re
 import tempfile
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -42,12 +43,35 @@ _properties = _header_lines(b"property ")
 _elements = _header_lines(b"element ")
 
 
-def ply_count(data: bytes, rng: np.random.Generator) -> bytes:
+def _has_elements(lines: list[bytes]) -> bool:
+    return bool(_elements(lines))
+
+
+def _has_properties(lines: list[bytes]) -> bool:
+    return bool(_properties(lines))
+
+
+def _has_two_lines(lines: list[bytes]) -> bool:
+    return len(lines) >= 2
+
+
+def _header_mutator(applies: Callable[[list[bytes]], bool] | None = None) -> Callable[..., Mutator]:
+    """Make ``mutate(lines, body, rng) -> bytes`` a :data:`Mutator` of whole files: a file without a PLY header,
+    or whose header lines ``applies`` rejects, comes back unchanged (before any random draw)."""
+    def wrap(mutate: Callable[[list[bytes], bytes, np.random.Generator], bytes]) -> Mutator:
+        @functools.wraps(mutate)
+        def mutator(data: bytes, rng: np.random.Generator) -> bytes:
+            parts = _split(data)
+            if parts is None or (applies is not None and not applies(parts[0])):
+                return data
+            return mutate(*parts, rng)
+        return mutator
+    return wrap
+
+
+@_header_mutator(_has_elements)
+def ply_count(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """An element count set to 0, n - 1, n + 1, 2n, a huge number, a negative or a non-number."""
-    parts = _split(data)
-    if parts is None or not _elements(parts[0]):
-        return data
-    lines, body = parts
     i = _elements(lines)[int(rng.integers(0, len(_elements(lines))))]
     words = lines[i].split()
     n = int(words[2]) if len(words) == 3 and words[2].isdigit() else 1
@@ -57,13 +81,10 @@ def ply_count(data: bytes, rng: np.random.Generator) -> bytes:
     return _join(lines, body)
 
 
-def ply_rename(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator(_has_properties)
+def ply_rename(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """A property renamed: zero-padded index (``f_rest_05``), another property's name, upper case or
     a suffix."""
-    parts = _split(data)
-    if parts is None or not _properties(parts[0]):
-        return data
-    lines, body = parts
     props = _properties(lines)
     i = props[int(rng.integers(0, len(props)))]
     words = lines[i].split()
@@ -82,12 +103,9 @@ def ply_rename(data: bytes, rng: np.random.Generator) -> bytes:
     return _join(lines, body)
 
 
-def ply_retype(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator(_has_properties)
+def ply_retype(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """A property's type changed (``float`` -> ``double``, ``uchar``, ``int``, ...) or made a list."""
-    parts = _split(data)
-    if parts is None or not _properties(parts[0]):
-        return data
-    lines, body = parts
     i = _properties(lines)[int(rng.integers(0, len(_properties(lines))))]
     words = lines[i].split()
     types = [b"double", b"uchar", b"int", b"short", b"float", b"char", b"uint", b"float128", b"list uchar int"]
@@ -96,12 +114,9 @@ def ply_retype(data: bytes, rng: np.random.Generator) -> bytes:
     return _join(lines, body)
 
 
-def ply_drop_line(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator(_has_two_lines)
+def ply_drop_line(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """A property, element, format or comment line removed or duplicated."""
-    parts = _split(data)
-    if parts is None or len(parts[0]) < 2:
-        return data
-    lines, body = parts
     i = int(rng.integers(1, len(lines)))
     if rng.random() < 0.5:
         del lines[i]
@@ -110,12 +125,9 @@ def ply_drop_line(data: bytes, rng: np.random.Generator) -> bytes:
     return _join(lines, body)
 
 
-def ply_format(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator()
+def ply_format(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """The ``format`` line changed to another format (binary body under an ASCII header and back)."""
-    parts = _split(data)
-    if parts is None:
-        return data
-    lines, body = parts
     formats = [b"ascii", b"binary_little_endian", b"binary_big_endian", b"binary", b"ascii 2.0"]
     for i, line in enumerate(lines):
         if line.startswith(b"format"):
@@ -123,25 +135,19 @@ def ply_format(data: bytes, rng: np.random.Generator) -> bytes:
     return _join(lines, body)
 
 
-def ply_ascii_body(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator()
+def ply_ascii_body(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """The body replaced by whitespace-separated numbers (an ASCII body under whatever the header says)."""
-    parts = _split(data)
-    if parts is None:
-        return data
-    lines, body = parts
     rows = int(rng.integers(1, 300))
     values = rng.normal(size=(rows, int(rng.integers(1, 70))))
     text = b"\n".join(b" ".join(b"%.6g" % v for v in row) for row in values) + b"\n"
     return _join(lines, text)
 
 
-def ply_extra_element(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator()
+def ply_extra_element(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """An element declared after the vertices (``face`` with a list, or a scalar element) with no data,
     too little data, or exactly its data."""
-    parts = _split(data)
-    if parts is None:
-        return data
-    lines, body = parts
     n = int(rng.integers(1, 20))
     scalar = rng.random() < 0.5
     lines = lines + ([f"element extra {n}".encode(), b"property float w"] if scalar
@@ -151,22 +157,16 @@ def ply_extra_element(data: bytes, rng: np.random.Generator) -> bytes:
     return _join(lines, body + record * have)
 
 
-def ply_crlf(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator()
+def ply_crlf(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """Header lines ended with CRLF (and, half the time, the whole file's newlines)."""
-    parts = _split(data)
-    if parts is None:
-        return data
-    lines, body = parts
     head = b"\r\n".join(lines) + b"\r\nend_header\r\n"
     return head + (body.replace(b"\n", b"\r\n") if rng.random() < 0.5 else body)
 
 
-def ply_header_junk(data: bytes, rng: np.random.Generator) -> bytes:
+@_header_mutator()
+def ply_header_junk(lines: list[bytes], body: bytes, rng: np.random.Generator) -> bytes:
     """A comment, an unknown keyword, a blank line or non-ASCII bytes inserted in the header."""
-    parts = _split(data)
-    if parts is None:
-        return data
-    lines, body = parts
     junk = [b"comment fuzz", b"obj_info x", b"bogus keyword", b"", b"property float late", b"\xff\xfe",
             b"element", b"format binary_little_endian 1.0"][int(rng.integers(0, 8))]
     lines.insert(int(rng.integers(1, len(lines) + 1)), junk)
