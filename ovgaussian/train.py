@@ -130,7 +130,8 @@ def check_text_space(config: TrainConfig) -> None:
 
 
 def join_processes(config: TrainConfig) -> tuple[ProcessGroup, torch.device]:
-    """This process's rank and its device (under torchrun on CUDA: the GPU of ``LOCAL_RANK``)."""
+    """This process's rank and its device (under torchrun on CUDA: the GPU of ``LOCAL_RANK``); the first step of a
+    run, so a device that cannot be used is refused before any data is read."""
     device = resolve_device(config.device)
     group = init_process_group(config.device)
     if config.device == "cuda" and group.world_size > 1:
@@ -316,7 +317,6 @@ def train(config: TrainConfig, **kwargs) -> TrainResult:
     Under torchrun, the process group this call creates is destroyed when it returns or fails: a gloo group
     left alive at interpreter exit can abort the process ("terminate called without an active exception").
     """
-    resolve_device(config.device)  # before any data is read
     owns_group = torchrun_world_size() > 1 and not dist.is_initialized()
     try:
         return train_in_process_group(config, **kwargs)
