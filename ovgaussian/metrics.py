@@ -160,6 +160,45 @@ def scores_from_confusion(counts: np.ndarray, classes: Sequence[int] | np.ndarra
     )
 
 
+class UnseenShare(NamedTuple):
+    """How much of an all-class mIoU (e.g. NVA) the unseen classes decide, from one ``[K, K+1]`` matrix.
+
+    Fields:
+        as_scored: mIoU over every class, as scored.
+        unseen_right: mIoU over every class had every pixel of an unseen class been predicted right, every other
+            prediction unchanged (what perfect open-vocabulary transfer would give this model).
+        seen_only: mIoU over the seen classes with the unseen classes' pixels left out (the seen classes' own
+            quality: no false positive from an unseen pixel).
+    Each is None when no class is scored.
+    """
+
+    as_scored: float | None
+    unseen_right: float | None
+    seen_only: float | None
+
+
+def unseen_share(counts: np.ndarray, unseen: Sequence[int] | np.ndarray) -> UnseenShare:
+    """``UnseenShare`` of ``counts`` ``[K, K+1]`` for the vocabulary indices ``unseen``."""
+    counts = np.asarray(counts, dtype=np.int64)
+    k = counts.shape[0]
+    if counts.ndim != 2 or counts.shape[1] != k + 1:
+        raise ValueError(f"confusion counts must have shape [K, K+1], got {counts.shape}")
+    unseen = np.unique(np.asarray(unseen, dtype=np.int64))
+    if unseen.size and (unseen.min() < 0 or unseen.max() >= k):
+        raise ValueError(f"unseen classes must lie in 0..{k - 1}")
+    seen = np.setdiff1d(np.arange(k), unseen)
+    right = counts.copy()
+    right[unseen] = 0
+    right[unseen, unseen] = counts[unseen].sum(axis=1)
+    left_out = counts.copy()
+    left_out[unseen] = 0
+    return UnseenShare(
+        as_scored=scores_from_confusion(counts).miou,
+        unseen_right=scores_from_confusion(right).miou,
+        seen_only=scores_from_confusion(left_out, seen).miou,
+    )
+
+
 def miou(predicted: np.ndarray, target: np.ndarray, num_classes: int, classes=None) -> float | None:
     """mIoU of one prediction (convenience): see :func:`scores_from_confusion`."""
     return scores_from_confusion(confusion_matrix(predicted, target, num_classes), classes).miou

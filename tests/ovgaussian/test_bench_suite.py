@@ -24,7 +24,8 @@ def payload(values: dict, ci_halfwidth=0.02, chair_iou=0.3):
     confusion = np.zeros((3, 4), int)
     confusion[0, 0], confusion[1, 1], confusion[2, 0] = 50, 5, 7
     return {"metrics": metrics, "vocabulary": {"names": NAMES, "unseen": ["sofa"]},
-            "confusion": {"val_3d": confusion.tolist(), "val_2d": confusion.tolist()}}
+            "confusion": {"val_3d": confusion.tolist(), "val_2d": confusion.tolist(),
+                          "train_2d": confusion.tolist()}}
 
 
 ALL = [("3d", "CSA"), ("3d", "OVA"), ("3d", "CDA"), ("2d", "CSA"), ("2d", "OVA"), ("2d", "NVA"), ("2d", "CDA")]
@@ -48,6 +49,20 @@ def test_checks_need_intervals_apart_from_both_baselines():
     assert not result["NVA >= 60"][0]
     swapped = dict(runs, **{"no-adapter": payload({k: 0.6 for k in ALL})})
     assert not S.checks(reports, "full", ("majority", "colour"), swapped)["ablation rows order as the paper's"][0]
+
+
+def test_the_nva_check_says_what_the_unseen_classes_decide():
+    # train_2d: wall 50 right, chair 5 right, all 7 sofa (unseen) pixels predicted wall.
+    reports = {"full": payload({k: 0.5 for k in ALL})}
+    ok, detail = S.checks(reports, "full", (), {})["NVA >= 60"]
+    assert not ok
+    assert "with every unseen pixel right it would be 100.0" in detail
+    assert "the seen classes score 100.0 with the unseen pixels left out" in detail
+    wrong_chair = payload({k: 0.5 for k in ALL})
+    counts = np.array(wrong_chair["confusion"]["train_2d"])
+    counts[1, 1], counts[1, 0] = 0, 5  # chair never right: seen classes (50/55 + 0) / 2
+    wrong_chair["confusion"]["train_2d"] = counts.tolist()
+    assert f"seen classes score {100 * 50 / 55 / 2:.1f}" in S.nva_unseen_share(wrong_chair)
 
 
 def test_tables_show_values_and_intervals():

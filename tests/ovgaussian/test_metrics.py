@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ovgaussian.metrics import (
+    unseen_share,
     ConfusionMatrix,
     confusion_matrix,
     confusion_matrix_reference,
@@ -116,3 +117,36 @@ def test_fast_matches_reference(pairs, subset):
             assert fast is None
         else:
             assert fast == pytest.approx(ref, abs=1e-12)
+
+
+def test_unseen_share_matches_relabelled_predictions():
+    """unseen_right = the mIoU of predictions corrected on the unseen pixels; seen_only = the seen classes'
+    mIoU of the pixels that are not unseen; both computed here from edited label arrays."""
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        k = int(rng.integers(2, 7))
+        n = int(rng.integers(1, 60))
+        target = rng.integers(0, k, n)
+        predicted = rng.integers(0, k, n)
+        predicted[rng.random(n) < 0.1] = IGNORE_LABEL  # uncovered pixels
+        unseen = rng.choice(k, size=int(rng.integers(1, k)), replace=False)
+        seen = np.setdiff1d(np.arange(k), unseen)
+        share = unseen_share(confusion_matrix(predicted, target, k), unseen)
+        assert share.as_scored == pytest.approx(miou(predicted, target, k))
+        corrected = np.where(np.isin(target, unseen), target, predicted)
+        assert share.unseen_right == pytest.approx(miou(corrected, target, k))
+        keep = ~np.isin(target, unseen)
+        expected = miou(predicted[keep], target[keep], k, classes=seen) if keep.any() else None
+        assert share.seen_only == pytest.approx(expected)
+
+
+def test_unseen_share_by_hand():
+    # classes: 0 seen, 1 seen, 2 unseen; all 4 pixels of class 2 are predicted 0.
+    predicted = np.array([0, 0, 1, 1, 0, 0, 0, 0])
+    target = np.array([0, 0, 1, 1, 2, 2, 2, 2])
+    share = unseen_share(confusion_matrix(predicted, target, 3), [2])
+    assert share.as_scored == pytest.approx((2 / 6 + 1.0 + 0.0) / 3)
+    assert share.unseen_right == pytest.approx(1.0)
+    assert share.seen_only == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="unseen classes must lie"):
+        unseen_share(confusion_matrix(predicted, target, 3), [3])
