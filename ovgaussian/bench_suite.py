@@ -10,7 +10,7 @@ folder made with other settings is refused, see :func:`check_settings`):
 3. ``ovgaussian bench`` of every Table-1 row and of every ablation run, ``SuiteConfig.jobs`` at a time, each
    metric with its 95 % percentile bootstrap interval over scenes (``ovgaussian.bootstrap``);
 4. ``table1.md``, ``ablation.md``, ``classes.md`` (per-class 3D IoU on the val rooms), the checks of issue #16
-   and ``suite.json`` with the CPU and wall time of every stage.
+   and ``suite.json`` with the CPU and wall time of every stage, this invocation's and every earlier one's (``history``).
 """
 
 from __future__ import annotations
@@ -339,6 +339,19 @@ def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run
     return out
 
 
+def invocation_history(summary_path: Path) -> list[dict]:
+    """The ``times`` and ``total`` of every earlier invocation on this folder, oldest first, from its
+    ``suite.json``: a rerun reuses finished stages in seconds, and its own times must not replace the record of
+    the run that did the work."""
+    try:
+        previous = json.loads(summary_path.read_text())
+    except (OSError, ValueError):
+        return []
+    if "history" in previous:
+        return list(previous["history"])
+    return [{"times": previous["times"], "total": previous["total"]}] if "times" in previous else []
+
+
 def format_checks(result: dict) -> str:
     return "\n".join(f"- [{'x' if ok else ' '}] {name}: {detail}" for name, (ok, detail) in result.items()) + "\n"
 
@@ -425,6 +438,10 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
         **checks(reports, full_label, baselines, run_reports,
                  tuple(r.label for r in TABLE1_ROWS if r.stacking_run is not None))}
     wall, cpu = time.perf_counter() - started[0], _cpu_seconds() - started[1]
+    invocation = {"times": [t._asdict() for t in times],
+                  "total": {"wall_s": wall, "cpu_s": cpu, "load_average_start": load_at_start,
+                            "load_average_end": list(os.getloadavg()), "cores": os.cpu_count(),
+                            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")}}
     summary = {
         "config": config_to_dict(config),
         "splits": sizes,
@@ -435,10 +452,8 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
         "ablation": {name: {f"{d}_{m}": list(interval_of(p, d, m)[:3]) for d, m in ABLATION_COLUMNS}
                      for name, p in run_reports.items()},
         "checks": {name: {"passed": ok, "detail": detail} for name, (ok, detail) in result.items()},
-        "times": [t._asdict() for t in times],
-        "total": {"wall_s": wall, "cpu_s": cpu, "load_average_start": load_at_start,
-                  "load_average_end": list(os.getloadavg()), "cores": os.cpu_count(),
-                  "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")},
+        **invocation,
+        "history": invocation_history(out / "suite.json") + [invocation],
     }
     write_json_atomic(out / "suite.json", summary)
     write_text_atomic(out / "table1.md", table1)

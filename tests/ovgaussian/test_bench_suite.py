@@ -144,3 +144,16 @@ def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
         check_settings(replace(config, replica_scenes=8))
     with pytest.raises(ValueError, match="class_balance"):
         check_settings(replace(config, class_balance=0.5))
+
+
+def test_a_rerun_keeps_the_times_of_the_invocations_before_it(tmp_path):
+    path = tmp_path / "suite.json"
+    assert S.invocation_history(path) == []
+    first = {"times": [{"name": "train: full", "wall_s": 1329.0, "cpu_s": 1313.0}], "total": {"wall_s": 2404.0}}
+    path.write_text(json.dumps({"config": {}, **first}))  # written before suite.json had a history
+    assert S.invocation_history(path) == [first]
+    second = {"times": [], "total": {"wall_s": 7.0}}
+    path.write_text(json.dumps({**second, "history": [first, second]}))
+    assert S.invocation_history(path) == [first, second]
+    path.write_text("{not json")
+    assert S.invocation_history(path) == []
