@@ -1,4 +1,4 @@
-"""Segmentation metrics from one confusion matrix: per-class IoU, mIoU, per-class accuracy, mAcc.
+"""Segmentation metrics from one confusion matrix: per-class IoU, mIoU, per-class accuracy, mAcc, unseen share.
 
 Conventions (see ``data_specs/BENCHMARK.md``):
 
@@ -12,7 +12,8 @@ Conventions (see ``data_specs/BENCHMARK.md``):
   ground truth. A mean over no scored class is ``None``, never NaN.
 
 ``confusion_matrix`` is the fast path (``np.bincount``); ``confusion_matrix_reference`` is the
-obviously-correct loop kept for the tests.
+obviously-correct loop kept for the tests. ``unseen_share`` splits an all-class mIoU (NVA) into what the unseen
+classes decide: the same matrix with their pixels right, and the seen classes' mIoU without their pixels.
 """
 
 from __future__ import annotations
