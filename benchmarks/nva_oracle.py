@@ -48,6 +48,10 @@ class OraclePredictor:
         return vectors[:, class_ids].astype(np.float64)  # [M, K]
 
 
+def _pct(value: float | None) -> float | None:
+    return None if value is None else round(100 * value, 2)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("dataset", type=Path, help="dataset folder (splits train/val)")
@@ -57,14 +61,13 @@ def main(argv=None) -> int:
     config = BenchConfig(dataset=args.dataset, predictor="majority", metrics=("CSA", "NVA"), dims=("2d",),
                          max_views_per_scene=args.max_views)
     result = run_bench(config, OraclePredictor()).result
-    out = {f"oracle 2D {metric}": round(100 * result.results[("2d", metric)].scores.miou, 2)
-           for metric in ("CSA", "NVA")}
+    out = {f"oracle 2D {metric}": _pct(result.results[("2d", metric)].scores.miou) for metric in ("CSA", "NVA")}
     if args.report is not None:
         payload = json.loads(args.report.read_text())
         names = payload["vocabulary"]["names"]
         share = unseen_share(np.asarray(payload["confusion"]["train_2d"]),
                              [names.index(n) for n in payload["vocabulary"]["unseen"]])
-        out.update({f"report NVA {field}": round(100 * value, 2) for field, value in share._asdict().items()})
+        out.update({f"report NVA {field}": _pct(value) for field, value in share._asdict().items()})
     print(json.dumps(out))
     return 0
 
