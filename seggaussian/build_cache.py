@@ -29,11 +29,6 @@ DATA_SPECS_READER = "seggaussian.constants"
 DATA_SUFFIXES = (".txt", ".json", ".csv")
 
 
-def module_file(name: str, package_dir: Path | None = None) -> Path | None:
-    """The source file of a seggaussian module (``.py`` or a package's ``__init__.py``), or None."""
-    return module_closure_mod.module_file(name, (package_dir or PACKAGE_DIR).parent)
-
-
 def sha256_json(payload) -> str:
     """sha256 of the canonical JSON of ``payload`` (sorted keys; non-JSON values by ``str``)."""
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
@@ -63,10 +58,7 @@ def code_digest(entry: str) -> str:
     data_specs data files when the closure reads them."""
     h = hashlib.sha256()
     closure = module_closure(entry)
-    for name in closure:
-        path = module_file(name)
-        h.update(str(path.relative_to(PACKAGE_DIR)).encode() + b"\0")
-        h.update(path.read_bytes())
+    module_closure_mod.hash_sources(h, closure, PACKAGE_DIR.parent, PACKAGE_DIR)
     if DATA_SPECS_READER in closure:
         h.update(data_specs_hash().encode())
     return h.hexdigest()

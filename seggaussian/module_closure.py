@@ -5,13 +5,16 @@ inside functions included, so a lazy import counts as code that runs) and of eve
 package they name, with the parent packages (importing ``a.b.c`` runs ``a/__init__.py`` and ``a/b/__init__.py``).
 ``root`` is the folder that holds the package folder (a checkout or site-packages). Standard library only: the
 package's ``__init__`` uses it (numba's cache folder) before anything heavy loads. Users: the build's stage keys
-(``seggaussian.build_cache``) and numba's cache folder (``seggaussian.numba_cache``).
+(``seggaussian.build_cache``) and numba's cache folder (``seggaussian.numba_cache``), both through
+:func:`hash_sources`.
 """
 
 from __future__ import annotations
 
 import ast
+import hashlib
 from pathlib import Path
+from typing import Iterable
 
 #: (path, size, mtime_ns) -> modules the file imports (parsing is the slow part of a closure).
 _IMPORTS_MEMO: dict[tuple, frozenset] = {}
@@ -69,3 +72,14 @@ def module_closure(entry: str, root: Path) -> tuple[str, ...]:
         seen.add(name)
         todo.extend(_imports(name, module_file(name, root), root) - seen)
     return tuple(sorted(seen))
+
+
+def hash_sources(digest: "hashlib._Hash", names: Iterable[str], root: Path, relative_to: Path) -> None:
+    """Feed ``digest`` the path (relative to ``relative_to``, POSIX) and bytes of each module of ``names`` under
+    ``root``, in the given order: the code of a closure, as the build's stage keys and numba's cache folder name it."""
+    for name in names:
+        path = module_file(name, root)
+        if path is None:
+            raise ModuleNotFoundError(f"no module {name} in {root}")
+        digest.update(path.relative_to(relative_to).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes())

@@ -20,7 +20,7 @@ import os
 import re
 from pathlib import Path
 
-from seggaussian.module_closure import module_closure, module_file
+from seggaussian.module_closure import hash_sources, module_closure
 
 #: The packages whose kernels feed the digest (siblings in the source tree and in an installed wheel).
 PACKAGES = ("seggaussian", "ovgaussian")
@@ -45,11 +45,7 @@ def kernel_source_digest(root: Path) -> str:
     """Digest of the relative path and bytes of every kernel module under ``root`` and of its import closure."""
     closure = sorted({name for entry in kernel_modules(root) for name in module_closure(entry, root)})
     digest = hashlib.sha256()
-    for name in closure:
-        path = module_file(name, root)
-        data = path.read_bytes()
-        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
-        digest.update(len(data).to_bytes(8, "little") + data)
+    hash_sources(digest, closure, root, root)
     return digest.hexdigest()[:DIGEST_CHARS]
 
 

@@ -15,6 +15,7 @@ from seggaussian import build_cache
 from seggaussian.build import build_dataset
 from seggaussian.build_config import BuildConfig, OracleConfig
 from seggaussian.build_scene import GAUSSIANS_MODES, STAGE_MODULES
+from seggaussian.module_closure import module_file
 
 synthetic = pytest.importorskip("seggaussian.sources.synthetic")
 
@@ -35,7 +36,7 @@ def test_closures_hold_what_each_stage_runs_and_nothing_else():
     # a lazy import inside a function is code the stage runs: replica's raycast renders views into the cache
     assert "sources.raycast" in _short(build_cache.module_closure("seggaussian.sources.replica"))
     for entry in ("seggaussian.stages.views", "seggaussian.stages.gaussians_fit"):
-        assert all(build_cache.module_file(m) is not None for m in build_cache.module_closure(entry))
+        assert all(module_file(m, build_cache.PACKAGE_DIR.parent) is not None for m in build_cache.module_closure(entry))
     with pytest.raises(ModuleNotFoundError, match="no module"):
         build_cache.module_closure("seggaussian.sources.replica_classes")
 
