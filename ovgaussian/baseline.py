@@ -9,6 +9,9 @@
 
 Both only see Gaussians of the ``train`` split with a label (IGNORE excluded); the unseen classes are
 not used even if the train split were to hold them (same rule as the trainer).
+
+``GroundTruthPredictor`` is not a baseline but the upper bound: it reads each scene's own labels (the tests'
+reference predictor, and ``benchmarks/nva_oracle.py``: what the 2D path loses against the stored label maps).
 """
 
 from __future__ import annotations
@@ -102,6 +105,25 @@ class NearestColourPredictor:
         if not self.seen[class_ids].any():
             scores[:] = 0.0
         return scores
+
+
+class GroundTruthPredictor:
+    """The one-hot of each Gaussian's stored top-100 label as its vector (an IGNORE label: all zeros)."""
+
+    name = "ground-truth oracle"
+
+    def encode(self, scene) -> np.ndarray:
+        labels = np.asarray(scene.gaussians.extras["semantic"]).astype(np.int64)  # [N]
+        num_classes = len(read_class_names())
+        known = labels != IGNORE_LABEL
+        if known.any() and (labels[known].min() < 0 or labels[known].max() >= num_classes):
+            raise ValueError(f"scene {scene.scene_id}: Gaussian labels outside the {num_classes} top-100 ids")
+        vectors = np.zeros((labels.size, num_classes), np.float32)  # [N, 100]
+        vectors[np.flatnonzero(known), labels[known]] = 1.0
+        return vectors
+
+    def classify(self, vectors: np.ndarray, class_ids: np.ndarray) -> np.ndarray:
+        return vectors[:, class_ids]  # [M, K]
 
 
 def fit_majority(train_scenes: Iterable) -> MajorityPredictor:

@@ -33,7 +33,7 @@ from ovgaussian.bench import run_bench
 from ovgaussian.bench_config import TABLE1_COLUMNS, BenchConfig
 from ovgaussian.bootstrap import Interval, overlaps
 from ovgaussian.checkpoint import latest_checkpoint
-from ovgaussian.metrics import unseen_share
+from ovgaussian.metrics import UnseenShare, unseen_share
 from ovgaussian.suite_config import ABLATION_ROWS, RUNS, TABLE1_ROWS, RunSpec, SuiteConfig, Table1Row
 from ovgaussian.train import train
 from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TrainConfig, config_to_dict
@@ -278,14 +278,20 @@ def present_seen_classes(payload: dict, dim: str = "3d") -> list[str]:
     return [n for i, n in enumerate(names) if counts[i].sum() > 0 and n not in unseen]
 
 
-def nva_unseen_share(payload: dict) -> str:
-    """What the unseen classes decide of a report's NVA (``ovgaussian.metrics.unseen_share``), as a sentence."""
+def report_unseen_share(payload: dict) -> UnseenShare | None:
+    """``ovgaussian.metrics.unseen_share`` of a bench report's NVA confusion matrix; None without NVA."""
     counts = payload["confusion"].get("train_2d")
     if counts is None:
-        return "no NVA confusion"
+        return None
     names = payload["vocabulary"]["names"]
-    unseen = [names.index(n) for n in payload["vocabulary"]["unseen"]]
-    share = unseen_share(np.asarray(counts), unseen)
+    return unseen_share(np.asarray(counts), [names.index(n) for n in payload["vocabulary"]["unseen"]])
+
+
+def nva_unseen_share(payload: dict) -> str:
+    """What the unseen classes decide of a report's NVA (:func:`report_unseen_share`), as a sentence."""
+    share = report_unseen_share(payload)
+    if share is None:
+        return "no NVA confusion"
     if share.unseen_right is None or share.seen_only is None:
         return "no class scored"
     return (f"with every unseen pixel right it would be {100 * share.unseen_right:.1f}; "

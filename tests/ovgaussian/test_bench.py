@@ -59,20 +59,7 @@ def make_scene(scene_id, semantic, views=(), colours=None):
     return SimpleNamespace(scene_id=scene_id, source="synthetic", gaussians=g, views=view_records)
 
 
-class Oracle:
-    """One-hot of the ground truth (top-100 ids) as the per-Gaussian vector."""
-
-    name = "oracle"
-
-    def encode(self, scene):
-        labels = scene.gaussians.extras["semantic"].astype(np.int64)
-        out = np.zeros((labels.size, len(NAMES)), np.float32)
-        ok = labels != I
-        out[np.flatnonzero(ok), labels[ok]] = 1.0
-        return out
-
-    def classify(self, vectors, class_ids):
-        return vectors[:, class_ids]
+Oracle = baseline.GroundTruthPredictor
 
 
 class Constant:
@@ -436,3 +423,13 @@ def test_views_are_streamed_in_bands_and_nothing_is_cached(tiny_dataset, tmp_pat
     assert banded.payload["row"] == whole.payload["row"]
     assert bands and max(bands) == 5 and sum(bands) == 7 * 24  # 7 views of 24 rows, never more than 5 at once
     assert sorted(p for p in tiny_dataset.rglob("*")) == before  # no per-view blend cache written anywhere
+
+
+def test_ground_truth_predictor_refuses_labels_outside_the_top100():
+    g = Gaussians.from_arrays(np.zeros((2, 3)), np.tile([1, 0, 0, 0], (2, 1)), np.zeros((2, 3)), np.zeros(2),
+                              np.zeros((2, 1, 3)), extras={"semantic": np.array([0, len(NAMES)], np.int32)})
+    with pytest.raises(ValueError, match="scene s1: Gaussian labels outside the 100 top-100 ids"):
+        Oracle().encode(SimpleNamespace(scene_id="s1", gaussians=g))
+    g.extras["semantic"] = np.array([ID["sofa"], I], np.int32)  # IGNORE is no label: a zero vector
+    vectors = Oracle().encode(SimpleNamespace(scene_id="s1", gaussians=g))
+    assert vectors.sum(axis=1).tolist() == [1.0, 0.0] and vectors[0, ID["sofa"]] == 1.0
