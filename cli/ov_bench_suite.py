@@ -32,7 +32,6 @@ D = SuiteConfig()
 @guarded
 def command(out, scenes, replica_scenes, gaussians, epochs, max_views, ablation, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
-    # OpenMP threads wait passively: set for every command when the package loads (seggaussian/__init__.py)
     from ovgaussian.bench_suite import run_suite
 
     config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, gaussians=gaussians, epochs=epochs,

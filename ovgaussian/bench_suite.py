@@ -399,9 +399,12 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     started = (time.perf_counter(), _cpu_seconds())
     load_at_start = list(os.getloadavg())
 
+    def stamped(message: str) -> None:
+        say(f"[{time.perf_counter() - started[0]:.0f} s] {message}")
+
     def stage(name: str, fn, *args):
         t0, c0 = time.perf_counter(), _cpu_seconds()
-        say(f"[{time.perf_counter() - started[0]:.0f} s] {name}")
+        stamped(name)
         value = fn(*args)
         times.append(StageTime(name, time.perf_counter() - t0, _cpu_seconds() - c0))
         return value
@@ -413,7 +416,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
         needed |= {row.run for row in ABLATION_ROWS}
     specs = [spec for spec in RUNS if spec.name in needed]
     values, run_times = run_tasks([Task(f"train: {spec.name}", train_run, (config, spec, dataset)) for spec in specs],
-                                  config.jobs, lambda m: say(f"[{time.perf_counter() - started[0]:.0f} s] {m}"))
+                                  config.jobs, stamped)
     times += run_times
     runs = {spec.name: run for spec, run in zip(specs, values)}
 
@@ -421,20 +424,21 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     tasks = [Task(f"bench: {row.label}", bench_row,
                   (config, bench_config(config, dataset, row), reports_dir / f"table1-{index:02d}.json"))
              for index, row in enumerate(TABLE1_ROWS)]
+    # a run scored by a Table-1 row without an open-vocabulary method needs no bench of its own for Table 2
     plain_rows = {r.run: r.label for r in TABLE1_ROWS if r.run is not None and not r.options and not r.stacking_run}
     ablation_runs = sorted({row.run for row in ABLATION_ROWS}) if config.ablation else []
+    ablation_only = [name for name in ablation_runs if name not in plain_rows]
     tasks += [Task(f"bench: ablation {name}", bench_row,
                    (config, bench_config(config, dataset, run=runs[name], metrics=("CSA", "NVA")),
                     reports_dir / f"ablation-{name}.json"))
-              for name in ablation_runs if name not in plain_rows]
-    values, bench_times = run_tasks(tasks, config.jobs,
-                                    lambda m: say(f"[{time.perf_counter() - started[0]:.0f} s] {m}"))
+              for name in ablation_only]
+    values, bench_times = run_tasks(tasks, config.jobs, stamped)
     times += bench_times
     reports = {row.label: payload for row, payload in zip(TABLE1_ROWS, values)}
-    extra = dict(zip((n for n in ablation_runs if n not in plain_rows), values[len(TABLE1_ROWS):]))
+    extra = dict(zip(ablation_only, values[len(TABLE1_ROWS):]))
     run_reports = {name: reports[plain_rows[name]] if name in plain_rows else extra[name] for name in ablation_runs}
 
-    full_label = next(r.label for r in TABLE1_ROWS if r.run == "full" and not r.options and not r.stacking_run)
+    full_label = plain_rows["full"]
     baselines = tuple(r.label for r in TABLE1_ROWS if r.predictor != "model")
     table1 = format_table1(reports)
     ablation = format_ablation(run_reports, vs_available=False) if config.ablation else ""
