@@ -80,6 +80,12 @@ def _web_splats() -> Path | None:
     return next((d for d in WEB_SPLAT_DIRS if any((d / f).is_file() for f in WEB_SPLATS)), None)
 
 
+def _skip_without_web_data(what: str, origin: str) -> None:
+    """Skip a test whose fetched files are absent, saying where they were looked for."""
+    pytest.skip(f"{what} not found in {' or '.join(map(str, WEB_SPLAT_DIRS))} ({origin}; fetched data is kept in "
+                "shared/realdata/web_splats with a SOURCES.md, not in this repository)")
+
+
 def _fixtures() -> Path | None:
     return next((d / FIXTURE_SUBDIR for d in WEB_SPLAT_DIRS
                  if all((d / FIXTURE_SUBDIR / f).is_file() for f in FIXTURE_FILES)), None)
@@ -339,8 +345,7 @@ def _decode_by_content_like_the_reference(path: Path, expected_format: str, name
 def test_files_written_by_other_programs_decode_like_the_reference(reference_files, name):
     files, _ = reference_files
     if f"fixture_{name}" not in files:
-        pytest.skip(f"{FIXTURE_SUBDIR}/{name} not found under {' or '.join(map(str, WEB_SPLAT_DIRS))} (the reference "
-                    "repository's fixtures; fetched data is kept in shared/, not in this repository)")
+        _skip_without_web_data(f"{FIXTURE_SUBDIR}/{name}", "the reference repository's fixtures")
     path = files[f"fixture_{name}"]
     expected = {"spz": "spz", "ksplat": "ksplat", "splat": "splat"}[name.rsplit(".", 1)[1]]
     ours, ref = _decode_by_content_like_the_reference(path, expected, name)
@@ -378,8 +383,7 @@ def test_web_splats_decode_like_the_reference(reference_files, name):
     """Captures from public repositories, written by SuperSplat and PlayCanvas's SPZ conversion, not by us."""
     files, _ = reference_files
     if f"web_{name}" not in files:
-        pytest.skip(f"{name} not found in {' or '.join(map(str, WEB_SPLAT_DIRS))} (captures from playcanvas/engine and "
-                    "visgl/loaders.gl, kept in shared/realdata/web_splats with a SOURCES.md, not in the repository)")
+        _skip_without_web_data(name, "captures from playcanvas/engine and visgl/loaders.gl")
     path = files[f"web_{name}"]
     expected_format, expected_count = WEB_SPLATS[name]
     assert detect_format(path) == expected_format
@@ -398,7 +402,7 @@ def test_web_biker_spz_and_compressed_ply_hold_the_same_capture(reference_files)
     """biker.spz is PlayCanvas's SPZ v4 conversion of the capture in biker.compressed.ply (SOURCES.md)."""
     files, _ = reference_files
     if "web_biker.spz" not in files or "web_biker.compressed.ply" not in files:
-        pytest.skip(f"biker.spz / biker.compressed.ply not found in {' or '.join(map(str, WEB_SPLAT_DIRS))}")
+        _skip_without_web_data("biker.spz / biker.compressed.ply", "captures from playcanvas/engine")
     spz, _ = read_gaussians_raw(files["web_biker.spz"])
     cply, _ = read_gaussians_raw(files["web_biker.compressed.ply"])
     assert len(spz) == len(cply)
