@@ -124,10 +124,10 @@ class SuiteConfig:
     """Oracle Gaussians sampled per room."""
     epochs: int = 60
     """Epochs of every run (60 x 15 steps of 3 rooms; one schedule for all runs). Measured on the full run (same
-    data, one thread, passive OpenMP): 20 epochs (300 steps, 496 s CPU) left the training loss at 0.89 and the
-    model had not learned its own training rooms (seen-class 2D IoU in their novel views 67 %, unseen pixels
-    left out); 60 epochs (900 steps, 1,307 s CPU) end at loss 0.30 and raise 3D CSA 31.3 -> 41.6, 2D CSA
-    36.0 -> 47.4 and NVA 33.9 -> 44.2 (seen classes 84 %). The whole profile fits 60 minutes on 2 cores
+    data, one thread, passive OpenMP): 20 epochs (300 steps, 496 s CPU) left the training loss at 0.89, still
+    falling, and the model undertrained (seen-class 2D IoU 67 % in the training rooms' novel views, 66 % in the
+    val rooms', unseen pixels left out); 60 epochs (900 steps, 1,307 s CPU) end at loss 0.30 and raise 3D CSA
+    31.3 -> 41.6, 2D CSA 36.0 -> 47.4 and NVA 33.9 -> 44.2 (seen classes 84 % and 85 %). The whole profile fits 60 minutes on 2 cores
     (benchmarks/results/bench_suite.md)."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
