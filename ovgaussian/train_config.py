@@ -83,6 +83,14 @@ class LossConfig:
     class_balance: float = 0.0
     """Exponent p of the class weights n_c^-p of both text cross-entropies (n_c: the seen class's Gaussians in
     the training split; mean weight 1): 0 is the paper's plain loss, 0.5 lifts small objects against walls."""
+    unlabelled_as_unseen: bool = False
+    """Transductive zero-shot (self-training on the unlabelled parts of the training rooms, as ZS5Net, Bucher et al.
+    2019): Gaussians and covered pixels of the training rooms without a seen-class label (unseen classes,
+    classes outside the vocabulary, unannotated) are supervised as 'one of the unseen classes', a partial-label
+    cross-entropy -log sum_u p_u over the seen and unseen class texts. Which unseen class is never read (their
+    labels stay IGNORE). Off: the paper's inductive setting, softmax over the seen classes only."""
+    unlabelled_weight: float = 1.0
+    """Weight of an unlabelled Gaussian's or pixel's partial-label term (with --unlabelled-as-unseen)."""
 
 
 @dataclass(frozen=True)

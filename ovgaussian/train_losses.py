@@ -3,6 +3,10 @@ the 3D-to-text, 2D-to-text and visual-semantic (cosine) terms (``ovgaussian.loss
 
 Per scene: 3D-to-text CE on ``phi(s)``; ``M = render_features(W, s)`` at the sampled pixels; 2D-to-text CE on
 ``phi(M)``; cosine loss of ``psi(M)`` against the MaskCLIP teacher on covered pixels.
+
+Transductive runs (``unlabelled_columns`` given, ``LossConfig.unlabelled_as_unseen``): the text embeddings hold
+the seen and then the unseen classes; the Gaussians without a seen label and the covered pixels without one add
+the partial-label term over the unseen columns to the 3D and 2D cross-entropies.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import torch
 from ovgaussian import model
 from ovgaussian.data import SceneSample
 from ovgaussian.losses import (
-    COSINE_NORM_EPS, combine_losses, compute_text_logits, masked_cosine_loss, masked_cross_entropy, normalize_rows,
+    COSINE_NORM_EPS, combine_losses, compute_text_logits, masked_cosine_loss, normalize_rows, text_cross_entropy,
 )
 from ovgaussian.train_config import TrainConfig
 from seggaussian.constants import IGNORE_LABEL
@@ -91,46 +95,55 @@ def decoded_text_logits(
 def text_cross_entropy_3d(
     phi,
     semantic: "torch.Tensor",  # [N, S] semantic vectors of the labelled Gaussians
-    labels: "torch.Tensor",  # [N] seen-class index
+    labels: "torch.Tensor",  # [N] seen-class index (IGNORE_LABEL: an unlabelled row, with unlabelled_columns)
     text_embeddings: "torch.Tensor",  # [C, D]
     temperature: float,
     class_weights: "torch.Tensor | None" = None,  # [C]
+    unlabelled_columns: "torch.Tensor | None" = None,  # [U]
+    unlabelled_weight: float = 1.0,
 ) -> tuple["torch.Tensor", int]:
-    """3D-to-text cross-entropy (mean over the rows, count): ``masked_cross_entropy`` of
+    """3D-to-text cross-entropy (mean over the rows, count): ``text_cross_entropy`` of
     ``compute_text_logits(phi(semantic))``, over row chunks under activation checkpointing
     (``ovgaussian.model.checkpointed_rows``): phi's ``[N, D]`` output is never held whole."""
     def chunk_sum(rows, rows_labels):
-        mean, count = masked_cross_entropy(decoded_text_logits(phi, rows, text_embeddings, temperature), rows_labels,
-                                           class_weights)
+        mean, count = text_cross_entropy(decoded_text_logits(phi, rows, text_embeddings, temperature), rows_labels,
+                                         class_weights, unlabelled_columns, unlabelled_weight)
         return mean * count
 
-    count = int((labels != IGNORE_LABEL).sum())
+    count = int((labels != IGNORE_LABEL).sum()) if unlabelled_columns is None else int(labels.shape[0])
     sums = model.checkpointed_rows(chunk_sum, semantic, labels)  # through the module: tests patch it
     total = sum(sums)
     return (total * 0.0, 0) if count == 0 else (total / count, count)
 
 
 def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embeddings: "torch.Tensor",
-                 config: TrainConfig, use_teacher: bool, class_weights: "torch.Tensor | None" = None):
-    """:class:`ovgaussian.losses.LossTerms` of one scene from its semantic vectors ``[N, S]``."""
+                 config: TrainConfig, use_teacher: bool, class_weights: "torch.Tensor | None" = None,
+                 unlabelled_columns: "torch.Tensor | None" = None):
+    """:class:`ovgaussian.losses.LossTerms` of one scene from its semantic vectors ``[N, S]``; with
+    ``unlabelled_columns`` ``[U]`` (the unseen classes' rows of ``text_embeddings``) the unlabelled Gaussians and
+    covered pixels take the partial-label term."""
     device = semantic.device
-    temperature = config.loss.temperature
+    temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = sample.labels.to(device)
-    valid3 = labels != IGNORE_LABEL
+    rows3 = labels != IGNORE_LABEL
+    if unlabelled_columns is not None:
+        rows3 = torch.ones_like(rows3)
     if config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     else:
-        text_3d = text_cross_entropy_3d(net.phi, semantic[valid3], labels[valid3], text_embeddings, temperature,
-                                        class_weights)
+        text_3d = text_cross_entropy_3d(net.phi, semantic[rows3], labels[rows3], text_embeddings, temperature,
+                                        class_weights, unlabelled_columns, unlabelled_weight)
     pixel_ids, pixel_weights = sample.pixel_ids.to(device), sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)
-    valid2 = pixel_labels != IGNORE_LABEL
-    logits2 = compute_text_logits(net.phi(rendered[valid2]), text_embeddings, temperature)
-    text_2d = masked_cross_entropy(logits2, pixel_labels[valid2], class_weights)
+    covered = (pixel_weights * (pixel_ids >= 0)).sum(-1) >= COVERAGE_MIN
+    rows2 = pixel_labels != IGNORE_LABEL
+    if unlabelled_columns is not None:
+        rows2 = rows2 | covered
+    logits2 = compute_text_logits(net.phi(rendered[rows2]), text_embeddings, temperature)
+    text_2d = text_cross_entropy(logits2, pixel_labels[rows2], class_weights, unlabelled_columns, unlabelled_weight)
     cosine = None
     if use_teacher and sample.teacher is not None:
-        covered = (pixel_weights * (pixel_ids >= 0)).sum(-1) >= COVERAGE_MIN
         predicted = net.psi(rendered[covered])
         cosine = masked_cosine_loss(predicted, sample.teacher.to(device)[covered],
                                     torch.ones(predicted.shape[0], dtype=torch.bool, device=device))
@@ -139,7 +152,8 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
 
 
 def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: TrainConfig, use_teacher: bool,
-                 device, class_weights: "torch.Tensor | None" = None) -> list:
+                 device, class_weights: "torch.Tensor | None" = None,
+                 unlabelled_columns: "torch.Tensor | None" = None) -> list:
     """LossTerms of each scene of this process's slice (one network forward for all of them)."""
     means, attributes, batch_index = network_inputs(samples, device)
     semantic = net(means, attributes, batch_index)
@@ -147,6 +161,6 @@ def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: T
     for sample in samples:
         n = len(sample.means)
         terms.append(scene_losses(net, semantic[start:start + n], sample, text_embeddings, config, use_teacher,
-                                  class_weights))
+                                  class_weights, unlabelled_columns))
         start += n
     return terms

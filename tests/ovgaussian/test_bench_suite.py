@@ -63,6 +63,18 @@ def test_the_nva_check_says_what_the_unseen_classes_decide():
     counts[1, 1], counts[1, 0] = 0, 5  # chair never right: seen classes (50/55 + 0) / 2
     wrong_chair["confusion"]["train_2d"] = counts.tolist()
     assert f"seen classes score {100 * 50 / 55 / 2:.1f}" in S.nva_unseen_share(wrong_chair)
+    assert "unseen classes' IoU: sofa 0.0" in S.nva_unseen_share(wrong_chair)
+
+
+def test_nva_is_reached_by_the_full_model_or_a_named_method_row():
+    reports = {"full": payload({k: 0.5 for k in ALL}), "stacked": payload({k: 0.55 for k in ALL}),
+               "transductive": payload({k: 0.62 for k in ALL}), "colour": payload({k: 0.9 for k in ALL})}
+    ok, detail = S.checks(reports, "full", (), {}, (), ("stacked", "transductive"))["NVA >= 60"]
+    assert ok and detail.startswith("reached by transductive;")
+    assert "full: NVA 50.0 [48.0, 52.0]" in detail and "stacked: NVA 55.0" in detail
+    # a baseline reaching 60 counts for nothing; without the method row the check fails
+    ok, detail = S.checks(reports, "full", ("colour",), {}, (), ("stacked",))["NVA >= 60"]
+    assert not ok and detail.startswith("reached by no row;") and "transductive" not in detail
 
 
 def test_tables_show_values_and_intervals():
@@ -94,6 +106,8 @@ def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
     for name, c in configs.items():
         assert (c.epochs, c.optim.lr, c.data.pixels_per_view) == (full.epochs, full.optim.lr, full.data.pixels_per_view)
     assert not configs["no-adapter"].use_adapter and configs["text-2d-only"].loss.no_3dt_align
+    assert [n for n, c in configs.items() if c.loss.unlabelled_as_unseen] == ["transductive"]
+    assert replace(configs["transductive"], loss=full.loss, out=full.out) == full  # only the switch differs
 
 
 def test_calibrated_stacking_row_uses_the_calibration_run_and_is_checked_for_ova():

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from ovgaussian.losses import (
-    combine_losses, compute_text_logits, masked_cosine_loss, masked_cross_entropy, reference_cosine_loss,
-    reference_cross_entropy,
+    combine_losses, compute_text_logits, masked_cosine_loss, masked_cross_entropy, partial_label_nll,
+    reference_cosine_loss, reference_cross_entropy, reference_text_cross_entropy, text_cross_entropy,
 )
 from seggaussian.constants import IGNORE_LABEL
 
@@ -118,3 +118,55 @@ def test_weighted_cross_entropy_is_the_weighted_sum_over_the_row_count():
     assert count == 3 and float(loss) == pytest.approx(expected, rel=1e-6)
     plain, _ = masked_cross_entropy(logits, labels, torch.ones(3))
     assert float(plain) == pytest.approx(float(masked_cross_entropy(logits, labels)[0]), rel=1e-7)
+
+
+# --- transductive: partial-label term of the unlabelled rows -----------------------------------------
+
+
+def test_partial_label_term_hand_computed_and_its_limits():
+    logits = torch.tensor([[1.0, 2.0, 3.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    total = math.e + math.e ** 2 + math.e ** 3 + 1.0
+    got = partial_label_nll(logits, torch.tensor([2, 3]))
+    assert float(got[0]) == pytest.approx(-math.log((math.e ** 3 + 1.0) / total), rel=1e-6)
+    assert float(got[1]) == pytest.approx(math.log(2.0), rel=1e-6)
+    # every column a candidate: nothing to learn; one candidate: the plain cross-entropy of that column
+    assert torch.allclose(partial_label_nll(logits, torch.arange(4)), torch.zeros(2), atol=1e-6)
+    plain, _ = masked_cross_entropy(logits[:1], torch.tensor([1]))
+    assert float(partial_label_nll(logits[:1], torch.tensor([1]))[0]) == pytest.approx(float(plain), rel=1e-6)
+    extreme = partial_label_nll(torch.tensor([[1e4, -1e4, 0.0]]), torch.tensor([1, 2]))
+    assert torch.isfinite(extreme).all() and float(extreme[0]) == pytest.approx(1e4, rel=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_text_cross_entropy_with_unlabelled_rows_matches_reference_forward_and_backward(seed):
+    g = torch.Generator().manual_seed(seed)
+    logits = torch.randn(40, 7, generator=g, dtype=torch.float64) * 5
+    labels = torch.randint(0, 5, (40,), generator=g)  # columns 5, 6: the unseen classes, never a label
+    labels[torch.rand(40, generator=g) < 0.4] = IGNORE_LABEL
+    weights = torch.rand(7, generator=g, dtype=torch.float64) + 0.5
+    columns = torch.tensor([5, 6])
+    loss, count = text_cross_entropy(logits, labels, weights, columns, 0.7)
+    assert count == 40
+    assert float(loss) == pytest.approx(reference_text_cross_entropy(
+        logits.tolist(), labels.tolist(), weights.tolist(), [5, 6], 0.7), rel=1e-12)
+    leaf = logits.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: text_cross_entropy(x, labels, weights, columns, 0.7)[0], (leaf,))
+
+
+def test_text_cross_entropy_without_unlabelled_columns_is_the_masked_one_bitwise():
+    g = torch.Generator().manual_seed(9)
+    logits = torch.randn(30, 6, generator=g)
+    labels = torch.randint(0, 6, (30,), generator=g)
+    labels[::3] = IGNORE_LABEL
+    weights = torch.rand(6, generator=g) + 0.5
+    a, ca = text_cross_entropy(logits, labels, weights)
+    b, cb = masked_cross_entropy(logits, labels, weights)
+    assert ca == cb == 20 and torch.equal(a, b)
+    # no IGNORE row: the unlabelled term adds nothing
+    c, cc = text_cross_entropy(logits[1::3], labels[1::3], weights, torch.tensor([4, 5]))
+    d, cd = masked_cross_entropy(logits[1::3], labels[1::3], weights)
+    assert cc == cd and torch.equal(c, d)
+    # only IGNORE rows: the mean of their partial-label terms, finite
+    e, ce = text_cross_entropy(logits[::3], labels[::3], weights, torch.tensor([4, 5]), 2.0)
+    assert ce == 10
+    assert float(e) == pytest.approx(2.0 * float(partial_label_nll(logits[::3], torch.tensor([4, 5])).mean()), rel=1e-6)

@@ -625,24 +625,13 @@ def test_training_bench_and_build_blend_weights_use_float64_cameras(scenes, monk
 def test_two_trainings_with_one_seed_hash_equal(scenes, tmp_path):
     """Same seed, same machine and thread count: checkpoint tensors (weights, momentum, buffers) and the
     metrics hash bitwise equal (issue 16). Resumed vs uninterrupted: see the resume test above."""
-    import hashlib
-
-    from safetensors.torch import load_file
-
-    from ovgaussian.run_folder import read_metrics
     from ovgaussian.train import train
 
     digests = []
     for name in ("a", "b"):
         result = train(tiny_config(tmp_path / name, 1), source=InMemorySource(scenes),
                        model_config=tiny_model_config(12), text_embeddings=text_stub())
-        h = hashlib.sha256()
-        for path in sorted(result.checkpoint.glob("*.safetensors")):
-            tensors = load_file(str(path))
-            for key in sorted(tensors):
-                h.update(key.encode() + tensors[key].numpy().tobytes())
-        h.update(json.dumps(read_metrics(tmp_path / name), sort_keys=True).encode())
-        digests.append(h.hexdigest())
+        digests.append(_run_digest(result, tmp_path / name))
     assert digests[0] == digests[1]
 
 
@@ -699,3 +688,107 @@ def test_torchrun_nccl_two_gpus_match_one(shard_dataset, tmp_path):
     for a, b in zip(runs[1], runs[2]):
         for key in ("loss", "text_3d", "text_2d"):
             assert a[key] == pytest.approx(b[key], rel=1e-3, abs=1e-4), (key, a, b)
+
+
+# --- transductive zero-shot (LossConfig.unlabelled_as_unseen) ---------------------------------------
+
+
+def _relabelled(scenes, name: str, value: int) -> list:
+    """The scenes with every Gaussian and pixel of class ``name`` relabelled ``value``."""
+    out = []
+    for record in scenes:
+        old = NAMES.index(name)
+        semantic = record.gaussians.extras["semantic"]
+        g = record.gaussians.with_extras(semantic=np.where(semantic == old, value, semantic).astype(semantic.dtype))
+        views = [v._replace(semantic=np.where(v.semantic == old, value, v.semantic).astype(v.semantic.dtype))
+                 for v in record.views]
+        out.append(record._replace(gaussians=g, views=views))
+    return out
+
+
+def _run_digest(result, out: Path) -> str:
+    import hashlib
+
+    from safetensors.torch import load_file
+
+    from ovgaussian.run_folder import read_metrics
+
+    h = hashlib.sha256()
+    for path in sorted(result.checkpoint.glob("*.safetensors")):
+        tensors = load_file(str(path))
+        for key in sorted(tensors):
+            h.update(key.encode() + tensors[key].numpy().tobytes())
+    h.update(json.dumps(read_metrics(out), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def transductive_config(out: Path, epochs: int = 1, **kw) -> TrainConfig:
+    return tiny_config(out, epochs, loss=LossConfig(temperature=0.1, unlabelled_as_unseen=True), **kw)
+
+
+def test_transductive_training_never_reads_which_unseen_class(scenes, tmp_path):
+    """The unlabelled parts only count as 'one of the unseen classes': the sofa Gaussians and pixels relabelled
+    as bed (another unseen class), as blanket (outside the K = 20 vocabulary) or as IGNORE train bitwise the
+    same run."""
+    from ovgaussian.train import train
+
+    variants = {"sofa": scenes, "bed": _relabelled(scenes, "sofa", NAMES.index("bed")),
+                "blanket": _relabelled(scenes, "sofa", NAMES.index("blanket")),
+                "ignore": _relabelled(scenes, "sofa", IGNORE_LABEL)}
+    assert NAMES.index("blanket") not in benchmark_class_ids(20)
+    digests = {}
+    for name, records in variants.items():
+        result = train(transductive_config(tmp_path / name), source=InMemorySource(records),
+                       model_config=tiny_model_config(12), text_embeddings=text_stub(20))
+        digests[name] = _run_digest(result, tmp_path / name)
+    assert len(set(digests.values())) == 1, digests
+    config = json.loads((tmp_path / "sofa" / "config.json").read_text())
+    assert config["scored_classes"] == list(training_vocabulary(20).names) + [
+        NAMES[i] for i in benchmark_class_ids(20) if NAMES[i] in UNSEEN_CLASSES]
+    # the inductive run is another run: the flag changes what is learnt
+    inductive = train(tiny_config(tmp_path / "inductive", 1), source=InMemorySource(scenes),
+                      model_config=tiny_model_config(12), text_embeddings=text_stub(16))
+    assert _run_digest(inductive, tmp_path / "inductive") != digests["sofa"]
+
+
+def test_transductive_losses_count_every_gaussian_and_covered_pixel(scenes, tmp_path):
+    from ovgaussian.checkpoint import build_network
+    from ovgaussian.train_losses import COVERAGE_MIN, batch_losses
+
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=300), voc)
+    sample = data.sample("scene00", np.random.default_rng(0))
+    net = build_network(tiny_model_config(12))
+    columns = torch.arange(16, 20)
+    [plain] = batch_losses(net, [sample], text_stub(16), tiny_config(tmp_path, 1), False, "cpu")
+    [trans] = batch_losses(net, [sample], text_stub(20), transductive_config(tmp_path), False, "cpu",
+                           unlabelled_columns=columns)
+    labelled = int((sample.labels != IGNORE_LABEL).sum())
+    assert plain.count_3d == labelled < trans.count_3d == len(sample.labels)  # the sofa Gaussians join
+    covered = (sample.pixel_weights * (sample.pixel_ids >= 0)).sum(-1) >= COVERAGE_MIN
+    expected_2d = int(((sample.pixel_labels != IGNORE_LABEL) | covered).sum())
+    assert plain.count_2d < trans.count_2d == expected_2d
+    trans.total.backward()
+    assert all(p.grad is None or torch.isfinite(p.grad).all() for p in net.parameters())
+
+
+def test_transductive_run_needs_a_text_row_per_scored_class(scenes, tmp_path):
+    from ovgaussian.train import train
+
+    with pytest.raises(ValueError, match="16 rows, the run scores 20 classes"):
+        train(transductive_config(tmp_path / "r"), source=InMemorySource(scenes),
+              model_config=tiny_model_config(12), text_embeddings=text_stub(16))
+
+
+def test_a_run_saved_before_a_config_field_existed_resumes(scenes, tmp_path):
+    """config.json written before LossConfig grew its transductive fields: --resume compares at the defaults."""
+    from ovgaussian.train import train
+
+    common = dict(source=InMemorySource(scenes), model_config=tiny_model_config(12), text_embeddings=text_stub())
+    train(tiny_config(tmp_path, 2, stop_after_epochs=1), **common)
+    path = tmp_path / "config.json"
+    saved = json.loads(path.read_text())
+    for key in ("unlabelled_as_unseen", "unlabelled_weight"):
+        del saved["train"]["loss"][key]
+    path.write_text(json.dumps(saved))
+    assert train(tiny_config(tmp_path, 2, resume=True), **common).steps == 4
