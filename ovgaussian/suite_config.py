@@ -7,6 +7,8 @@ The profile's tables are lists of row specifications, so that a new method is on
   generative feature synthesis, prompt ensembles) each add one ``Table1Row`` scoring the ``full`` run with
   their bench option, e.g. ``Table1Row("full + prompt ensemble", run="full", options=(("prompt_ensemble", True),))``;
   calibrated stacking names its calibration run (``stacking_run="calibration"``).
+  The transductive method (``LossConfig.unlabelled_as_unseen``) is a training switch: its own run of :data:`RUNS`
+  and a plain row scoring it.
 - :data:`ABLATION_ROWS`: the paper's Table 2 (switches added one at a time). Without local CLIP weights the
   visual-semantic loss is off in every run, so the "V-S" row is the "none" run and says so.
 
@@ -77,14 +79,14 @@ class AblationRow:
 #: large, a medium and a small seen object class; the true unseen labels are never read.
 CALIBRATION_HOLDOUT = ("table", "cabinet", "door")
 
-#: The runs the tables need: the full model, the calibration run of calibrated stacking and the two ablation
-#: configurations that differ from the full model. Longest first: ``SuiteConfig.jobs`` of them train at once.
+#: The runs the tables need: the transductive run, the full model, the calibration run of calibrated stacking and
+#: the two ablation configurations that differ from the full model. Longest first: ``SuiteConfig.jobs`` of them train at once.
 RUNS = (
+    RunSpec("transductive", unlabelled_as_unseen=True),
     RunSpec("full"),
     RunSpec("calibration", holdout_classes=CALIBRATION_HOLDOUT),
     RunSpec("no-adapter", use_adapter=False),
     RunSpec("text-2d-only", use_adapter=False, no_3dt_align=True),
-    RunSpec("transductive", unlabelled_as_unseen=True),
 )
 
 #: Table 1: both non-learned baselines, the full model, then one line per open-vocabulary method (#16a).
