@@ -7,8 +7,9 @@ folder made with other settings is refused, see :func:`check_settings`):
    the train / val / xval split (the ScanNet++-layout rooms train:val, every Replica-layout room xval);
 2. one training run per :data:`ovgaussian.suite_config.RUNS` entry, all on the same schedule, ``SuiteConfig.jobs``
    at a time in spawned processes (:func:`run_tasks`);
-3. ``ovgaussian bench`` of every Table-1 row and of every ablation run, ``SuiteConfig.jobs`` at a time, each
-   metric with its 95 % percentile bootstrap interval over scenes (``ovgaussian.bootstrap``);
+3. ``ovgaussian bench`` of every Table-1 row and of every ablation run, in the same queue as the trainings: a row
+   starts once the runs it scores are done, while other runs may still train; each metric with its 95 %
+   percentile bootstrap interval over scenes (``ovgaussian.bootstrap``);
 4. ``table1.md``, ``ablation.md``, ``classes.md`` (per-class 3D IoU on the val rooms), the checks of issue #16
    and ``suite.json`` with the CPU and wall time of every stage, this invocation's and every earlier one's (``history``).
 """
@@ -20,7 +21,7 @@ import multiprocessing
 import os
 import resource
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable, NamedTuple
@@ -88,11 +89,13 @@ def _cpu_seconds() -> float:
 
 
 class Task(NamedTuple):
-    """One stage of the profile: ``fn(*args)``, named ``name`` in the log and in ``suite.json``."""
+    """One stage of the profile: ``fn(*args)``, named ``name`` in the log and in ``suite.json``; it starts only
+    after the tasks named in ``after`` have finished (a bench row after the runs it scores)."""
 
     name: str
     fn: Callable
     args: tuple
+    after: tuple[str, ...] = ()
 
 
 def _timed(task: Task, threads: int | None) -> tuple[object, float, float]:
@@ -108,31 +111,37 @@ def _timed(task: Task, threads: int | None) -> tuple[object, float, float]:
 
 
 def run_tasks(tasks: list[Task], jobs: int, say: Callable[[str], None]) -> tuple[list, list[StageTime]]:
-    """Values and times of independent tasks, in ``tasks`` order. ``jobs`` > 1: that many spawned processes run
-    them at once, each with ``cpu_count // jobs`` torch and numba threads (one training per core costs less CPU
-    than one training on two cores: benchmarks/results/bench_suite.md); ``jobs`` 1: one after the other here."""
+    """Values and times of the tasks, in ``tasks`` order. A task's ``after`` names earlier tasks only (ValueError
+    otherwise). ``jobs`` > 1: that many spawned processes run them at once, each with ``cpu_count // jobs`` torch
+    and numba threads (one training per core costs less CPU than one training on two cores:
+    benchmarks/results/bench_suite.md); a task is queued, in list order, once the tasks it comes after are done,
+    so a bench row starts while other runs still train. ``jobs`` 1: one after the other here."""
+    index = {task.name: i for i, task in enumerate(tasks)}
+    for i, task in enumerate(tasks):
+        bad = [name for name in task.after if index.get(name, i) >= i]
+        if bad:
+            raise ValueError(f"task {task.name!r} comes after {bad}: not an earlier task")
+    results: list = [None] * len(tasks)
     if jobs <= 1 or len(tasks) <= 1:
-        values, times = [], []
-        for task in tasks:
+        for i, task in enumerate(tasks):
             say(task.name)
-            value, wall, cpu = _timed(task, None)
-            values.append(value)
-            times.append(StageTime(task.name, wall, cpu))
-        return values, times
-    threads = max(1, (os.cpu_count() or 1) // jobs)
-    # spawn: numba's threading layer and torch's threads do not survive fork
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = []
-        for task in tasks:
-            say(f"{task.name} (queued)")
-            futures.append(pool.submit(_timed, task, threads))
-        values, times = [], []
-        for task, future in zip(tasks, futures):
-            value, wall, cpu = future.result()
-            say(f"{task.name}: done, {wall:.0f} s wall, {cpu:.0f} s CPU")
-            values.append(value)
-            times.append(StageTime(task.name, wall, cpu))
-    return values, times
+            results[i] = _timed(task, None)
+    else:
+        threads = max(1, (os.cpu_count() or 1) // jobs)
+        # spawn: numba's threading layer and torch's threads do not survive fork
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            waiting, running = list(range(len(tasks))), {}
+            while waiting or running:
+                for i in [i for i in waiting if all(results[index[n]] is not None for n in tasks[i].after)]:
+                    say(f"{tasks[i].name} (queued)")
+                    running[pool.submit(_timed, tasks[i], threads)] = i
+                    waiting.remove(i)
+                finished, _ = wait(running, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    i = running.pop(future)
+                    results[i] = future.result()
+                    say(f"{tasks[i].name}: done, {results[i][1]:.0f} s wall, {results[i][2]:.0f} s CPU")
+    return [r[0] for r in results], [StageTime(t.name, r[1], r[2]) for t, r in zip(tasks, results)]
 
 
 # --- stages -------------------------------------------------------------------------------------------
@@ -160,10 +169,15 @@ def split_sizes(dataset: Path) -> dict[str, int]:
     return {split: len(shards.list_scenes(dataset, split)) for split in ("train", "val", "xval")}
 
 
+def run_dir(config: SuiteConfig, name: str) -> Path:
+    """The folder of the profile's run ``name``."""
+    return config.out / "runs" / name
+
+
 def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConfig:
     """The TrainConfig of one run of the profile."""
     return TrainConfig(
-        out=config.out / "runs" / spec.name, epochs=config.epochs, batch_scenes=config.batch_scenes,
+        out=run_dir(config, spec.name), epochs=config.epochs, batch_scenes=config.batch_scenes,
         seed=config.seed, model_preset=config.model_preset, use_adapter=spec.use_adapter,
         voxel_size=config.voxel_size, use_coordinates=config.use_coordinates, progress=False,
         data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
@@ -192,10 +206,10 @@ def bench_config(config: SuiteConfig, dataset: Path, row: Table1Row | None = Non
     fields = dict(dataset=dataset, num_classes=config.num_classes, max_views_per_scene=config.max_views,
                   progress=False)
     if row is not None:
-        fields.update(predictor=row.predictor, run=None if row.run is None else config.out / "runs" / row.run)
+        fields.update(predictor=row.predictor, run=None if row.run is None else run_dir(config, row.run))
         fields.update(dict(row.options))
         if row.stacking_run is not None:
-            fields.update(stacking_run=config.out / "runs" / row.stacking_run)
+            fields.update(stacking_run=run_dir(config, row.stacking_run))
     if run is not None:
         fields.update(run=run)
     if metrics is not None:
@@ -422,25 +436,25 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     if config.ablation:
         needed |= {row.run for row in ABLATION_ROWS}
     specs = [spec for spec in RUNS if spec.name in needed]
-    values, run_times = run_tasks([Task(f"train: {spec.name}", train_run, (config, spec, dataset)) for spec in specs],
-                                  config.jobs, stamped)
-    times += run_times
-    runs = {spec.name: run for spec, run in zip(specs, values)}
-
+    runs = {spec.name: run_dir(config, spec.name) for spec in specs}
+    # one queue: the trainings first (longest first), then each bench row as soon as the runs it scores are done
+    tasks = [Task(f"train: {spec.name}", train_run, (config, spec, dataset)) for spec in specs]
     reports_dir = out / "reports"
-    tasks = [Task(f"bench: {row.label}", bench_row,
-                  (config, bench_config(config, dataset, row), reports_dir / f"table1-{index:02d}.json"))
-             for index, row in enumerate(TABLE1_ROWS)]
+    tasks += [Task(f"bench: {row.label}", bench_row,
+                   (config, bench_config(config, dataset, row), reports_dir / f"table1-{index:02d}.json"),
+                   tuple(f"train: {name}" for name in (row.run, row.stacking_run) if name is not None))
+              for index, row in enumerate(TABLE1_ROWS)]
     # a run scored by a Table-1 row without an open-vocabulary method needs no bench of its own for Table 2
     plain_rows = {r.run: r.label for r in TABLE1_ROWS if r.run is not None and not r.options and not r.stacking_run}
     ablation_runs = sorted({row.run for row in ABLATION_ROWS}) if config.ablation else []
     ablation_only = [name for name in ablation_runs if name not in plain_rows]
     tasks += [Task(f"bench: ablation {name}", bench_row,
                    (config, bench_config(config, dataset, run=runs[name], metrics=("CSA", "NVA")),
-                    reports_dir / f"ablation-{name}.json"))
+                    reports_dir / f"ablation-{name}.json"), (f"train: {name}",))
               for name in ablation_only]
-    values, bench_times = run_tasks(tasks, config.jobs, stamped)
-    times += bench_times
+    values, task_times = run_tasks(tasks, config.jobs, stamped)
+    times += task_times
+    values = values[len(specs):]  # the trainings' values are their run folders, known beforehand
     reports = {row.label: payload for row, payload in zip(TABLE1_ROWS, values)}
     extra = dict(zip(ablation_only, values[len(TABLE1_ROWS):]))
     run_reports = {name: reports[plain_rows[name]] if name in plain_rows else extra[name] for name in ablation_runs}

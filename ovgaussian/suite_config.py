@@ -159,7 +159,8 @@ class SuiteConfig:
     ablation: bool = True
     """Train and score the Table-2 runs."""
     jobs: int = 2
-    """Processes working at once: scenes of the build, then training runs, then bench rows (each process with
+    """Processes working at once: scenes of the build, then training runs and bench rows, a row once the runs it
+    scores are done (each process with
     cpu_count // jobs torch and numba threads)."""
     bootstrap_draws: int = 2000
     """Bootstrap draws per interval."""

@@ -2,6 +2,7 @@
 the bench, train and build code, tested elsewhere; the profile runs them in benchmarks/, not in CI)."""
 
 import json
+import subprocess
 from dataclasses import replace
 from pathlib import Path
 
@@ -144,6 +145,25 @@ def test_tasks_give_their_values_in_order_with_one_or_two_processes():
     assert values[3] == 6 and os.getpid() not in values[:3] and 1 <= len(set(values[:3])) <= 2
     assert [t.name for t in times] == ["t0", "t1", "t2", "sum"] and all(t.wall >= 0 and t.cpu >= 0 for t in times)
     assert any("sum: done" in m for m in said)
+
+
+def test_a_task_starts_only_after_the_tasks_it_comes_after():
+    """Two workers: 'late' waits for 'slow' (its clock reading is after slow's end), 'free' does not (it runs
+    beside slow). CLOCK_REALTIME readings of separate processes compare."""
+    import time
+
+    slow = S.Task("slow", subprocess.check_output, (["sh", "-c", "sleep 3; date +%s.%N"],))
+    tasks = [slow, S.Task("late", time.time, (), ("slow",)), S.Task("free", time.time, ())]
+    values, times = S.run_tasks(tasks, 2, lambda m: None)
+    slow_end = float(values[0])
+    assert values[1] >= slow_end > values[2]
+    assert [t.name for t in times] == ["slow", "late", "free"]
+    values, _ = S.run_tasks(tasks, 1, lambda m: None)  # one after the other: in list order
+    assert values[2] >= values[1] >= float(values[0])
+    with pytest.raises(ValueError, match="not an earlier task"):
+        S.run_tasks([S.Task("a", time.time, (), ("b",)), S.Task("b", time.time, ())], 2, lambda m: None)
+    with pytest.raises(ValueError, match="not an earlier task"):
+        S.run_tasks([S.Task("a", time.time, (), ("missing",))], 1, lambda m: None)
 
 
 def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
