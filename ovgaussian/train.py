@@ -409,10 +409,9 @@ def train_in_process_group(
 
     weights = None
     if config.loss.class_balance:
-        seen_weights = class_weights(scan, len(vocabulary.names), config.loss.class_balance)
-        padded = np.ones(len(names), np.float32)  # unseen columns: no labelled row indexes them
-        padded[:seen_weights.size] = seen_weights
-        weights = torch.from_numpy(padded if len(names) > seen_weights.size else seen_weights).to(device)
+        padded = np.ones(len(names), np.float32)  # transductive unseen columns: no labelled row indexes them
+        padded[:len(vocabulary.names)] = class_weights(scan, len(vocabulary.names), config.loss.class_balance)
+        weights = torch.from_numpy(padded).to(device)
     unlabelled_columns = None
     if config.loss.unlabelled_as_unseen:
         unlabelled_columns = torch.arange(len(vocabulary.names), len(names), dtype=torch.int64, device=device)

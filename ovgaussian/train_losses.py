@@ -94,7 +94,7 @@ def decoded_text_logits(
 
 def text_cross_entropy_3d(
     phi,
-    semantic: "torch.Tensor",  # [N, S] semantic vectors of the labelled Gaussians
+    semantic: "torch.Tensor",  # [N, S] semantic vectors of the labelled Gaussians (every Gaussian: transductive)
     labels: "torch.Tensor",  # [N] seen-class index (IGNORE_LABEL: an unlabelled row, with unlabelled_columns)
     text_embeddings: "torch.Tensor",  # [C, D]
     temperature: float,
@@ -125,14 +125,15 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
     device = semantic.device
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = sample.labels.to(device)
-    rows3 = labels != IGNORE_LABEL
-    if unlabelled_columns is not None:
-        rows3 = torch.ones_like(rows3)
     if config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     else:
-        text_3d = text_cross_entropy_3d(net.phi, semantic[rows3], labels[rows3], text_embeddings, temperature,
-                                        class_weights, unlabelled_columns, unlabelled_weight)
+        semantic3, labels3 = semantic, labels  # transductive: every Gaussian takes a term
+        if unlabelled_columns is None:
+            labelled = labels != IGNORE_LABEL
+            semantic3, labels3 = semantic[labelled], labels[labelled]
+        text_3d = text_cross_entropy_3d(net.phi, semantic3, labels3, text_embeddings, temperature, class_weights,
+                                        unlabelled_columns, unlabelled_weight)
     pixel_ids, pixel_weights = sample.pixel_ids.to(device), sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)
