@@ -56,8 +56,8 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
-            use_coordinates, class_balance, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes, verify, keep_checkpoints,
-            progress, as_json):
+            use_coordinates, class_balance, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
+            verify, keep_checkpoints, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).

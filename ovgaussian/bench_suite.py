@@ -11,7 +11,8 @@ folder made with other settings is refused, see :func:`check_settings`):
    starts once the runs it scores are done, while other runs may still train; each metric with its 95 %
    percentile bootstrap interval over scenes (``ovgaussian.bootstrap``);
 4. ``table1.md``, ``ablation.md``, ``classes.md`` (per-class 3D IoU on the val rooms), the checks of issue #16
-   and ``suite.json`` with the CPU and wall time of every stage, this invocation's and every earlier one's (``history``).
+   and ``suite.json`` with the CPU and wall time of every stage, this invocation's and every earlier one's
+   (``history``).
 """
 
 from __future__ import annotations

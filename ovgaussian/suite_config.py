@@ -80,7 +80,8 @@ class AblationRow:
 CALIBRATION_HOLDOUT = ("table", "cabinet", "door")
 
 #: The runs the tables need: the transductive run, the full model, the calibration run of calibrated stacking and
-#: the two ablation configurations that differ from the full model. Longest first: ``SuiteConfig.jobs`` of them train at once.
+#: the two ablation configurations that differ from the full model. Longest first: ``SuiteConfig.jobs`` of them
+#: train at once.
 RUNS = (
     RunSpec("transductive", unlabelled_as_unseen=True),
     RunSpec("full"),
@@ -134,8 +135,8 @@ class SuiteConfig:
     data, one thread, passive OpenMP): 20 epochs (300 steps, 496 s CPU) left the training loss at 0.89, still
     falling, and the model undertrained (seen-class 2D IoU 67 % in the training rooms' novel views, 66 % in the
     val rooms', unseen pixels left out); 60 epochs (900 steps, 1,307 s CPU) end at loss 0.30 and raise 3D CSA
-    31.3 -> 41.6, 2D CSA 36.0 -> 47.4 and NVA 33.9 -> 44.2 (seen classes 84 % and 85 %). The whole profile fits 60 minutes on 2 cores
-    (benchmarks/results/bench_suite.md)."""
+    31.3 -> 41.6, 2D CSA 36.0 -> 47.4 and NVA 33.9 -> 44.2 (seen classes 84 % and 85 %). The whole profile fits
+    60 minutes on 2 cores (BENCHMARKS.md)."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
@@ -160,8 +161,7 @@ class SuiteConfig:
     """Train and score the Table-2 runs."""
     jobs: int = 2
     """Processes working at once: scenes of the build, then training runs and bench rows, a row once the runs it
-    scores are done (each process with
-    cpu_count // jobs torch and numba threads)."""
+    scores are done (each process with cpu_count // jobs torch and numba threads)."""
     bootstrap_draws: int = 2000
     """Bootstrap draws per interval."""
     seed: int = 0

@@ -88,8 +88,8 @@ class LossConfig:
     2019): Gaussians and covered pixels of the training rooms without a seen-class label (unseen classes,
     classes outside the vocabulary, unannotated) are supervised as 'one of the unseen classes', a partial-label
     cross-entropy -log sum_u p_u over the seen and unseen class texts (the quasi-fully supervised loss of QFSL,
-    Song et al. 2018). Which unseen class is never read (their
-    labels stay IGNORE). Off: the paper's inductive setting, softmax over the seen classes only."""
+    Song et al. 2018). Which unseen class is never read (their labels stay IGNORE). Off: the paper's inductive
+    setting, softmax over the seen classes only."""
     unlabelled_weight: float = 1.0
     """Weight of an unlabelled Gaussian's or pixel's partial-label term (with --unlabelled-as-unseen)."""
 
