@@ -17,8 +17,9 @@ RESUMABLE_FIELDS = ("epochs", "resume", "stop_after_epochs", "progress", "device
 METRIC_NAMES = ("loss", "text_3d", "text_2d", "cosine")
 
 
-def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabulary, scan, group, text_width) -> dict:
-    """What config.json holds."""
+def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabulary, scan, group, text_width,
+                       scored_classes) -> dict:
+    """What config.json holds (``scored_classes``: the text cross-entropies' columns, seen then unseen names)."""
     return {
         "train": config_to_dict(config),
         "model": config_to_dict(model_config),
@@ -26,6 +27,7 @@ def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabul
         "teacher_width": teacher_width,
         "vocabulary": {"num_classes": vocabulary.num_classes, "class_ids": vocabulary.class_ids.tolist(),
                        "names": list(vocabulary.names)},
+        "scored_classes": list(scored_classes),
         "data": {"fingerprint": scan.fingerprint, "usable_scenes": len(scan.usable),
                  "scenes": len(scan.summaries), "skipped": scan.skipped},
         "world_size": group.world_size,

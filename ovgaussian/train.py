@@ -395,8 +395,7 @@ def train_in_process_group(
     if is_main:
         make_dirs(run_dir)
         payload = run_config_payload(config, model_config, teacher_width, vocabulary, scan, group,
-                                     text_embeddings.shape[1])
-        payload["scored_classes"] = list(names)
+                                     text_embeddings.shape[1], names)
         payload["notes"] = notes
         write_json_atomic(run_dir / CONFIG_NAME, payload, nan=NAN_IS_ERROR)
         if saved is not None:
