@@ -20,6 +20,14 @@ IGNORE_LABEL = 65535
 
 #: Zeroth-order real spherical-harmonic constant: colour = 0.5 + SH_C0 * f_dc.
 SH_C0 = 0.28209479177387814
+#: Normalization constants of the real SH bands 1..3 as the 3DGS reference evaluates them, signs included
+#: (band 1 is ``-SH_C1 y, SH_C1 z, -SH_C1 x``); the basis itself is ``seggaussian.render.sh.evaluate_sh``.
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
+    -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+    -0.4570457994644658, 1.445305721320277, -0.5900435899266435,
+)
 #: Highest SH degree the toolkit reads and renders.
 MAX_SH_DEGREE = 3
 

@@ -5,14 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from seggaussian.constants import MAX_SH_DEGREE, SH_C0
-
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (
-    -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-    -0.4570457994644658, 1.445305721320277, -0.5900435899266435,
-)
+from seggaussian.constants import MAX_SH_DEGREE, SH_C0, SH_C1, SH_C2, SH_C3
 
 
 def sh_degree_of(sh: Tensor) -> int:  # sh: [N, num_sh_coeffs, 3]
