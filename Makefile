@@ -3,11 +3,18 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-# The reference splat converter (tests compare our splat readers/writers with it); installed into the
-# checkout when node and npm exist, skipped (tests then skip with a reason) when they do not.
+# The reference splat converter and the formats' authors' own libraries (tests compare our splat readers/writers
+# with them): @playcanvas/splat-transform (compressed PLY's author, a converter for the rest), @adobe/spz (Niantic's
+# SPZ library built to WebAssembly), @mkkellogg/gaussian-splats-3d with its peer three.js (.ksplat's author).
+# Installed into the checkout when node and npm exist, skipped (tests then skip with a reason) when they do not.
 SPLAT_TRANSFORM_VERSION := 3.7.0
+NIANTIC_SPZ_VERSION := 0.2.3
+GS3D_VERSION := 0.4.7
+THREE_VERSION := 0.160.0
+NODE_PACKAGES := @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) @adobe/spz@$(NIANTIC_SPZ_VERSION) \
+  @mkkellogg/gaussian-splats-3d@$(GS3D_VERSION) three@$(THREE_VERSION)
 NODE_DIR := .node
-NODE_STAMP := $(NODE_DIR)/.installed-$(SPLAT_TRANSFORM_VERSION)
+NODE_STAMP := $(NODE_DIR)/.installed-$(SPLAT_TRANSFORM_VERSION)-spz$(NIANTIC_SPZ_VERSION)-gs3d$(GS3D_VERSION)
 
 .PHONY: setup demo test bench clean
 
@@ -28,12 +35,12 @@ $(STAMP): pyproject.toml
 
 $(NODE_STAMP):
 	@if command -v node >/dev/null 2>&1 && command -v npm >/dev/null 2>&1; then \
-	  echo "installing @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) into $(NODE_DIR)/"; \
-	  npm install --silent --no-audit --no-fund --prefix $(NODE_DIR) @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) \
+	  echo "installing $(NODE_PACKAGES) into $(NODE_DIR)/"; \
+	  npm install --silent --no-audit --no-fund --prefix $(NODE_DIR) $(NODE_PACKAGES) \
 	    && touch $(NODE_STAMP) \
-	    || echo "npm install failed: the splat-transform comparison tests will be skipped"; \
+	    || echo "npm install failed: the splat reference comparison tests will be skipped"; \
 	else \
-	  echo "node/npm not found: the splat-transform comparison tests will be skipped"; \
+	  echo "node/npm not found: the splat reference comparison tests will be skipped"; \
 	fi
 
 # The main job, end to end on the embedded synthetic data.

@@ -20,9 +20,24 @@ Attributes, in this order (each a block of N records):
   then three 10-bit fields (the last remaining component in the lowest bits), each a 9-bit magnitude
   ``m / 511 / sqrt(2)`` and a sign bit (bit 9); the largest is ``sqrt(1 - sum of squares)``.
 * SH: uint8 ``(b - 128) / 128``, per Gaussian coefficient-major with the channel innermost.
+* extensions (flag 2): records ``uint32 type, uint32 byte length, payload``; v4 between the header and the table
+  of contents, v1-3 after the SH block (where Niantic's writer puts them; its reader, 0.2.3, fails to read them
+  there and drops them). The one read is SPZ_ADOBE_coordinate_system (``0xADBE0003``, a uint32 frame code of
+  Niantic's ``CoordinateSystem``); others are skipped, as Niantic's library skips unknown ones.
 
-Coordinates are read raw (no axis conversion), as @playcanvas/splat-transform does. SH degree 4 (72
-coefficients) is refused: the toolkit stops at degree 3.
+Frame. SPZ stores RUB (x right, y up, z back: OpenGL/three.js; Niantic's README, "Coordinate System"), the
+toolkit's ``Gaussians`` and 3DGS PLY RDF (x right, y down, z forward: OpenCV/COLMAP). The two differ by
+``P = diag(1, -1, -1)``, a 180-degree turn about x and its own inverse, so reading (RUB -> RDF) and writing
+(RDF -> RUB) apply the same signs, those of Niantic's ``coordinateConverter`` (src/cc/splat-types.h):
+positions ``(x, -y, -z)``; rotations ``R -> P R P``, the quaternion ``(w, x, y, z) -> (w, x, -y, -z)``; scales,
+opacity and the DC colour unchanged; each SH coefficient times the parity of its basis polynomial under
+``(y, z) -> (-y, -z)`` (``_SH_PARITY``): band 1 ``(-, -, +)``, band 2 ``(-, +, +, -, +)``, band 3
+``(-, +, -, -, +, -, +)``, Niantic's ``flipSh``. A file whose coordinate-system extension names another frame of
+Niantic's standard family (three axis letters, ``seggaussian.frames.axes``) is read from that frame; the rotated
+family (y and z exchanged) is refused. Files are written in RUB without extensions. @playcanvas/splat-transform
+reads and writes SPZ without any conversion: its decode of a file is ours with y and z negated (``P``).
+
+SH degree 4 (72 coefficients) is refused: the toolkit stops at degree 3.
 
 Quantisation steps: positions ``2^-fractional_bits`` (1/4096 m as written here), colour ``1 / (255 *
 0.15)`` in ``f_dc`` units, log scale 1/16, opacity 1/255, SH 1/128, quaternion components ``1 / (511 *
@@ -30,8 +45,9 @@ sqrt(2))`` (v3+) or 1/127.5 (v2).
 
 Reading: gzip is inflated in one call by libdeflate (the ``deflate`` package: about 1.6x zlib's speed and
 1.25x ISA-L's on SPZ payloads), zlib naming the problem when a stream is refused. Positions, rotations and
-SH go through one-pass compiled loops (``seggaussian.io.spz_kernels``), bit-identical to the
-numpy references kept here (``decode_*_reference``); the rest is numpy on whole blocks.
+SH go through one-pass compiled loops (``seggaussian.io.spz_kernels``, the frame's signs applied in the same
+pass), bit-identical to the numpy references kept here (``decode_*_reference``); the rest is numpy on whole
+blocks.
 
 Writing: versions 2 and 3 (gzip) and 4 (zstd), 12 fractional bits; extras are dropped. zstd comes from
 the ``zstandard`` package.
@@ -49,11 +65,13 @@ import deflate
 import numpy as np
 
 from seggaussian.atomic import write_bytes_atomic
+from seggaussian.frames.axes import axes_to_rdf
 from seggaussian.gaussians import Gaussians
 from seggaussian.io import spz_kernels
 from seggaussian.io.splat_common import SplatFormatError, logit_from_unit, read_file_bytes, unit_from_logit
 
-__all__ = ["SPZ_MAGIC", "SPZ_VERSIONS", "read_spz", "decode_spz", "encode_spz", "write_spz", "spz_payload_head"]
+__all__ = ["SPZ_MAGIC", "SPZ_VERSIONS", "SPZ_FRAME", "read_spz", "decode_spz", "encode_spz", "write_spz",
+           "spz_payload_head", "frame_signs"]
 
 TITLE = "Niantic SPZ"
 SPZ_MAGIC = 0x5053474E
@@ -84,6 +102,41 @@ HEAD_INPUT_BYTES = 1 << 16
 _SH_DIM = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}
 #: zstd compression level of the written v4 streams.
 ZSTD_LEVEL = 3
+#: The frame SPZ stores without a coordinate-system extension, as axis letters (``Gaussians`` hold RDF).
+SPZ_FRAME = "RUB"
+#: Header flag: extension records follow (v4: between the header and the table of contents; v1-3: after the SH).
+FLAG_EXTENSIONS = 2
+EXTENSION_RECORD = struct.Struct("<II")               # type, payload byte length
+#: SPZ_ADOBE_coordinate_system: a uint32 payload, a code of Niantic's CoordinateSystem (below) naming the stored frame.
+COORDINATE_SYSTEM_EXTENSION = 0xADBE0003
+#: Niantic's CoordinateSystem codes (src/cc/splat-types.h). 0 (UNSPECIFIED) is read as RUB, as Niantic's loader
+#: does; 1-8 are the standard family (the letters name the x, y, z directions); 9-16 the rotated family.
+COORDINATE_SYSTEMS = {0: "RUB", 1: "LDB", 2: "RDB", 3: "LUB", 4: "RUB", 5: "LDF", 6: "RDF", 7: "LUF", 8: "RUF",
+                      9: "LFD", 10: "RFD", 11: "LFU", 12: "RFU", 13: "LBD", 14: "RBD", 15: "LBU", 16: "RBU"}
+ROTATED_FAMILY = range(9, 17)
+#: Per SH coefficient of bands 1-3 (3DGS order, after the DC), the parity (exponent mod 2) of x, y and z in its
+#: basis polynomial: band 1 ``-C1 y, C1 z, -C1 x``; band 2 ``xy, yz, 2z^2 - x^2 - y^2, xz, x^2 - y^2``; band 3
+#: ``y(3x^2 - y^2), xyz, y(4z^2 - x^2 - y^2), z(2z^2 - 3x^2 - 3y^2), x(4z^2 - x^2 - y^2), z(x^2 - y^2),
+#: x(x^2 - 3y^2)``. Under the axis flips ``f`` the coefficient is multiplied by ``prod(f ** parity)``.
+_SH_PARITY = np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0],
+                       [1, 1, 0], [0, 1, 1], [0, 0, 0], [1, 0, 1], [0, 0, 0],
+                       [0, 1, 0], [1, 1, 1], [0, 1, 0], [0, 0, 1], [1, 0, 0], [0, 0, 1], [1, 0, 0]], dtype=np.int64)
+
+
+def frame_signs(frame: str = SPZ_FRAME) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The signs that take Gaussians stored in the standard-family ``frame`` (three axis letters, e.g. ``RUB``) to
+    RDF, and back (each frame change here is a set of axis flips ``F = diag(f)``, its own inverse).
+
+    Returns float32 ``[3]`` position signs ``f``; ``[4]`` quaternion signs (w, x, y, z) ``(1, d f)`` with
+    ``d = det F`` (``R -> F R F``: a rotation about ``v`` becomes one about ``d F v``); ``[15]`` SH signs of bands
+    1-3, ``prod(f ** parity)`` per basis polynomial (``_SH_PARITY``). For ``RUB``: ``(1, -1, -1)``,
+    ``(1, 1, -1, -1)`` and Niantic's ``flipSh`` of RUB -> RDF."""
+    f = np.diag(axes_to_rdf(frame))
+    if not np.all(np.abs(f) == 1.0):
+        raise ValueError(f"{TITLE}: frame {frame!r} is not an axis flip of RDF (y and z exchanged); not supported")
+    det = float(np.prod(f))
+    sh = np.prod(np.where(_SH_PARITY == 1, f[None, :], 1.0), axis=1)
+    return f.astype(np.float32), np.concatenate([[1.0], det * f]).astype(np.float32), sh.astype(np.float32)
 
 
 def _gunzip(data: bytes, source) -> bytes:
@@ -169,11 +222,36 @@ def _parse_header(head: bytes, where: str, bound: int) -> tuple[dict, list[tuple
     if frac > 24:
         raise SplatFormatError(f"{where}: {frac} fractional bits; at most 24 fit a 24-bit position")
     header = {"version": version, "num_points": n, "sh_degree": degree, "fractional_bits": frac,
-              "antialiased": bool(flags & 1)}
+              "antialiased": bool(flags & 1), "has_extensions": bool(flags & FLAG_EXTENSIONS), "frame": SPZ_FRAME}
     sizes = _sizes(version, n, degree)
     if sum(s for _, s in sizes) > bound + 1024:
         raise SplatFormatError(f"{where}: the header claims {n} points, impossible for a file of this size")
     return header, sizes
+
+
+def _read_extensions(zone: bytes, where: str) -> str:
+    """The stored frame named by the extension records in ``zone`` (``SPZ_FRAME`` when none names one)."""
+    frame, offset = SPZ_FRAME, 0
+    while offset < len(zone):
+        if len(zone) - offset < EXTENSION_RECORD.size:
+            raise SplatFormatError(f"{where}: {len(zone) - offset} stray bytes at the end of the extension records")
+        kind, length = EXTENSION_RECORD.unpack_from(zone, offset)
+        offset += EXTENSION_RECORD.size
+        if length > len(zone) - offset:
+            raise SplatFormatError(f"{where}: extension 0x{kind:08X} declares {length} bytes, only "
+                                   f"{len(zone) - offset} remain")
+        if kind == COORDINATE_SYSTEM_EXTENSION:
+            if length != 4:
+                raise SplatFormatError(f"{where}: coordinate-system extension of {length} bytes, expected 4")
+            code = struct.unpack_from("<I", zone, offset)[0]
+            if code not in COORDINATE_SYSTEMS:
+                raise SplatFormatError(f"{where}: coordinate-system extension names unknown frame code {code} (0..16)")
+            if code in ROTATED_FAMILY:
+                raise SplatFormatError(f"{where}: stored in the rotated frame {COORDINATE_SYSTEMS[code]} "
+                                       "(coordinate-system extension), not supported (standard-family frames only)")
+            frame = COORDINATE_SYSTEMS[code]
+        offset += length
+    return frame
 
 
 def _split_streams(data: bytes, source) -> tuple[dict, dict[str, np.ndarray]]:
@@ -192,6 +270,8 @@ def _split_streams(data: bytes, source) -> tuple[dict, dict[str, np.ndarray]]:
         for name, size in sizes:
             blocks[name] = raw[offset: offset + size]
             offset += size
+        if header["has_extensions"]:          # records after the SH block; without the flag, a tail is ignored
+            header["frame"] = _read_extensions(data[offset:], where)
         return header, blocks
     if len(data) < V4_HEADER.size:
         raise SplatFormatError(f"{where}: {len(data)} bytes, shorter than the 32-byte version-4 header")
@@ -206,6 +286,8 @@ def _split_streams(data: bytes, source) -> tuple[dict, dict[str, np.ndarray]]:
     if toc_offset < V4_HEADER.size or toc_end > len(data):
         raise SplatFormatError(f"{where}: table of contents at byte {toc_offset} lies outside the "
                                f"{len(data)}-byte file")
+    if header["has_extensions"]:
+        header["frame"] = _read_extensions(data[V4_HEADER.size: toc_offset], where)
     offset = toc_end
     for i, (name, size) in enumerate(present):
         compressed, uncompressed = TOC_ENTRY.unpack_from(data, toc_offset + i * TOC_ENTRY.size)
@@ -239,53 +321,69 @@ _SLOTS_WXYZ = np.array([[3 if c == largest else [i for i in (3, 2, 1, 0) if i !=
 _SH_BYTE_VALUE = ((np.arange(256, dtype=np.float32) - np.float32(128.0)) * np.float32(1.0 / 128.0)).astype(np.float32)
 
 
-def decode_rotations_v3_reference(packed: np.ndarray) -> np.ndarray:
-    """``[N]`` uint32 smallest-three -> ``[N, 4]`` float32 (w, x, y, z): table look-ups and one gather (the
-    numpy reference of ``spz_kernels.decode_rotations_v3``)."""
+def decode_rotations_v3_reference(packed: np.ndarray, signs: np.ndarray | None = None) -> np.ndarray:
+    """``[N]`` uint32 smallest-three -> ``[N, 4]`` float32 (w, x, y, z) times ``signs`` (``[4]``, the frame change;
+    default RUB -> RDF): table look-ups and one gather (the numpy reference of ``spz_kernels.decode_rotations_v3``)."""
+    signs = frame_signs()[1] if signs is None else signs
     n = packed.shape[0]
     values = np.empty((n, 4), np.float32)                  # field 0, field 1, field 2, largest
     for j in range(3):
         values[:, j] = _FIELD_DECODE[(packed >> np.uint32(10 * j)) & np.uint32(1023)]
     small = values[:, :3]
     np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", small, small)), out=values[:, 3])
-    return np.take_along_axis(values, _SLOTS_WXYZ[(packed >> np.uint32(30)).astype(np.intp)], axis=1)
+    return np.take_along_axis(values, _SLOTS_WXYZ[(packed >> np.uint32(30)).astype(np.intp)], axis=1) * signs
 
 
-def decode_rotations_v2_reference(raw: np.ndarray) -> np.ndarray:
-    """``[N, 3]`` uint8 x, y, z -> ``[N, 4]`` float32 (w, x, y, z), w = sqrt(1 - |xyz|^2) (the numpy reference of
-    ``spz_kernels.decode_rotations_v2``)."""
+def decode_rotations_v2_reference(raw: np.ndarray, signs: np.ndarray | None = None) -> np.ndarray:
+    """``[N, 3]`` uint8 x, y, z -> ``[N, 4]`` float32 (w, x, y, z), w = sqrt(1 - |xyz|^2), times ``signs`` (``[4]``,
+    the frame change; default RUB -> RDF) (the numpy reference of ``spz_kernels.decode_rotations_v2``)."""
+    signs = frame_signs()[1] if signs is None else signs
     xyz = raw * np.float32(1.0 / 127.5) - np.float32(1.0)
     w = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - np.einsum("ij,ij->i", xyz, xyz)))
-    return np.concatenate([w[:, None], xyz], axis=1).astype(np.float32)
+    return (np.concatenate([w[:, None], xyz], axis=1) * signs).astype(np.float32)
 
 
-def decode_fixed24_reference(raw: np.ndarray, n: int, fractional_bits: int) -> np.ndarray:
-    """``[N * 9]`` bytes of little-endian signed 24-bit fixed point -> ``[N, 3]`` float32 ``q / 2^bits`` (the
-    numpy reference of ``spz_kernels.decode_fixed24``)."""
+def decode_fixed24_reference(raw: np.ndarray, n: int, fractional_bits: int,
+                             signs: np.ndarray | None = None) -> np.ndarray:
+    """``[N * 9]`` bytes of little-endian signed 24-bit fixed point -> ``[N, 3]`` float32 ``q / 2^bits`` times
+    ``signs`` (``[3]``, the frame change; default RUB -> RDF) (the numpy reference of
+    ``spz_kernels.decode_fixed24``)."""
+    signs = frame_signs()[0] if signs is None else signs
     b = raw.reshape(n, 3, 3).astype(np.int32)
     fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
     fixed = (fixed ^ 0x800000) - 0x800000                                      # sign-extend 24 bits
-    return (fixed * np.float32(1.0 / (1 << fractional_bits))).astype(np.float32)
+    return (fixed * np.float32(1.0 / (1 << fractional_bits)) * signs).astype(np.float32)
 
 
-def decode_sh_rows_reference(rest_bytes: np.ndarray, dc: np.ndarray) -> np.ndarray:
-    """``[M, 3 (K - 1)]`` uint8 SH bytes and ``[M, 3]`` float32 DC -> ``[M, 3 K]`` float32 rows ``(b - 128) / 128``
-    after the DC (the numpy reference of ``spz_kernels.decode_sh_rows``)."""
+def decode_sh_rows_reference(rest_bytes: np.ndarray, dc: np.ndarray, signs: np.ndarray | None = None) -> np.ndarray:
+    """``[M, 3 (K - 1)]`` uint8 SH bytes and ``[M, 3]`` float32 DC -> ``[M, 3 K]`` float32 rows: the DC, then
+    ``(b - 128) / 128`` times ``signs`` (``[3 (K - 1)]`` per column, the frame change; default RUB -> RDF) (the numpy
+    reference of ``spz_kernels.decode_sh_rows``)."""
+    signs = _sh_column_signs(frame_signs()[2], rest_bytes.shape[1]) if signs is None else signs
     out = np.empty((rest_bytes.shape[0], rest_bytes.shape[1] + 3), np.float32)
     out[:, :3] = dc
     np.subtract(rest_bytes, np.float32(128.0), out=out[:, 3:], dtype=np.float32, casting="unsafe")
     out[:, 3:] *= np.float32(1.0 / 128.0)
+    out[:, 3:] *= signs
     return out
+
+
+def _sh_column_signs(sh_signs: np.ndarray, columns: int) -> np.ndarray:
+    """``[3 (K - 1)]`` float32: the sign of each SH rest byte column (coefficient-major, channel innermost)."""
+    return np.ascontiguousarray(np.repeat(sh_signs[: columns // 3], 3), dtype=np.float32)
 
 
 def _decode_blocks(header: dict, blocks: dict[str, np.ndarray]) -> Gaussians:
     """Decode the attribute blocks of a payload."""
     n, version, degree = header["num_points"], header["version"], header["sh_degree"]
+    position_signs, quat_signs, sh_signs = frame_signs(header["frame"])
     means = np.empty((n, 3), np.float32)
     if version == 1:
         means[:] = blocks["positions"].view("<f2").reshape(n, 3)
+        np.negative(means, out=means, where=position_signs < 0)      # a sign flip: NaN (validated later) stays quiet
     else:
-        spz_kernels.decode_fixed24(blocks["positions"], np.float32(1.0 / (1 << header["fractional_bits"])),
+        spz_kernels.decode_fixed24(blocks["positions"],
+                                   position_signs * np.float32(1.0 / (1 << header["fractional_bits"])),
                                    means.reshape(-1))
     opacity_logits = logit_from_unit(blocks["alphas"] * np.float32(1.0 / 255.0))
     dc = (blocks["colors"].reshape(n, 3) * np.float32(1.0 / 255.0) - np.float32(0.5)) / np.float32(SPZ_COLOR_SCALE)
@@ -293,17 +391,20 @@ def _decode_blocks(header: dict, blocks: dict[str, np.ndarray]) -> Gaussians:
                                                                                                    copy=False)
     quats = np.empty((n, 4), np.float32)
     if version >= 3:
-        spz_kernels.decode_rotations_v3(blocks["rotations"].view("<u4"), _FIELD_DECODE, _SLOTS_WXYZ, quats)
+        spz_kernels.decode_rotations_v3(blocks["rotations"].view("<u4"), _FIELD_DECODE, _SLOTS_WXYZ, quat_signs,
+                                        quats)
     else:
-        spz_kernels.decode_rotations_v2(blocks["rotations"].reshape(n, 3), quats)
+        spz_kernels.decode_rotations_v2(blocks["rotations"].reshape(n, 3), quat_signs, quats)
     k = (degree + 1) ** 2
     sh = np.empty((n, k, 3), np.float32)
-    spz_kernels.decode_sh_rows(blocks["sh"].reshape(n, 3 * (k - 1)), dc, _SH_BYTE_VALUE, sh.reshape(n, 3 * k))
+    spz_kernels.decode_sh_rows(blocks["sh"].reshape(n, 3 * (k - 1)), dc, _SH_BYTE_VALUE,
+                               _sh_column_signs(sh_signs, 3 * (k - 1)), sh.reshape(n, 3 * k))
     return Gaussians(means, quats, log_scales, opacity_logits, sh)
 
 
 def decode_spz(data: bytes, source: str | os.PathLike = "<bytes>") -> Gaussians:
-    """The bytes of an SPZ file (gzip-wrapped or not) -> ``Gaussians`` (raw decoded values, not validated)."""
+    """The bytes of an SPZ file (gzip-wrapped or not) -> ``Gaussians`` in RDF (converted from the stored frame,
+    RUB unless an extension names another; not validated)."""
     if not data:
         raise SplatFormatError(f"{source}: empty file (0 bytes), not a {TITLE} file")
     payload = _gunzip(data, source) if data.startswith(GZIP_MAGIC) else data
@@ -311,7 +412,7 @@ def decode_spz(data: bytes, source: str | os.PathLike = "<bytes>") -> Gaussians:
 
 
 def read_spz(path: str | os.PathLike) -> Gaussians:
-    """Read an SPZ file -> ``Gaussians`` (not validated); ``SplatFormatError`` when malformed."""
+    """Read an SPZ file -> ``Gaussians`` in RDF (not validated); ``SplatFormatError`` when malformed."""
     path = Path(path)
     return decode_spz(read_file_bytes(path, TITLE), path)
 
@@ -341,7 +442,7 @@ def _encode_rotations_v3(quats: np.ndarray) -> np.ndarray:
 
 
 def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
-    """``Gaussians`` -> the bytes of an SPZ file of ``version`` (2, 3: gzip; 4: zstd streams)."""
+    """``Gaussians`` (RDF) -> the bytes of an SPZ file of ``version`` (2, 3: gzip; 4: zstd streams), stored in RUB."""
     if version not in WRITE_VERSIONS:
         raise ValueError(f"SPZ version {version} cannot be written (choose one of {WRITE_VERSIONS})")
     g = gaussians
@@ -349,8 +450,9 @@ def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         if not np.isfinite(getattr(g, name)).all():
             raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
+    position_signs, quat_signs, sh_signs = (s.astype(np.float64) for s in frame_signs(SPZ_FRAME))  # RDF -> RUB
     limit = (1 << 23) - 1
-    fixed = np.round(g.means.astype(np.float64) * (1 << WRITE_FRACTIONAL_BITS))
+    fixed = np.round(g.means.astype(np.float64) * position_signs * (1 << WRITE_FRACTIONAL_BITS))
     if n and np.abs(fixed).max() > limit:
         raise ValueError(f"{TITLE}: positions beyond +-{limit / (1 << WRITE_FRACTIONAL_BITS):.0f} m do not fit "
                          f"24-bit fixed point with {WRITE_FRACTIONAL_BITS} fraction bits")
@@ -360,12 +462,12 @@ def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
     colors = _bytes((g.sh[:, 0, :].astype(np.float64) * SPZ_COLOR_SCALE + 0.5) * 255.0)
     scales = _bytes((g.log_scales.astype(np.float64) + 10.0) * 16.0)
     if version >= 3:
-        rotations = _encode_rotations_v3(g.quats).view(np.uint8)
+        rotations = _encode_rotations_v3(g.quats.astype(np.float64) * quat_signs).view(np.uint8)
     else:
-        wxyz = g.normalized_quats().astype(np.float64)
+        wxyz = g.normalized_quats().astype(np.float64) * quat_signs
         wxyz = wxyz * np.where(wxyz[:, :1] < 0, -1.0, 1.0)
         rotations = _bytes((wxyz[:, 1:] + 1.0) * 127.5)
-    sh = _bytes(g.sh[:, 1:, :].astype(np.float64) * 128.0 + 128.0)
+    sh = _bytes(g.sh[:, 1:, :].astype(np.float64) * sh_signs[: g.sh.shape[1] - 1, None] * 128.0 + 128.0)
     degree = g.sh_degree
     blocks = [positions, alphas, colors, scales, rotations, sh]
     payloads = [np.ascontiguousarray(b).tobytes() for b in blocks]
@@ -384,5 +486,5 @@ def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
 
 
 def write_spz(path: str | os.PathLike, gaussians: Gaussians, version: int = 4) -> None:
-    """Write ``gaussians`` as an SPZ file of ``version``, atomically (extras dropped)."""
+    """Write ``gaussians`` (RDF) as an SPZ file of ``version`` (stored in RUB), atomically (extras dropped)."""
     write_bytes_atomic(path, encode_spz(gaussians, version))

@@ -162,8 +162,15 @@ def test_rotation_packing_matches_a_per_record_reference():
     assert (_quat_error(decode_rotations(encode_rotations(unit)), unit) < np.sqrt(2) / 1023).all()
 
 
+#: Niantic's RUB -> RDF signs (src/cc/splat-types.h, coordinateConverter with x = 1, y = z = -1), written out:
+#: flipQ = (y z, x z, x y) on the quaternion's x, y, z; flipSh = (y, z, x, xy, yz, 1, xz, 1, y, xyz, y, z, x, z, x).
+NIANTIC_RUB_TO_RDF_QUAT = (1, 1, -1, -1)            # w, x, y, z
+NIANTIC_RUB_TO_RDF_SH = (-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1)
+
+
 def test_spz_v3_rotations_and_sh_match_a_per_record_reference():
-    """The vectorised smallest-three and SH decode against plain loops over the bits and bytes."""
+    """The vectorised smallest-three and SH decode against plain loops over the bits and bytes, then RUB -> RDF
+    with Niantic's sign tables written out."""
     from seggaussian.io.spz import decode_spz, encode_spz
 
     rng = np.random.default_rng(4)
@@ -184,20 +191,76 @@ def test_spz_v3_rotations_and_sh_match_a_per_record_reference():
             xyzw[component] = -magnitude if rest & 512 else magnitude
             rest >>= 10
         xyzw[largest] = np.sqrt(max(0.0, 1 - sum(v * v for v in xyzw)))
-        np.testing.assert_allclose(fast.quats[i], [xyzw[3], xyzw[0], xyzw[1], xyzw[2]], atol=1e-6)
+        expected = np.multiply([xyzw[3], xyzw[0], xyzw[1], xyzw[2]], NIANTIC_RUB_TO_RDF_QUAT)
+        np.testing.assert_allclose(fast.quats[i], expected, atol=1e-6)
         for j in range(k - 1):
             for c in range(3):
-                assert fast.sh[i, 1 + j, c] == (sh_bytes[(i * (k - 1) + j) * 3 + c] - 128) / 128
+                raw = (sh_bytes[(i * (k - 1) + j) * 3 + c] - 128) / 128
+                assert fast.sh[i, 1 + j, c] == raw * NIANTIC_RUB_TO_RDF_SH[j]
 
 
-def test_spz_kernels_equal_their_numpy_references_bit_for_bit():
+@pytest.mark.parametrize("frame", ["LDB", "RDB", "LUB", "RUB", "LDF", "RDF", "LUF", "RUF"])
+def test_spz_frame_signs_follow_the_sh_basis_and_niantics_converter(frame):
+    """The signs taking SPZ data stored in ``frame`` to RDF: Niantic's coordinateConverter formulas (flipP, flipQ,
+    flipSh of src/cc/splat-types.h, with x, y, z the axis signs), and from the definitions: the rotation matrix of
+    the new quaternion is ``F R F``, and the SH basis at ``F d`` is the basis at ``d`` times the SH signs (so a
+    colour keeps its value in the new frame)."""
+    from seggaussian.frames.axes import axes_to_rdf
+    from seggaussian.frames.sh_rotation import sh_basis
+    from seggaussian.io.spz import frame_signs
+    from seggaussian.rotations import quats_to_rotmats
+
+    positions, quats, sh = frame_signs(frame)
+    x, y, z = (1 if frame[0] == "R" else -1), (1 if frame[1] == "D" else -1), (1 if frame[2] == "F" else -1)
+    assert positions.tolist() == [x, y, z]
+    assert quats.tolist() == [1, y * z, x * z, x * y]                         # w is never flipped
+    assert sh.tolist() == [y, z, x, x * y, y * z, 1, x * z, 1, y, x * y * z, y, z, x, z, x]
+    flip = axes_to_rdf(frame)
+    rng = np.random.default_rng(2)
+    q = rng.normal(size=(50, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    np.testing.assert_allclose(quats_to_rotmats(q * quats), flip @ quats_to_rotmats(q) @ flip, atol=1e-12)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    np.testing.assert_allclose(sh_basis(d @ flip.T, 3)[:, 1:], sh_basis(d, 3)[:, 1:] * sh, atol=1e-12)
+
+
+def test_spz_is_written_in_rub_and_read_back_in_rdf():
+    """Our writer stores RUB (Niantic's frame): the fixed-point bytes of (1, 2, 3) m are (1, -2, -3) * 4096, the
+    quaternion's y and z and the odd-parity SH coefficients are stored negated; the reader undoes it exactly."""
+    from seggaussian.io.spz import decode_spz, encode_spz
+
+    sh = np.zeros((1, 4, 3))
+    sh[0, 1:, 0] = [0.25, 0.5, -0.75]                              # band 1: -C1 y, C1 z, -C1 x (signs -, -, +)
+    g = Gaussians.from_arrays([[1.0, 2.0, 3.0]], [[0.5, 0.5, 0.5, 0.5]], [[-1.0, -2.0, -3.0]], [0.0], sh)
+    payload = gzip.decompress(encode_spz(g, 2))
+    fixed = np.frombuffer(payload[16:25], np.uint8).reshape(3, 3).astype(np.int64)
+    fixed = fixed[:, 0] | (fixed[:, 1] << 8) | (fixed[:, 2] << 16)
+    assert ((fixed ^ 0x800000) - 0x800000).tolist() == [4096, -8192, -12288]
+    rotation = np.frombuffer(payload[16 + 9 + 1 + 3 + 3: 16 + 9 + 1 + 3 + 3 + 3], np.uint8) / 127.5 - 1
+    np.testing.assert_allclose(rotation, [0.5, -0.5, -0.5], atol=1 / 127.5)      # x, y, z with w >= 0
+    stored_sh = (np.frombuffer(payload[-9:], np.uint8).reshape(3, 3)[:, 0].astype(np.float64) - 128) / 128
+    np.testing.assert_allclose(stored_sh, [-0.25, -0.5, -0.75], atol=0.5 / 128)
+    back = decode_spz(encode_spz(g, 2))
+    np.testing.assert_allclose(back.means, g.means, atol=0.5 / 4096)
+    # version 1 (float16 positions, otherwise v2's layout): the stored RUB (1, -2, -3) reads as (1, 2, 3)
+    v1 = payload[:4] + struct.pack("<I", 1) + payload[8:16] + np.array([1, -2, -3], "<f2").tobytes() + payload[25:]
+    assert decode_spz(v1).means.tolist() == [[1.0, 2.0, 3.0]]
+    np.testing.assert_allclose(back.sh[:, 1:], g.sh[:, 1:], atol=0.5 / 128)
+    assert _quat_error(back.quats, g.quats).max() <= 1 / 127.5
+
+
+@pytest.mark.parametrize("frame", ["RUB", "RDF", "LDB"])
+def test_spz_kernels_equal_their_numpy_references_bit_for_bit(frame):
     """The compiled SPZ loops against the numpy references in spz.py: same float32 bits (NaN-free, sign of
     zero included), on every largest index with extreme fields, 24-bit extremes at 0/12/24 fraction bits,
-    every SH byte value, and empty inputs."""
+    every SH byte value, and empty inputs; with the signs of SPZ's RUB (the default), of no change and of a frame
+    flipping x and z."""
     from seggaussian.io import spz, spz_kernels
 
     rng = np.random.default_rng(11)
     bits = lambda a: np.ascontiguousarray(a, np.float32).view(np.uint32)  # noqa: E731
+    position_signs, quat_signs, sh_signs = spz.frame_signs(frame)
     # smallest-three rotations
     fields = np.array([0, 1, 510, 511, 512, 513, 1022, 1023], np.uint32)
     a, b, c, largest = np.meshgrid(fields, fields, fields, np.arange(4, dtype=np.uint32), indexing="ij")
@@ -205,15 +268,15 @@ def test_spz_kernels_equal_their_numpy_references_bit_for_bit():
     packed = np.concatenate([edge.ravel(), rng.integers(0, 2**32, 50_000, dtype=np.uint64).astype(np.uint32)])
     for words in (packed, packed[:0]):
         out = np.empty((len(words), 4), np.float32)
-        spz_kernels.decode_rotations_v3(words, spz._FIELD_DECODE, spz._SLOTS_WXYZ, out)
-        np.testing.assert_array_equal(bits(out), bits(spz.decode_rotations_v3_reference(words)))
+        spz_kernels.decode_rotations_v3(words, spz._FIELD_DECODE, spz._SLOTS_WXYZ, quat_signs, out)
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_rotations_v3_reference(words, quat_signs)))
     # v2 rotations: every byte value in every component
     raw = np.concatenate([np.repeat(np.arange(256, dtype=np.uint8)[:, None], 3, axis=1),
                           rng.integers(0, 256, (20_000, 3), dtype=np.uint8)])
     for r in (raw, raw[:0]):
         out = np.empty((len(r), 4), np.float32)
-        spz_kernels.decode_rotations_v2(r, out)
-        np.testing.assert_array_equal(bits(out), bits(spz.decode_rotations_v2_reference(r)))
+        spz_kernels.decode_rotations_v2(r, quat_signs, out)
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_rotations_v2_reference(r, quat_signs)))
     # signed 24-bit fixed point positions
     corners = np.array([0, 1, 0x7FFFFF, 0x800000, 0x800001, 0xFFFFFF], np.uint32)
     values = np.concatenate([corners, rng.integers(0, 1 << 24, 30_000).astype(np.uint32)])
@@ -221,9 +284,11 @@ def test_spz_kernels_equal_their_numpy_references_bit_for_bit():
     n = len(values) // 3
     for fractional_bits in (0, 12, 24):
         out = np.empty((n, 3), np.float32)
-        spz_kernels.decode_fixed24(raw, np.float32(1.0 / (1 << fractional_bits)), out.reshape(-1))
-        np.testing.assert_array_equal(bits(out), bits(spz.decode_fixed24_reference(raw, n, fractional_bits)))
-    assert spz.decode_fixed24_reference(raw, n, 12).reshape(-1)[3] == -2048.0        # 0x800000: the most negative
+        spz_kernels.decode_fixed24(raw, position_signs * np.float32(1.0 / (1 << fractional_bits)), out.reshape(-1))
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_fixed24_reference(raw, n, fractional_bits,
+                                                                                   position_signs)))
+    # 0x800000 (the most negative value) is value 3: point 1's x
+    assert spz.decode_fixed24_reference(raw, n, 12, position_signs).reshape(-1)[3] == -2048.0 * position_signs[0]
     # SH rows: every byte value, DC copied as is (negative zero too), degree 0 (no rest bytes), empty
     rest = rng.integers(0, 256, (1000, 45), dtype=np.uint8)
     rest.reshape(-1)[:256] = np.arange(256)
@@ -231,8 +296,15 @@ def test_spz_kernels_equal_their_numpy_references_bit_for_bit():
     dc[0] = [-0.0, 0.0, np.float32(1e-40)]
     for r, d in ((rest, dc), (rest[:, :0], dc), (rest[:0], dc[:0])):
         out = np.empty((r.shape[0], r.shape[1] + 3), np.float32)
-        spz_kernels.decode_sh_rows(r, d, spz._SH_BYTE_VALUE, out)
-        np.testing.assert_array_equal(bits(out), bits(spz.decode_sh_rows_reference(r, d)))
+        signs = spz._sh_column_signs(sh_signs, r.shape[1])
+        spz_kernels.decode_sh_rows(r, d, spz._SH_BYTE_VALUE, signs, out)
+        np.testing.assert_array_equal(bits(out), bits(spz.decode_sh_rows_reference(r, d, signs)))
+    if frame == "RUB":                  # the references' default is SPZ's frame
+        words = packed[:1000]
+        np.testing.assert_array_equal(bits(spz.decode_rotations_v3_reference(words)),
+                                      bits(spz.decode_rotations_v3_reference(words, quat_signs)))
+        np.testing.assert_array_equal(bits(spz.decode_sh_rows_reference(rest, dc)),
+                                      bits(spz.decode_sh_rows_reference(rest, dc, spz._sh_column_signs(sh_signs, 45))))
 
 
 def test_spz_gzip_streams_libdeflate_and_zlib_agree_and_faults_name_the_problem(monkeypatch):

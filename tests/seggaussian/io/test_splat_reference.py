@@ -19,7 +19,15 @@ Directions checked:
   legacy SPZ and .splat files; see its SOURCES.md): our decode equals the reference's;
 * splat files from the open web in other formats (../shared/realdata/web_splats, see its SOURCES.md: SuperSplat
   compressed PLYs and an SPZ v4 capture from playcanvas/engine, a tiny SPZ v4 from loaders.gl): detected by
-  content, counts, bounds and every value equal to the reference's decode, validation passes.
+  content, counts, bounds and every value equal to the reference's decode, validation passes; the SPZ and the
+  compressed PLY of the same capture import to the same Gaussians.
+
+Frames: the reference reads and writes SPZ without any frame conversion (its writer passes ``from: UNSPECIFIED``
+to Niantic's library), where the format's author stores RUB and our reader and writer convert to and from the
+toolkit's RDF (seggaussian/io/spz.py). So for SPZ the reference's values are ours under ``P = diag(1, -1, -1)``:
+``reference_decode`` applies P to its decode of an SPZ file, and the SPZ files the reference writes from an RDF PLY
+hold the PLY's values unconverted, so we read them turned by P. test_spz_niantic.py checks SPZ against Niantic's
+own library.
 """
 
 from __future__ import annotations
@@ -52,8 +60,6 @@ WEB_SPLAT_DIRS = tuple(dict.fromkeys(
 #: name -> (format detected by content, Gaussian count from the file's header; see web_splats/SOURCES.md)
 WEB_SPLATS = {"guitar.compressed.ply": ("compressed_ply", 90_854), "biker.compressed.ply": ("compressed_ply", 152_746),
               "biker.spz": ("spz", 152_746), "two-splats.spz": ("spz", 2)}
-#: SPZ positions are fixed point with 12 fractional bits (biker.spz's header): half a step of rounding.
-SPZ_HALF_STEP = 0.5 / 4096
 #: Fetched from other repositories, so kept beside the web splats in shared/, not in this repository.
 FIXTURE_SUBDIR = "splat_transform_fixtures"
 FIXTURE_FILES = ("minimal-raw.spz", "minimal-v2.spz", "minimal-v3.spz", "minimal-v4.spz", "minimal.ksplat",
@@ -65,6 +71,12 @@ QUAT_DECODE_ATOL = 3e-5
 #: .ksplat levels 1-2: position step inside a bucket (block / 2 / range), float16 relative step.
 KSPLAT_POSITION_STEP = BLOCK_SIZE / 2 / DEFAULT_RANGE[1]
 HALF_STEP = 2.0 ** -11
+#: The change of basis P = diag(1, -1, -1) between SPZ's RUB and the toolkit's RDF, as Niantic's coordinateConverter
+#: writes it (src/cc/splat-types.h, x = 1, y = z = -1): positions (x, -y, -z); flipQ = (y z, x z, x y) on the
+#: quaternion's x, y, z (w unchanged); flipSh = (y, z, x, xy, yz, 1, xz, 1, y, xyz, y, z, x, z, x), the DC first here.
+P_POSITION = np.array([1, -1, -1])
+P_QUAT = np.array([1, 1, -1, -1])                      # w, x, y, z
+P_SH = np.array([1, -1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1])
 
 needs_reference = pytest.mark.skipif(
     shutil.which("node") is None or not CLI.is_file(),
@@ -104,10 +116,18 @@ def convert_all(jobs: list[tuple[Path, Path, tuple[str, ...]]]) -> None:
             assert result.returncode == 0 and dst.is_file(), f"splat-transform {src} -> {dst}: {result.stderr[-2000:]}"
 
 
+def apply_p(g: Gaussians) -> Gaussians:
+    """``g`` under the change of basis P (RUB <-> RDF; its own inverse), Niantic's signs (``P_*`` above)."""
+    return Gaussians.from_arrays(g.means * P_POSITION, g.quats * P_QUAT, g.log_scales, g.opacity_logits,
+                                 g.sh * P_SH[: g.sh.shape[1], None])
+
+
 def reference_decode(path: Path) -> Gaussians:
-    """The reference's decode of ``path`` (converted by it to a plain PLY beforehand)."""
+    """The reference's decode of ``path`` (converted by it to a plain PLY beforehand), in our frame: for an SPZ
+    file P is applied, since the reference reads SPZ raw (RUB values as they are) and we convert RUB -> RDF."""
     table = read_vertex_table(path.with_name(path.name + ".ref.ply"))
-    return vertex_table_to_gaussians(table, source=path)
+    decoded = vertex_table_to_gaussians(table, source=path)
+    return apply_p(decoded) if detect_format(path) == "spz" else decoded
 
 
 def make_gaussians(degree: int, seed: int, n: int = 700) -> Gaussians:
@@ -228,8 +248,9 @@ def test_reference_written_files_decode_like_the_reference(reference_files, tag,
     ours, fmt = read_gaussians_raw(renamed)
     assert fmt == expected
     _compare_decodes(ours, reference_decode(path), f"{tag} sh{degree}")
-    # ... and within the format's quantisation step of what the test wrote (compressed PLY reorders: sort)
-    original = sources[f"sh{degree}"]
+    # ... and within the format's quantisation step of what the test wrote (compressed PLY reorders: sort); the
+    # reference stores the PLY's RDF values in SPZ unconverted, so the frame rule reads them turned by P
+    original = sources[f"sh{degree}"] if tag == "ref_cply" else apply_p(sources[f"sh{degree}"])
     if tag == "ref_cply":
         order_ours = np.lexsort(ours.means.T)
         match = [int(np.argmin(np.abs(original.means - m).sum(1))) for m in ours.means[order_ours][:50]]
@@ -292,6 +313,8 @@ def test_real_files_counts_and_bounds_agree_with_the_reference(reference_files):
         np.testing.assert_allclose(loaded.gaussians.means.max(0), ref.means.max(0), atol=1e-5, err_msg=key)
         stem = key.split("_", 3)[-1]
         original = sources[f"real_{stem}"]
+        if key.startswith("real_ref_spz"):          # the reference writes SPZ unconverted: read turned by P
+            original = apply_p(original)
         assert len(original) == len(ref)
         step = {"our_splat": 1e-6, "our_ksplat": KSPLAT_POSITION_STEP / 2 + 1e-6}.get(
             key.split("_")[1] + "_" + key.split("_")[2], np.ptp(original.means, axis=0).max() / 1023 + 1e-3)
@@ -353,10 +376,12 @@ def test_files_written_by_other_programs_decode_like_the_reference(reference_fil
     np.testing.assert_array_equal(ours.means.max(0), ref.means.max(0))
     loaded = read_gaussians(path)                          # and it passes validation
     assert loaded.report.ok and len(loaded.gaussians) == 4
-    # the generator's values (test/fixtures/create-fixtures.mjs): a 2 x 2 grid with 1 m spacing, scale 0.1,
-    # opacity 230/255; SPZ stores the scale as a log in 1/16 steps and v3/v4 (Niantic's writer) flips z
+    # the generator's values (test/fixtures/create-fixtures.mjs): a 2 x 2 grid (x, z in {-1, 0}) with 1 m spacing,
+    # scale 0.1, opacity 230/255; SPZ stores the scale as a log in 1/16 steps. v3/v4 were written by Niantic's
+    # library from RDF (``from: RDF``, stored RUB): read back as written. raw/v2 were assembled byte by byte with
+    # the RDF values in RUB's place (no conversion), so the frame rule reads them turned by P (z negated; y is 0)
     assert sorted(map(tuple, np.round(ours.means[:, [0, 2]]).tolist())) == (
-        [(-1, 0), (-1, 1), (0, 0), (0, 1)] if name in ("minimal-v3.spz", "minimal-v4.spz")
+        [(-1, 0), (-1, 1), (0, 0), (0, 1)] if name in ("minimal-raw.spz", "minimal-v2.spz")
         else [(-1, -1), (-1, 0), (0, -1), (0, 0)])
     np.testing.assert_allclose(np.exp(ours.log_scales), 0.1, rtol=0.02 if expected == "spz" else 1e-6)
     np.testing.assert_allclose(ours.opacities(), 230 / 255, atol=0.5 / 255)
@@ -397,22 +422,64 @@ def test_web_splats_decode_like_the_reference(reference_files, name):
     assert loaded.report.ok and loaded.report.num_dropped == 0 and len(loaded.gaussians) == expected_count
 
 
-@needs_reference
-def test_web_biker_spz_and_compressed_ply_hold_the_same_capture(reference_files):
-    """biker.spz is PlayCanvas's SPZ v4 conversion of the capture in biker.compressed.ply (SOURCES.md)."""
-    files, _ = reference_files
-    if "web_biker.spz" not in files or "web_biker.compressed.ply" not in files:
+#: Compressed PLY position bits per axis (x, y, z: 11/10/11) and the SPZ encodings' steps (seggaussian/io/spz.py):
+#: log scale 1/16, DC colour 1 / (255 * 0.15) in f_dc units, quaternion components 1 / (511 sqrt 2) (v3+).
+CPLY_POSITION_BITS = np.array([11, 10, 11])
+SPZ_LOG_SCALE_STEP = 1 / 16
+SPZ_DC_STEP = 1 / (255 * 0.15)
+SPZ_QUAT_STEP = 1 / (511 * np.sqrt(2))
+CPLY_QUAT_STEP = np.sqrt(2) / 1023
+#: SPZ's 8-bit log scale covers [-10, 15.9375] (bytes 0..255); the compressed PLY holds smaller log scales.
+SPZ_LOG_SCALE_RANGE = (-10.0, 255 / 16 - 10)
+#: Float32 rounding of the compressed PLY's lerps, relative to the largest coordinate (as in _compare_decodes).
+LERP_RELATIVE_ATOL = 8 * float(np.finfo(np.float32).eps)
+#: Matches by nearest neighbour are used for the attributes when no second SPZ Gaussian lies within the position
+#: bound (else the nearest may be a twin at the same place); at least this share of the capture must qualify.
+MIN_UNAMBIGUOUS_SHARE = 0.95
+
+
+def test_web_biker_spz_and_compressed_ply_hold_the_same_capture():
+    """biker.spz is PlayCanvas's SPZ v4 conversion of the capture in biker.compressed.ply (SOURCES.md). Read by the
+    frame rule (SPZ stores RUB, we hold RDF), both import to the same Gaussians: every compressed-PLY mean has an
+    SPZ mean within the two formats' position rounding, and the matched Gaussians agree in opacity, scale, colour
+    and rotation within the two formats' steps. Before the frame rule, y and z came out negated (the first
+    Gaussian at (-0.104, 2.388, 0.361) from the SPZ, (-0.105, -2.388, -0.361) from the PLY)."""
+    import plyfile
+    from scipy.spatial import cKDTree
+
+    web = _web_splats()
+    if web is None or not (web / "biker.spz").is_file() or not (web / "biker.compressed.ply").is_file():
         _skip_without_web_data("biker.spz / biker.compressed.ply", "captures from playcanvas/engine")
-    spz, _ = read_gaussians_raw(files["web_biker.spz"])
-    cply, _ = read_gaussians_raw(files["web_biker.compressed.ply"])
-    assert len(spz) == len(cply)
-    # SPZ stores y and z negated (its RUB axes). A compressed PLY's extreme Gaussians decode exactly to the
-    # chunk bounds, so the two files' bounds differ only by SPZ's rounding to its fixed-point grid
-    flip = np.array([1, -1, -1], dtype=np.float32)
-    lo = np.minimum(spz.means.min(0) * flip, spz.means.max(0) * flip)
-    hi = np.maximum(spz.means.min(0) * flip, spz.means.max(0) * flip)
-    np.testing.assert_allclose(lo, cply.means.min(0), atol=SPZ_HALF_STEP + 1e-6, rtol=0)
-    np.testing.assert_allclose(hi, cply.means.max(0), atol=SPZ_HALF_STEP + 1e-6, rtol=0)
-    # and the same mean opacity and colour within the byte steps of both formats
-    assert abs(float(spz.opacities().mean()) - float(cply.opacities().mean())) < 1 / 255
-    np.testing.assert_allclose(spz.dc_colors().mean(0), cply.dc_colors().mean(0), atol=1 / 255)
+    spz, _ = read_gaussians_raw(web / "biker.spz")
+    cply, _ = read_gaussians_raw(web / "biker.compressed.ply")
+    assert len(spz) == len(cply) == WEB_SPLATS["biker.spz"][1]
+    # position bound per compressed-PLY Gaussian: half an SPZ step (fraction bits from the header; v4's is plain)
+    # plus half a step of its chunk on each axis, plus float32 rounding of the lerp
+    fractional_bits = (web / "biker.spz").read_bytes()[13]
+    chunks = plyfile.PlyData.read(str(web / "biker.compressed.ply"))["chunk"].data
+    chunk_of = np.arange(len(cply)) // 256
+    extent = np.stack([chunks[f"max_{a}"] - chunks[f"min_{a}"] for a in "xyz"], axis=1)[chunk_of]
+    per_axis = (0.5 / (1 << fractional_bits) + 0.5 * extent / (2.0 ** CPLY_POSITION_BITS - 1)
+                + LERP_RELATIVE_ATOL * float(np.abs(cply.means).max()))
+    bound = np.linalg.norm(per_axis, axis=1)
+    distance, nearest = cKDTree(spz.means).query(cply.means, k=2)
+    assert (distance[:, 0] <= bound).all(), (
+        f"{int((distance[:, 0] > bound).sum())} compressed-PLY Gaussians have no SPZ Gaussian within the bound; "
+        f"largest distance {distance[:, 0].max():.3g} m")
+    assert np.median(distance[:, 0]) < np.median(bound)
+    unambiguous = distance[:, 1] > bound
+    assert unambiguous.mean() >= MIN_UNAMBIGUOUS_SHARE
+    a, b = spz.subset(nearest[unambiguous, 0]), cply.subset(np.flatnonzero(unambiguous))
+    chunk = chunk_of[unambiguous]
+    # opacity: one byte in each format
+    assert np.abs(a.opacities() - b.opacities()).max() <= 0.5 / 255 + 0.5 / 255 + 1e-6
+    # log scale: SPZ's 1/16 step (clamped to its range), the chunk's 11/10/11-bit step of the log-scale bounds
+    scale_extent = np.stack([chunks[f"max_scale_{a}"] - chunks[f"min_scale_{a}"] for a in "xyz"], axis=1)[chunk]
+    scale_bound = 0.5 * SPZ_LOG_SCALE_STEP + 0.5 * scale_extent / (2.0 ** CPLY_POSITION_BITS - 1) + 1e-5
+    assert (np.abs(a.log_scales - np.clip(b.log_scales, *SPZ_LOG_SCALE_RANGE)) <= scale_bound).all()
+    # DC colour (f_dc): SPZ's byte step, the chunk colour bounds' 8-bit step (colour units / SH_C0)
+    colour_extent = np.stack([chunks[f"max_{c}"] - chunks[f"min_{c}"] for c in "rgb"], axis=1)[chunk]
+    dc_bound = 0.5 * SPZ_DC_STEP + 0.5 * colour_extent / 255 / SH_C0 + 1e-5
+    assert (np.abs(a.sh[:, 0] - b.sh[:, 0]) <= dc_bound).all()
+    # rotation (up to sign): a full step of each (the derived largest component carries the others' rounding)
+    assert _sign_free_quat_error(a.quats, b.quats).max() <= SPZ_QUAT_STEP + CPLY_QUAT_STEP
