@@ -32,3 +32,12 @@ def config_option(config_class: type, config_field: str, *param_decls: str, **kw
         raise TypeError("config_option takes its help from the field doc; do not pass help=")
     return click.option(*param_decls, cls=ConfigOption, help=docs[config_field], config_class=config_class,
                         config_field=config_field, **kwargs)
+
+
+def transform_options(function):
+    """``--transform FILE|SPEC`` and ``--from-frame AXES`` (``FrameConfig``): the splat's frame, moved into the
+    scene's on reading."""
+    from seggaussian.frames.frame_config import FrameConfig
+
+    function = config_option(FrameConfig, "from_frame", "--from-frame", default=None, metavar="AXES")(function)
+    return config_option(FrameConfig, "transform", "--transform", default=None, metavar="FILE|SPEC")(function)

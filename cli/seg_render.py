@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from cli._config_options import transform_options
 from cli._output import finish, guarded, json_option
 
 
@@ -26,18 +27,21 @@ from cli._output import finish, guarded, json_option
 @click.option("--background", type=(float, float, float), default=(0.0, 0.0, 0.0), show_default=True,
               help="Background RGB in [0, 1].")
 @click.option("--backend", type=click.Choice(["auto", "fast", "reference"]), default="auto", show_default=True)
+@transform_options
 @json_option
 @guarded
 def command(ply, out, camera_json, look_at, width, height, azimuth, elevation, fov, sh_degree, background, backend,
-            as_json) -> None:
+            transform, from_frame, as_json) -> None:
     """Render one view of a splat file (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat) to a PNG."""
+    from seggaussian.frames.frame_config import FrameConfig
     from seggaussian.render.quicklook import QuicklookConfig, render_ply_view
 
     if camera_json and look_at:
         raise click.UsageError("give either --camera or --look-at, not both")
     config = QuicklookConfig(ply=ply, out=out, camera_json=camera_json, width=width, height=height,
                              azimuth_deg=azimuth, elevation_deg=elevation, fov_deg=fov, sh_degree=sh_degree,
-                             background=tuple(background), backend=backend)
+                             background=tuple(background), backend=backend,
+                             frame=FrameConfig(transform, from_frame))
     info = render_ply_view(config)
     summary = (f"{out}: {info['num_gaussians']} Gaussians rendered at {info['width']}x{info['height']} "
                f"(SH degree {info['sh_degree']}, {100 * info['covered_fraction']:.1f}% covered) "

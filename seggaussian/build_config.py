@@ -53,6 +53,19 @@ class TransferConfig:
     backend: Literal["scipy", "open3d"] = "scipy"
     #: Seed of the spacing subsample.
     seed: int = 0
+    #: Refuse a scene when less than this opacity-weighted share of its Gaussians lies within the gate of the
+    #: mesh (``seggaussian.placement``): a splat in another frame (``--transform``). Chosen by measurement
+    #: (``benchmarks/placement_thresholds.py``; margins in benchmarks/results/stages.md). 0 disables it.
+    min_on_mesh_share: float = 0.4
+    #: Refuse a scene when less than this share of its mesh surface has a Gaussian within the gate (a splat
+    #: shrunk into the room's middle touches some surfaces, it does not cover them). The share grows with the
+    #: number of Gaussians (1,500 oracle Gaussians cover 13-16 % of a synthetic room, a 10 % subsample of a fitted
+    #: splat 43-64 %), so the floor is low; the other two checks catch what it lets through. 0 disables it.
+    min_surface_covered_share: float = 0.05
+    #: Refuse a scene whose Gaussians a local registration onto the mesh moves by more than this (metres, RMS):
+    #: a splat shifted or turned by a fraction of the room, which the shares cannot see along the big planes.
+    #: A negative value disables it.
+    max_local_offset: float = 0.07
 
 
 @dataclass(frozen=True)

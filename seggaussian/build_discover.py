@@ -74,6 +74,14 @@ def find_trained_ply(ply_dir: Path | None, scene_id: str) -> Path | None:
     return runs[-1] if runs else None
 
 
+def find_transform_file(ply_dir: Path | None, scene_id: str) -> Path | None:
+    """``ply_dir/<scene>.transform.json`` (the frame of that scene's trained splat), or None."""
+    if ply_dir is None:
+        return None
+    path = Path(ply_dir) / f"{scene_id}.transform.json"
+    return path if path.is_file() else None
+
+
 def discover(config: BuildConfig) -> tuple[list[SceneTask], list[SceneOutcome]]:
     """Scene tasks of the build, and failures found while listing (a bad layout fails its scenes only)."""
     tasks: list[SceneTask] = []
@@ -89,7 +97,7 @@ def discover(config: BuildConfig) -> tuple[list[SceneTask], list[SceneOutcome]]:
         for scene_id in ids:
             ply = find_trained_ply(config.ply_dir, scene_id)
             tasks.append(SceneTask(scene_id, domain, root, sha256_json([prints[scene_id], read_code, domain]),
-                                   ply, official.get(scene_id)))
+                                   ply, official.get(scene_id), find_transform_file(config.ply_dir, scene_id)))
     seen: dict[str, SceneTask] = {}
     for t in tasks:
         if t.scene_id in seen:

@@ -48,7 +48,8 @@ def gaussians_stage_config(config: BuildConfig, task: SceneTask) -> dict:
     if task.trained_ply is None:
         raise FileNotFoundError(f"--fit never: no trained PLY for scene {task.scene_id}")
     st = task.trained_ply.stat()
-    return {"mode": "import", "ply": [str(task.trained_ply), st.st_size, st.st_mtime_ns]}
+    return {"mode": "import", "ply": [str(task.trained_ply), st.st_size, st.st_mtime_ns],
+            "frame": gaussians_import.frame_key(task.transform_file)}
 
 
 def stage_keys(task: SceneTask, config: BuildConfig, g_cfg: dict, num_classes: int) -> tuple[dict, dict]:
@@ -98,7 +99,9 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
         return scene
 
     if records["gaussians"] is None:
-        gaussians, truth, facts = GAUSSIANS_MODES[g_cfg["mode"]].run(get_scene(), config, scene_dir, task.trained_ply)
+        gaussians, truth, facts = GAUSSIANS_MODES[g_cfg["mode"]].run(get_scene(), config, scene_dir, task.trained_ply,
+                                                                      **({"transform_file": task.transform_file}
+                                                                         if g_cfg["mode"] == "import" else {}))
         facts["num_gaussians"] = len(gaussians)
         stages["gaussians"].save(keys["gaussians"], facts, parts["gaussians"])
         records["gaussians"] = {"info": facts}

@@ -16,6 +16,8 @@ class SceneTask(NamedTuple):
         fingerprint: sha256 of the scene's raw files (relative path, size, mtime) and the reader code.
         trained_ply: a trained 3DGS PLY for this scene, or None.
         official_split: ``train`` / ``val`` from the official lists, or None.
+        transform_file: ``<ply_dir>/<scene>.transform.json`` beside the trained splat (its frame: a
+            ``seggaussian.frames`` transform spec file), or None when the splat is in the scene's frame.
     """
 
     scene_id: str
@@ -24,6 +26,7 @@ class SceneTask(NamedTuple):
     fingerprint: str
     trained_ply: Path | None
     official_split: str | None
+    transform_file: Path | None = None
 
 
 class SceneOutcome(NamedTuple):

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
+from seggaussian.frames.frame_config import FrameConfig, frame_record, to_scene_frame
 from seggaussian.io.formats import read_gaussians, scene_stem
 from seggaussian.io.ply import write_atomic, write_gaussians_ply
 from seggaussian.io.validate import ValidationReport
@@ -24,6 +25,8 @@ class ImportConfig:
     binary: bool = True
     #: Write zero normals ``nx, ny, nz`` as the Inria files do.
     normals: bool = True
+    #: The splat's frame (``--transform``, ``--from-frame``); the default keeps it as stored.
+    frame: FrameConfig = FrameConfig()
 
 
 class ImportResult(NamedTuple):
@@ -37,6 +40,7 @@ class ImportResult(NamedTuple):
         sh_degree: SH degree of the scene.
         report: the validation report.
         format: the detected input format (``ply``, ``compressed_ply``, ``splat``, ``spz``).
+        frame: what ``frame_record`` says of the transform applied (``{"transform": None}`` when none).
     """
 
     source: Path
@@ -46,6 +50,7 @@ class ImportResult(NamedTuple):
     sh_degree: int
     report: ValidationReport
     format: str = "ply"
+    frame: dict | None = None
 
 
 def import_ply(source: str | os.PathLike, out_dir: str | os.PathLike, config: ImportConfig = ImportConfig()) -> ImportResult:
@@ -53,6 +58,7 @@ def import_ply(source: str | os.PathLike, out_dir: str | os.PathLike, config: Im
     source = Path(source)
     out_dir = Path(out_dir)
     gaussians, report, fmt = read_gaussians(source, on_invalid=config.on_invalid)
+    gaussians, frame = to_scene_frame(gaussians, config.frame)
     stem = scene_stem(source)
     ply_path = out_dir / f"{stem}.ply"
     if ply_path.resolve() == source.resolve():
@@ -67,6 +73,8 @@ def import_ply(source: str | os.PathLike, out_dir: str | os.PathLike, config: Im
         "sh_degree": gaussians.sh_degree,
         "extras": sorted(gaussians.extras),
         "validation": report.to_dict(),
+        "frame": frame_record(frame),
     }
     write_atomic(report_path, [(json.dumps(payload, indent=2, sort_keys=True) + "\n").encode()])
-    return ImportResult(source, ply_path, report_path, len(gaussians), gaussians.sh_degree, report, fmt)
+    return ImportResult(source, ply_path, report_path, len(gaussians), gaussians.sh_degree, report, fmt,
+                        payload["frame"])

@@ -13,6 +13,7 @@ import numpy as np
 
 from seggaussian.atomic import atomic_path
 from seggaussian.cameras import Camera, intrinsics, look_at
+from seggaussian.frames.frame_config import FrameConfig, frame_record, to_scene_frame
 from seggaussian.io.formats import read_gaussians
 from seggaussian.render.rasterize import render_gaussians
 
@@ -37,6 +38,8 @@ class QuicklookConfig:
         sh_degree: SH bands used (None: all stored).
         background: RGB background in [0, 1].
         backend: rasterizer backend (``auto``, ``fast``, ``reference``).
+        frame: the splat's frame (``--transform``, ``--from-frame``): the scene is moved into the scene's frame
+            before the camera (given in that frame) looks at it.
     """
 
     ply: Path
@@ -50,6 +53,7 @@ class QuicklookConfig:
     sh_degree: int | None = None
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     backend: str = "auto"
+    frame: FrameConfig = FrameConfig()
 
 
 class CameraFileError(ValueError):
@@ -113,6 +117,7 @@ def render_ply_view(config: QuicklookConfig) -> dict:
 
     start = time.perf_counter()
     gaussians, _report, _format = read_gaussians(config.ply)  # any splat format, detected by content
+    gaussians, frame = to_scene_frame(gaussians, config.frame)
     camera = read_camera_json(config.camera_json) if config.camera_json else orbit_camera(gaussians.means, config)
     out = render_gaussians(
         gaussians, camera, sh_degree=config.sh_degree,
@@ -123,7 +128,7 @@ def render_ply_view(config: QuicklookConfig) -> dict:
     write_png_atomic(config.out, rgb)
     alpha = out.alpha.detach().numpy()
     return {
-        "ply": str(config.ply), "out": str(config.out), "num_gaussians": len(gaussians),
+        "ply": str(config.ply), "out": str(config.out), "num_gaussians": len(gaussians), "frame": frame_record(frame),
         "sh_degree": gaussians.sh_degree if config.sh_degree is None else config.sh_degree,
         "width": camera.width, "height": camera.height, "covered_fraction": float((alpha > 0.5).mean()),
         "camera": {"K": camera.K, "viewmat": camera.viewmat}, "seconds": time.perf_counter() - start,

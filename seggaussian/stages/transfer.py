@@ -7,6 +7,7 @@ labels) and writes the per-scene ``gaussians`` table.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,11 +15,12 @@ import numpy as np
 from seggaussian.build_config import BuildConfig, ShardConfig
 from seggaussian.constants import IGNORE_LABEL
 from seggaussian.gaussians import Gaussians
+from seggaussian.placement import check_placement, measure_placement
 from seggaussian.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
 from seggaussian.shards.tables import gaussians_table
 from seggaussian.stages.gaussians import save_npz
-from seggaussian.transfer import densify_labelled_mesh, transfer_labels
+from seggaussian.transfer import densify_labelled_mesh, distance_gate, transfer_labels
 from seggaussian.transfer_scoring import label_accuracy, surface_labels
 
 #: Files the stage writes into the scene's cache folder.
@@ -41,6 +43,12 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
     result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer)
+    # the placement is judged at the spacing-derived gate, whatever gate the user chose for the labels
+    placement_gate = distance_gate(result.stats.spacing, replace(config.transfer, max_distance=None))
+    placement = measure_placement(gaussians.means, gaussians.opacities(), result.distances, placement_gate,
+                                  scene.points, scene.faces, scene.scene_id, config.transfer.seed)
+    check_placement(placement, config.transfer.min_on_mesh_share, config.transfer.min_surface_covered_share,
+                    config.transfer.max_local_offset, scene.scene_id)
     if truth is None and len(gaussians):
         truth = surface_labels(gaussians.means, scene.points, scene.faces, scene.semantic)
     accuracy = label_accuracy(result.semantic, truth) if truth is not None else {"scored": 0, "correct": 0,
@@ -52,6 +60,7 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
                                      multilabel=result.multilabel, transfer_distance=result.distances)
     stats = result.stats.to_dict()
     stats["mesh_samples"] = extra
+    stats["placement"] = placement.to_dict()
     return labelled, {"transfer": stats, "label_accuracy": accuracy}
 
 
