@@ -109,7 +109,8 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
     if records["transfer"] is None:
         if gaussians is None:
             gaussians, truth = gaussians_stage.load_gaussians(scene_dir)
-        labelled, facts = transfer_stage.run_transfer(get_scene(), gaussians, truth, config)
+        labelled, facts = transfer_stage.run_transfer(get_scene(), gaussians, truth, config,
+                                                      refuse_misplaced=g_cfg["mode"] == "import")
         transfer_stage.write_transfer(scene_dir, task.scene_id, labelled, config.shards)
         stages["transfer"].save(keys["transfer"], facts, parts["transfer"])
         records["transfer"] = {"info": facts}

@@ -27,8 +27,12 @@ from seggaussian.transfer_scoring import label_accuracy, surface_labels
 OUTPUTS = ("gaussians.parquet", "labels.npz")
 
 
-def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, config: BuildConfig) -> tuple[Gaussians, dict]:
-    """Labels of the Gaussians (transfer + per-scene statistics and accuracy)."""
+def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, config: BuildConfig,
+                 refuse_misplaced: bool = False) -> tuple[Gaussians, dict]:
+    """Labels of the Gaussians (transfer + per-scene statistics, placement and accuracy).
+
+    ``refuse_misplaced``: raise ``PlacementError`` when the Gaussians do not sit on the mesh (imported splats;
+    fitted and oracle Gaussians are made in the scene's frame, so theirs is only measured and reported)."""
     points, semantic, instance = scene.points, scene.semantic, scene.instance
     multilabel = scene.multilabel
     extra = 0
@@ -47,8 +51,9 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
     placement_gate = distance_gate(result.stats.spacing, replace(config.transfer, max_distance=None))
     placement = measure_placement(gaussians.means, gaussians.opacities(), result.distances, placement_gate,
                                   scene.points, scene.faces, scene.scene_id, config.transfer.seed)
-    check_placement(placement, config.transfer.min_on_mesh_share, config.transfer.min_surface_covered_share,
-                    config.transfer.max_local_offset, scene.scene_id)
+    if refuse_misplaced:
+        check_placement(placement, config.transfer.min_on_mesh_share, config.transfer.min_surface_covered_share,
+                        config.transfer.max_local_offset, scene.scene_id)
     if truth is None and len(gaussians):
         truth = surface_labels(gaussians.means, scene.points, scene.faces, scene.semantic)
     accuracy = label_accuracy(result.semantic, truth) if truth is not None else {"scored": 0, "correct": 0,
