@@ -41,11 +41,13 @@ def _gaussians(rng: np.random.Generator, n: int, degree: int) -> Gaussians:
 
 
 def _spz_v1(g: Gaussians) -> bytes:
-    """A version-1 SPZ payload (float16 positions, 3-byte rotations), not gzip-wrapped."""
+    """A version-1 SPZ payload (float16 positions, 3-byte rotations), not gzip-wrapped; positions in SPZ's RUB
+    axes like the rest of the payload (y and z negated)."""
     payload = gzip.decompress(encode_spz(g, version=2))
     head = bytearray(payload[:16])
     head[4:8] = struct.pack("<I", 1)
-    return bytes(head) + g.means.astype("<f2").tobytes() + payload[16 + 9 * len(g):]
+    rub = g.means * np.array([1.0, -1.0, -1.0], np.float32)
+    return bytes(head) + rub.astype("<f2").tobytes() + payload[16 + 9 * len(g):]
 
 
 def _on_payload(mutate):
