@@ -75,7 +75,7 @@ def main() -> None:
     total = time.perf_counter() - start
 
     env = f"NUMBA_NUM_THREADS={os.environ['NUMBA_NUM_THREADS']} " if "NUMBA_NUM_THREADS" in os.environ else ""
-    command = f"cd /work/main && {env}.venv/bin/python " + shlex.join([Path(sys.argv[0]).as_posix()] + sys.argv[1:])
+    command = f"{env}.venv/bin/python " + shlex.join([Path(sys.argv[0]).as_posix()] + sys.argv[1:])
     lines = [
         f"### CPU 3DGS fitting, default synthetic room {scene.scene_id} "
         f"({result.metrics['image_size'][0]}x{result.metrics['image_size'][1]}, "

@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_fuzz.py [--mutants 20000] [--seed 18] [--out benchmarks/results/fuzz.md]
 
-Seeds: the real PLYs in ../shared/realdata (or /work/shared/realdata) and files our writer makes
+Seeds: the real PLYs in ../shared/realdata (or $SEGGAUSSIAN_SHARED/realdata) and files our writer makes
 (``seggaussian.tools.fuzz_ply.ply_target``). Every mutant is classified as accepted-and-finite, clean error,
 non-finite, crash or hang; the run fails (exit 1) on any crash, hang or non-finite acceptance. CI runs
 1,600 of the same mutants in tests/seggaussian/tools/test_fuzz.py.
@@ -20,11 +20,10 @@ from pathlib import Path
 
 
 def realdata() -> Path | None:
-    here = Path(__file__).resolve().parents[1]
-    for candidate in (here / ".." / "shared" / "realdata", Path("/work/shared/realdata")):
-        if candidate.is_dir():
-            return candidate
-    return None
+    """``$SEGGAUSSIAN_SHARED/realdata`` when the variable is set, else ``../shared/realdata`` beside the checkout."""
+    shared = os.environ.get("SEGGAUSSIAN_SHARED")
+    candidate = (Path(shared) if shared else Path(__file__).resolve().parents[1].parent / "shared") / "realdata"
+    return candidate if candidate.is_dir() else None
 
 
 def main() -> int:

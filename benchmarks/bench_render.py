@@ -228,7 +228,7 @@ def write_markdown(path: Path, small: dict, large: dict | None, command: str) ->
         "(tests: fast vs per-pixel reference <= 1e-4 forward, gradients within 1e-3 relative).",
         "- The torch baseline (seggaussian/render/torch_tiles.py: [tiles, 256, L] tensors, cumprod transmittance) "
         "costs about 0.84 s CPU single-threaded for the blending forward here, comparable to the ~390 ms on "
-        "2 threads quoted in /work/shared/notes/cpu-kernels.md; its CPU times above include OpenMP spin-waiting "
+        "2 threads quoted in ../shared/notes/cpu-kernels.md; its CPU times above include OpenMP spin-waiting "
         "under load.",
         "- 'pairs' counts tile intersections x 256 (pixels evaluated before early termination), as in the notes.",
         "",
@@ -255,7 +255,7 @@ def main() -> None:
     if large:
         print(json.dumps(large, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_markdown(args.out, small, large, "cd /work/main && .venv/bin/python " + " ".join(
+    write_markdown(args.out, small, large, ".venv/bin/python " + " ".join(
         [str(Path(sys.argv[0]))] + sys.argv[1:]))
 
 

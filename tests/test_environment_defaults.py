@@ -124,3 +124,15 @@ def test_the_digest_covers_what_kernels_import_and_not_what_only_names_numba(tmp
     assert kernel_source_digest(tmp_path) == before                        # names numba, defines no kernel
     (package / "constants.py").write_text("LIMIT = 2.0\n")
     assert kernel_source_digest(tmp_path) != before                        # no numba in it, but a kernel reads it
+
+
+def test_no_machine_paths_in_the_tree():
+    """Shared data is found at ../shared or through $SEGGAUSSIAN_SHARED, and commands are printed relative to the
+    repository root: no absolute path of one machine's checkout or shared folder is left in a tracked file."""
+    root = Path(__file__).resolve().parents[1]
+    if not (root / ".git").exists():
+        pytest.skip("not a git checkout (the tracked files are unknown)")
+    needles = ["/" + "work/main", "/" + "work/shared", "/" + "work/helpers"]   # split: this file must not match itself
+    found = subprocess.run(["git", "grep", "-n", "-e", needles[0], "-e", needles[1], "-e", needles[2]], cwd=root,
+                           capture_output=True, text=True).stdout.strip()
+    assert found == "", found

@@ -1,6 +1,6 @@
 """Compiled CPU blending kernels (numba), parallel over 16x16 tiles, float32.
 
-Layout (see /work/shared/notes/cpu-kernels.md): a tile's Gaussians are the outer loop, its 256 pixels
+Layout (see ../shared/notes/cpu-kernels.md beside the checkout): a tile's Gaussians are the outer loop, its 256 pixels
 the branch-free inner loop (arithmetic 0/1 masks instead of selects, a polynomial exp), so LLVM
 vectorizes the pixel loop. A tile stops as soon as every pixel has stopped.
 

@@ -15,8 +15,8 @@ from seggaussian.gaussians import Gaussians
 from seggaussian.render import rasterize
 from seggaussian.render.quicklook import QuicklookConfig, orbit_camera
 from test_render_common import GEOMETRY, random_scene
+from shared_data import REALDATA
 
-REALDATA = Path(__file__).resolve().parents[3] / "shared" / "realdata"
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py

@@ -9,8 +9,8 @@ from click.testing import CliRunner
 
 from ovgaussian.predict import class_colours, paint_gaussians, parse_vocabulary, read_cameras
 from seggaussian.constants import IGNORE_LABEL, SH_C0
+from shared_data import REALDATA
 
-REALDATA = Path(__file__).resolve().parents[3] / "shared" / "realdata"
 VOCAB = "chair, table, sofa,  wooden floor"
 
 

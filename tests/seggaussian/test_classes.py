@@ -20,8 +20,8 @@ from seggaussian.classes import (
     unseen_class_ids,
 )
 from seggaussian.constants import DATA_SPECS_DIR, UNSEEN_CLASSES
+from shared_data import SHARED
 
-SHARED = Path(__file__).resolve().parents[3] / "shared"
 REPLICA_CLASSES = SHARED / "reference" / "replica_classes_1_to_101.json"
 REPLICA_INFO = SHARED / "realdata" / "replica_info_semantic"
 

@@ -24,8 +24,8 @@ from seggaussian.io.ply import (
     write_vertex_table,
 )
 from seggaussian.io.validate import validate_gaussians
+from shared_data import REALDATA
 
-REALDATA = Path(__file__).resolve().parents[4] / "shared" / "realdata"
 TRAIN_1000 = REALDATA / "loadersgl_train-1000.ply"
 DONUT = REALDATA / "v3dg_donut_fused_sh0.ply"
 needs_realdata = pytest.mark.skipif(not TRAIN_1000.exists() or not DONUT.exists(),

@@ -12,7 +12,7 @@ Directions checked:
 * our writers (compressed PLY, .splat, SPZ v2/v3/v4, .ksplat at compression levels 0/1/2 and SH degrees
   0-3) -> the reference reads our file, and its decode equals ours (the reference cannot write .ksplat,
   so this is the only direction for it);
-* real PLYs from the open web (/work/shared/realdata) converted by the reference to every format:
+* real PLYs from the open web (../shared/realdata, or $SEGGAUSSIAN_SHARED/realdata) converted by the reference to every format:
   counts and bounds of our decode agree with the reference's;
 * files written by other programs (web_splats/splat_transform_fixtures: the reference repository's own
   fixtures: SPZ v3/v4 from Niantic's library via @adobe/spz, a hand-assembled level-0 .ksplat with a bucket,
@@ -47,16 +47,14 @@ from seggaussian.io.formats import detect_format, read_gaussians, read_gaussians
 from seggaussian.io.compressed_ply import morton_order
 from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, bucket_layout, write_ksplat
 from seggaussian.io.ply import read_vertex_table, vertex_table_to_gaussians, write_gaussians_ply
+from shared_data import REALDATA, WEB_SPLATS
 
 ROOT = Path(__file__).resolve().parents[3]
 CLI = ROOT / ".node" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
-REALDATA_DIRS = (ROOT.parent / "shared" / "realdata", Path("/work/shared/realdata"))
+REALDATA_DIRS = (REALDATA,)
 REAL_FILES = ("loadersgl_train-1000.ply", "v3dg_donut_fused_sh0.ply")
-#: Splat files from the open web (not in the repository: fetched data stays in shared/). The environment variable
-#: SEGGAUSSIAN_WEB_SPLATS points elsewhere (a checkout without the shared folder beside it).
-WEB_SPLAT_DIRS = tuple(dict.fromkeys(
-    [Path(p) for p in os.environ.get("SEGGAUSSIAN_WEB_SPLATS", "").split(os.pathsep) if p]
-    + [(ROOT.parent / "shared" / "realdata" / "web_splats").resolve(), Path("/work/shared/realdata/web_splats")]))
+#: Splat files from the open web (not in the repository: fetched data stays in shared/, see tests/shared_data.py).
+WEB_SPLAT_DIRS = (WEB_SPLATS,)
 #: name -> (format detected by content, Gaussian count from the file's header; see web_splats/SOURCES.md)
 WEB_SPLATS = {"guitar.compressed.ply": ("compressed_ply", 90_854), "biker.compressed.ply": ("compressed_ply", 152_746),
               "biker.spz": ("spz", 152_746), "two-splats.spz": ("spz", 2)}
@@ -303,7 +301,7 @@ def test_real_files_counts_and_bounds_agree_with_the_reference(reference_files):
     files, sources = reference_files
     real = [key for key in files if key.startswith("real_")]
     if not real:
-        pytest.skip("real PLYs not found in ../shared/realdata or /work/shared/realdata")
+        pytest.skip(f"real PLYs not found in {REALDATA}")
     for key in real:
         path = files[key]
         loaded = read_gaussians(path, on_invalid="report")

@@ -9,8 +9,9 @@ import pytest
 
 from seggaussian.constants import IGNORE_LABEL, read_class_names
 from seggaussian.sources.replica import ReplicaInfo
+from shared_data import REALDATA
 
-REAL = Path(__file__).resolve().parents[4] / "shared" / "realdata" / "replica_info_semantic"
+REAL = REALDATA / "replica_info_semantic"
 
 # Classes used by each room's objects (id_to_label), split by whether they map onto top-100.
 EXPECTED = {

@@ -13,11 +13,10 @@ from seggaussian.gaussians import Gaussians
 from seggaussian.io.ply import (
     PlyFormatError, read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile, write_gaussians_ply,
 )
+from shared_data import REALDATA
 
-REALDATA = next((p for p in (Path(__file__).resolve().parents[3] / ".." / "shared" / "realdata",
-                             Path("/work/shared/realdata")) if p.is_dir()), None)
-REAL_PLYS = sorted(REALDATA.glob("*.ply")) if REALDATA else []
-needs_realdata = pytest.mark.skipif(len(REAL_PLYS) < 2, reason="real 3DGS PLYs not found in ../shared/realdata")
+REAL_PLYS = sorted(REALDATA.glob("*.ply")) if REALDATA.is_dir() else []
+needs_realdata = pytest.mark.skipif(len(REAL_PLYS) < 2, reason=f"real 3DGS PLYs not found in {REALDATA}")
 #: Mutants per CI run: the whole campaign (reading one mutant takes well under a millisecond).
 CI_MUTANTS = 1600
 
