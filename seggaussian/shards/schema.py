@@ -50,3 +50,7 @@ VIEWS_SCHEMA = pa.schema([
 ])
 
 SCHEMAS = {GAUSSIANS_TABLE: GAUSSIANS_SCHEMA, VIEWS_TABLE: VIEWS_SCHEMA}
+
+#: Columns holding encoded images (``binary``: PNG/JPEG bytes), declared as Hugging Face ``Image`` features in
+#: the dataset card (``seggaussian.shards.card``) so ``load_dataset`` decodes them; the shards store them as is.
+IMAGE_COLUMNS = {VIEWS_TABLE: ("rgb", "semantic", "instance")}

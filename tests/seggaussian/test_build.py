@@ -107,9 +107,26 @@ def test_build_split_and_read_back(built):
 
 def test_load_dataset_if_installed(built, tmp_path):
     datasets = pytest.importorskip("datasets")
+    from PIL import Image
+
     ds, _ = built
     loaded = datasets.load_dataset(str(ds), "views", cache_dir=str(tmp_path))
     assert set(loaded) == {"train", "val", "xval"}
+    formats = set()
+    for split in ("train", "val", "xval"):
+        (scene_id,) = shards.list_scenes(ds, split)
+        views = {v.name: v for v in shards.read_scene(ds, split, scene_id).views}
+        assert loaded[split].num_rows == len(views)
+        for row in loaded[split]:  # decoded images, pixel for pixel what the read API returns
+            view = views[row["view_name"]]
+            formats.add(row["rgb_format"])
+            assert all(isinstance(row[c], Image.Image) for c in ("rgb", "semantic", "instance"))
+            np.testing.assert_array_equal(np.asarray(row["rgb"]), view.rgb)
+            for column in ("semantic", "instance"):
+                assert row[column].mode in ("I;16", "I")
+                np.testing.assert_array_equal(np.asarray(row[column]).astype(np.int32), getattr(view, column))
+        assert any((np.asarray(r["semantic"]) == IGNORE_LABEL).any() for r in loaded[split])
+    assert formats and formats <= {"jpeg", "png"}  # synthetic sources: their JPEGs, stored unchanged (PIL = cv2 here)
 
 
 def test_rerun_changes_nothing_and_setting_change_reruns_downstream(built, raw):

@@ -6,6 +6,7 @@ import json
 import subprocess
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -37,6 +38,7 @@ def _views(rng, count, w=24, h=16):
         sem = rng.integers(0, 100, (h, w)).astype(np.int32)
         sem[0] = IGNORE_LABEL
         inst = rng.integers(0, 3000, (h, w)).astype(np.int32)
+        inst[-1, -1] = IGNORE_LABEL - 1  # the top bits of the 16-bit maps
         rows.append(shards.ViewRow(f"frame{i:06d}.jpg", "novel" if i % 8 == 7 else "train", cam,
                                    shards.encode_rgb(rgb), shards.encode_label_map(sem),
                                    shards.encode_label_map(inst), float((sem != IGNORE_LABEL).mean())))
@@ -186,6 +188,117 @@ def test_load_dataset_if_installed(tmp_path):
                                                          "val": str(ds / "gaussians" / "val-*.parquet")},
                                    cache_dir=str(tmp_path / "hf"))
     assert loaded["train"].num_rows == 40 and loaded["val"].num_rows == 60
+
+
+def _assert_views_match(loaded_split, records: dict) -> int:
+    """Every row of a ``load_dataset(..., "views")`` split decodes to the pixels ``read_scene`` returns;
+    ``records``: scene id -> SceneRecord. Returns the number of rows checked."""
+    from PIL import Image
+
+    by_name = {(sid, v.name): v for sid, rec in records.items() for v in rec.views}
+    for row in loaded_split:
+        view = by_name.pop((row["scene_id"], row["view_name"]))
+        for column in ("rgb", "semantic", "instance"):
+            assert isinstance(row[column], Image.Image), column
+        assert row["rgb"].mode == "RGB"
+        np.testing.assert_array_equal(np.asarray(row["rgb"]), view.rgb)
+        for column in ("semantic", "instance"):
+            image = row[column]
+            assert image.mode in ("I;16", "I"), image.mode  # 16 bit, never 8
+            assert image.size == (view.camera.width, view.camera.height)
+            np.testing.assert_array_equal(np.asarray(image).astype(np.int32), getattr(view, column))
+    assert not by_name, f"views missing from load_dataset: {sorted(by_name)}"
+    return len(loaded_split)
+
+
+def test_load_dataset_views_decode_images(tmp_path):
+    """``load_dataset(DATASET, "views")`` (the card's configs and features) gives PIL images equal to what
+    ``read_scene`` decodes: RGB exactly, the 16-bit label maps exactly (65535 and 65534 included)."""
+    datasets = pytest.importorskip("datasets")
+    rng = np.random.default_rng(5)
+    scenes, truth, config = _write_fragments(tmp_path, rng, {"a": 40, "b": 60, "c": 10})
+    ds = tmp_path / "ds"
+    assignments = {"a": "train", "b": "train", "c": "val"}
+    shards.write_dataset(ds, assignments, scenes, config, ["x"], "h")
+    views = datasets.load_dataset(str(ds), "views", cache_dir=str(tmp_path / "hf"))
+    assert set(views) == {"train", "val"}
+    for split in ("train", "val"):
+        records = {s: shards.read_scene(ds, split, s) for s in shards.list_scenes(ds, split)}
+        assert _assert_views_match(views[split], records) == 3 * len(records)
+    sem = np.asarray(views["train"][0]["semantic"])
+    inst = np.asarray(views["train"][0]["instance"])
+    assert (sem == IGNORE_LABEL).any() and (inst == IGNORE_LABEL - 1).any()
+    # the raw pixels are the ones written (not only equal to our own decoder's)
+    rgb, sem_truth, inst_truth, _ = truth["a"][1][0]
+    first = next(r for r in views["train"] if r["scene_id"] == "a")
+    np.testing.assert_array_equal(np.asarray(first["rgb"]), rgb)
+    np.testing.assert_array_equal(np.asarray(first["semantic"]).astype(np.int32), sem_truth)
+    np.testing.assert_array_equal(np.asarray(first["instance"]).astype(np.int32), inst_truth)
+    # the other columns keep their types; the card's features match the shards' Arrow schemas
+    features = views["train"].features
+    inferred = datasets.Features.from_arrow_schema(pq.read_schema(ds / "views" / "train-00000-of-00001.parquet"))
+    assert set(features) == set(inferred)
+    for name in features:
+        if name in ("rgb", "semantic", "instance"):
+            assert isinstance(features[name], datasets.Image) and inferred[name] == datasets.Value("binary")
+        else:
+            assert features[name] == inferred[name], name
+    gaussians = datasets.load_dataset(str(ds), "gaussians", cache_dir=str(tmp_path / "hf"))
+    inferred = datasets.Features.from_arrow_schema(pq.read_schema(ds / "gaussians" / "train-00000-of-00001.parquet"))
+    assert gaussians["train"].features == inferred
+    assert gaussians["train"].num_rows == 100 and gaussians["val"].num_rows == 10
+    np.testing.assert_array_equal(np.asarray(gaussians["val"]["means"], np.float32), truth["c"][0].means)
+
+
+def test_image_columns_stay_binary_and_old_cards_still_read(tmp_path):
+    """The shards keep the 1.0 layout: image columns are plain ``binary`` (PNG/JPEG bytes), no ``huggingface``
+    schema metadata; only the card declares them as images. A dataset written before the card declared
+    features (old card) reads the same through the read API, and ``load_dataset`` gives it bytes."""
+    rng = np.random.default_rng(8)
+    scenes, truth, config = _write_fragments(tmp_path, rng, {"a": 30})
+    ds = tmp_path / "ds"
+    shards.write_dataset(ds, {"a": "train"}, scenes, config, ["x"], "h")
+    schema = pq.read_schema(ds / "views" / "train-00000-of-00001.parquet")
+    for column in ("rgb", "semantic", "instance"):
+        assert schema.field(column).type == pa.binary() and not schema.field(column).nullable
+    assert b"huggingface" not in (schema.metadata or {})
+    card = (ds / "README.md").read_text()
+    header = card.split("---\n")[1]
+    for column in ("rgb", "semantic", "instance"):
+        assert f"  - name: {column}\n    dtype: image\n" in header
+    # an old card: configs only, no dataset_info
+    old_header = header.split("dataset_info:\n")[0] + "tags:\n" + header.split("\ntags:\n")[1]
+    (ds / "README.md").write_text("---\n" + old_header + "---\n\n# old card\n")
+    rec = shards.read_scene(ds, "train", "a", verify=True)
+    for v, (rgb, sem, inst, _) in zip(rec.views, truth["a"][1]):
+        np.testing.assert_array_equal(v.rgb, rgb)
+        np.testing.assert_array_equal(v.semantic, sem)
+        np.testing.assert_array_equal(v.instance, inst)
+    datasets = pytest.importorskip("datasets")
+    views = datasets.load_dataset(str(ds), "views", cache_dir=str(tmp_path / "hf"))
+    row = views["train"][0]
+    assert isinstance(row["rgb"], bytes)
+    np.testing.assert_array_equal(shards.decode_label_map(row["semantic"]), rec.views[0].semantic)
+    # rewriting the dataset restores the card (the shards stay untouched)
+    mtimes = {p: p.stat().st_mtime_ns for p in ds.rglob("*.parquet")}
+    shards.write_dataset(ds, {"a": "train"}, scenes, config, ["x"], "h")
+    assert (ds / "README.md").read_text() == card
+    assert {p: p.stat().st_mtime_ns for p in ds.rglob("*.parquet")} == mtimes
+
+
+def test_card_features_follow_the_schemas():
+    from seggaussian.shards import card
+
+    lines = card.feature_lines("views")
+    assert lines[:2] == ["- name: scene_id", "  dtype: string"]
+    assert "\n".join(lines).count("dtype: image") == 3
+    i = lines.index("- name: K")
+    assert lines[i + 1:i + 3] == ["  sequence: float64", "  length: 9"]
+    g = card.feature_lines("gaussians")
+    i = g.index("- name: sh")
+    assert g[i + 1] == "  sequence: float32" and not g[i + 2].startswith("  length")
+    with pytest.raises(ValueError, match="no Hugging Face dtype"):
+        card._dtype(pa.date32())
 
 
 def test_label_map_encoding_and_errors(tmp_path):
