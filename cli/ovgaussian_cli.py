@@ -12,6 +12,7 @@ COMMANDS = {
     "bench": "cli.ov_bench:command",
     "bench-suite": "cli.ov_bench_suite:command",
     "predict": "cli.ov_predict:command",
+    "view": "cli.ov_view:command",
 }
 
 

@@ -16,6 +16,7 @@ encoder, the model folder, the template and the names.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -89,14 +90,22 @@ def _quiet_transformers() -> None:
     hf_logging.disable_progress_bar()
 
 
-def encode_minilm(prompts: Sequence[str], model_path: Path, batch_size: int) -> "torch.Tensor":
-    """Sentence embeddings ``[C, 384]`` of the prompts with the MiniLM at ``model_path``."""
+@functools.lru_cache(maxsize=2)
+def _load_minilm(model_path: str):
+    """(tokenizer, model in eval mode) of the MiniLM at ``model_path``, loaded once per process: an interactive
+    query (``ovgaussian view``) encodes a few words each time, and reloading the weights cost 0.14-0.52 s a query."""
     from transformers import AutoModel, AutoTokenizer  # heavy optional dependency: lazy
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     _quiet_transformers()
-    tokenizer = AutoTokenizer.from_pretrained(str(model_path), local_files_only=True)
-    model = AutoModel.from_pretrained(str(model_path), local_files_only=True).eval()
+    tokenizer = AutoTokenizer.from_pretrained(model_path, local_files_only=True)
+    model = AutoModel.from_pretrained(model_path, local_files_only=True).eval()
+    return tokenizer, model
+
+
+def encode_minilm(prompts: Sequence[str], model_path: Path, batch_size: int) -> "torch.Tensor":
+    """Sentence embeddings ``[C, 384]`` of the prompts with the MiniLM at ``model_path``."""
+    tokenizer, model = _load_minilm(str(model_path))
     chunks = []
     with torch.no_grad():
         for start in range(0, len(prompts), batch_size):

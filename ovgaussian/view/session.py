@@ -1,0 +1,113 @@
+"""``ovgaussian view`` as one library call: load the scene and the run, build the viewer, then serve or export.
+
+The run is used exactly as ``ovgaussian predict`` uses it (``load_model_predictor``: its model, text encoder and
+text cache; ``encode_gaussians`` for the semantic vectors); nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+from ovgaussian.checkpoint import CONFIG_NAME, read_json
+from ovgaussian.predict import load_model_predictor
+from ovgaussian.view.app import QueryViewer
+from ovgaussian.view.config import ViewConfig
+from ovgaussian.view.field import QueryField
+from ovgaussian.view.scene import load_view_scene
+from ovgaussian.view.state import ViewerState
+from seggaussian.constants import read_class_names
+
+
+def run_vocabulary(run: Path) -> tuple[str, ...]:
+    """The class names a run was trained on, in its column order (``config.json``: ``vocabulary.names``, else the
+    top-100 names of ``vocabulary.class_ids``); ``()`` when it records neither."""
+    vocabulary = read_json(Path(run) / CONFIG_NAME).get("vocabulary", {})
+    names = tuple(vocabulary.get("names") or ())
+    if names:
+        return names
+    ids = vocabulary.get("class_ids") or ()
+    all_names = read_class_names()
+    return tuple(all_names[int(i)] for i in ids if 0 <= int(i) < len(all_names))
+
+
+def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], None] | None = None) -> ViewerState:
+    """The scene of ``config`` and, with a run (or a ready ``predictor``), its language field and vocabulary."""
+    say = progress or (lambda _message: None)
+    scene = load_view_scene(config.scene, config.dataset, config.scene_id, config.frame, config.on_invalid)
+    say(f"view: {len(scene.gaussians):,} Gaussians from {scene.source}")
+    if predictor is None and config.run is None:
+        if config.vocabulary or config.queries:
+            raise ValueError(f"{scene.source}: --vocab and --query need a trained run (--run RUN)")
+        return ViewerState(scene)
+    if predictor is None:
+        predictor = load_model_predictor(config.run, config.checkpoint, device=config.device)
+    vocabulary = tuple(config.vocabulary)
+    if not vocabulary and config.run is not None:
+        vocabulary = run_vocabulary(config.run)
+    if not vocabulary:
+        raise ValueError(f"{config.run}: the run records no training vocabulary; give the class names with --vocab")
+    start = time.perf_counter()
+    vectors = predictor.encode_gaussians(scene.gaussians)
+    field = QueryField.from_predictor(predictor, vectors)
+    state = ViewerState(scene, field, vocabulary, config.negatives)
+    field.scores(state.negatives)  # the text encoder's first load, and the negatives' columns, before any query
+    say(f"view: language field of {len(field):,} Gaussians ready in {time.perf_counter() - start:.1f} s")
+    return state
+
+
+class ViewReport(NamedTuple):
+    """What ``run_view`` did: the JSON summary and, for ``--export``, the file written."""
+
+    summary: dict
+    export: Path | None = None
+
+
+def _summary(config: ViewConfig, state: ViewerState, viewer) -> dict:
+    return {
+        "source": state.scene.source,
+        "num_gaussians": int(len(state.scene.gaussians)),
+        "details": state.scene.details,
+        "run": None if config.run is None else str(config.run),
+        "modes": list(state.modes),
+        "mode": viewer.mode,
+        "queries": list(viewer.queries),
+        "threshold": float(viewer.threshold_input.value),
+        "vocabulary": list(state.vocabulary),
+        "negatives": list(state.negatives) if state.field is not None else [],
+        "status": None if viewer.last is None else viewer.last.status,
+    }
+
+
+def run_view(config: ViewConfig, *, predictor=None, progress: Callable[[str], None] | None = None,
+             stop: threading.Event | None = None, on_ready: Callable | None = None) -> ViewReport:
+    """Serve the viewer until ``stop`` is set or Ctrl-C (``KeyboardInterrupt``), or with ``config.export`` write
+    the file and return at once. ``on_ready(viewer)`` is called once the server is up (its URL is known)."""
+    if config.export is not None and Path(config.export).suffix.lower() not in (".html", ".viser"):
+        raise ValueError(f"{config.export}: export to .html (self-contained page) or .viser (viser recording)")
+    state = build_state(config, predictor, progress)
+    exporting = config.export is not None
+    viewer = QueryViewer(state, host="127.0.0.1" if exporting else config.host, port=0 if exporting else config.port,
+                         mode=config.mode, queries=config.queries, threshold=config.threshold)
+    try:
+        summary = _summary(config, state, viewer)
+        if exporting:
+            size = viewer.export(config.export)
+            summary.update(export=str(config.export), export_bytes=size)
+            return ViewReport(summary, Path(config.export))
+        summary.update(url=viewer.url, host=config.host, port=viewer.port)
+        if on_ready is not None:
+            on_ready(viewer)
+        started = time.monotonic()
+        try:
+            while not (stop is not None and stop.is_set()):
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass
+        summary.update(_summary(config, state, viewer), url=viewer.url, host=config.host, port=viewer.port,
+                       served_seconds=round(time.monotonic() - started, 1))
+        return ViewReport(summary)
+    finally:
+        viewer.stop()
