@@ -192,7 +192,7 @@ def markdown(result: dict) -> str:
         f"| query -> recoloured buffer received (target <= {result['target_s']:.1f} s) | {q['median']:.3f} | "
         f"{q['max']:.3f} |",
         f"| of which text embedding + scoring + relevancy + colours | {c['median']:.3f} | {c['max']:.3f} |",
-        f"| of which the text encoder alone (MiniLM, loaded per call by ovgaussian.text) | {e['median']:.3f} | "
+        f"| of which the text encoder alone (MiniLM, loaded once per process by ovgaussian.text) | {e['median']:.3f} | "
         f"{e['max']:.3f} |",
         f"| query -> received, text encoder excluded | {w['median']:.3f} | {w['max']:.3f} |",
         f"| threshold moved -> buffer received | {t['median']:.3f} | {t['max']:.3f} |",
