@@ -22,7 +22,7 @@ from ovgaussian.predict_config import PredictConfig
                    "or .compressed.ply / .splat / .spz / .ksplat (class colours only; see --format).")
 @config_option(PredictConfig, "output_format", "--format", "output_format",
                type=click.Choice(["ply", "compressed_ply", "splat", "spz", "ksplat"]), default=None)
-@config_option(PredictConfig, "spz_version", "--spz-version", type=click.Choice(["2", "3", "4"]), default="4",
+@config_option(PredictConfig, "spz_version", "--spz-version", type=click.Choice(["2", "3", "4"]), default="3",
                show_default=True)
 @config_option(PredictConfig, "color_by", "--color-by", "color_by", type=click.Choice(["semantic", "none"]),
                default="semantic", show_default=True)

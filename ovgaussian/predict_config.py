@@ -32,8 +32,8 @@ class PredictConfig:
     output_format: Optional[Literal["ply", "compressed_ply", "splat", "spz", "ksplat"]] = None
     """Format of the output file; None takes it from the name (.compressed.ply, .splat, .spz, .ksplat, else PLY).
     Only PLY keeps the ``semantic`` property; the other formats carry the class colours alone."""
-    spz_version: Literal[2, 3, 4] = 4
-    """SPZ version written when the output is SPZ."""
+    spz_version: Literal[2, 3, 4] = 3
+    """SPZ version written when the output is SPZ (3: the newest the web viewers read; 4 writes zstd streams)."""
     min_alpha: float = DEFAULT_MIN_ALPHA
     """Pixels of label-map PNGs whose accumulated alpha is below this are written as IGNORE (0 in the colour PNG)."""
     blend_top_k: int = 16

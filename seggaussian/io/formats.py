@@ -34,7 +34,7 @@ from seggaussian.io.ply import (gaussians_to_vertex_table, read_gaussians_ply, r
                                 vertex_table_to_gaussians, write_vertex_table)
 from seggaussian.io.splat import looks_like_splat, read_splat, write_splat
 from seggaussian.io.splat_common import FORMAT_TITLES, SplatFormatError
-from seggaussian.io.spz import GZIP_MAGIC, SPZ_MAGIC_BYTES, read_spz, spz_payload_head, write_spz
+from seggaussian.io.spz import DEFAULT_WRITE_VERSION, GZIP_MAGIC, SPZ_MAGIC_BYTES, read_spz, spz_payload_head, write_spz
 from seggaussian.io.validate import InvalidGaussiansError, validate_gaussians
 
 __all__ = ["FORMATS", "SplatFormat", "LoadedSplat", "detect_format", "read_gaussians", "read_gaussians_raw",
@@ -157,7 +157,7 @@ def format_for_output(path: str | os.PathLike, fmt: str | None = None) -> str:
 
 
 def write_gaussians(path: str | os.PathLike, gaussians: Gaussians, fmt: str | None = None, *,
-                    spz_version: int = 4, ksplat_level: int = 1, ply_comments: tuple[str, ...] = ()) -> str:
+                    spz_version: int = DEFAULT_WRITE_VERSION, ksplat_level: int = 1, ply_comments: tuple[str, ...] = ()) -> str:
     """Write ``gaussians`` atomically in ``fmt`` (or the format of the name) -> the format written.
 
     Only ``ply`` keeps extras (labels); the other formats hold the splat attributes alone.

@@ -49,7 +49,7 @@ SH go through one-pass compiled loops (``seggaussian.io.spz_kernels``, the frame
 pass), bit-identical to the numpy references kept here (``decode_*_reference``); the rest is numpy on whole
 blocks.
 
-Writing: versions 2 and 3 (gzip) and 4 (zstd), 12 fractional bits; extras are dropped. zstd comes from
+Writing: versions 2 and 3 (gzip; 3 by default, what web viewers read) and 4 (zstd), 12 fractional bits; extras are dropped. zstd comes from
 the ``zstandard`` package.
 """
 
@@ -80,6 +80,10 @@ GZIP_MAGIC = b"\x1f\x8b"
 #: Versions read; versions written are 2, 3 and 4.
 SPZ_VERSIONS = (1, 2, 3, 4)
 WRITE_VERSIONS = (2, 3, 4)
+#: Version written when none is asked for: 3, the newest that the web viewers read (Spark 2.2.0 reads 2 and 3,
+#: GaussianSplats3D 0.4.7 only 2; neither reads 4's zstd streams: tests/seggaussian/io/test_web_viewer.py), and
+#: Niantic's library reads it too. ``--spz-version 4`` / ``version=4`` writes the zstd layout.
+DEFAULT_WRITE_VERSION = 3
 LEGACY_HEADER = struct.Struct("<IIIBBBB")              # 16 bytes
 V4_HEADER = struct.Struct("<IIIBBBBI12s")              # 32 bytes
 TOC_ENTRY = struct.Struct("<QQ")
@@ -441,7 +445,7 @@ def _encode_rotations_v3(quats: np.ndarray) -> np.ndarray:
     return packed.astype("<u4")
 
 
-def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
+def encode_spz(gaussians: Gaussians, version: int = DEFAULT_WRITE_VERSION) -> bytes:
     """``Gaussians`` (RDF) -> the bytes of an SPZ file of ``version`` (2, 3: gzip; 4: zstd streams), stored in RUB."""
     if version not in WRITE_VERSIONS:
         raise ValueError(f"SPZ version {version} cannot be written (choose one of {WRITE_VERSIONS})")
@@ -485,6 +489,6 @@ def encode_spz(gaussians: Gaussians, version: int = 4) -> bytes:
     return header + toc + b"".join(compressed)
 
 
-def write_spz(path: str | os.PathLike, gaussians: Gaussians, version: int = 4) -> None:
+def write_spz(path: str | os.PathLike, gaussians: Gaussians, version: int = DEFAULT_WRITE_VERSION) -> None:
     """Write ``gaussians`` (RDF) as an SPZ file of ``version`` (stored in RUB), atomically (extras dropped)."""
     write_bytes_atomic(path, encode_spz(gaussians, version))

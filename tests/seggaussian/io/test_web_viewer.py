@@ -83,8 +83,8 @@ WIDTH, HEIGHT = 320, 240
 #: Focal length, pixels: a 56-degree horizontal field of view, the "F" with a margin on every side.
 FOCAL = 300.0
 
-#: The formats rendered, as (our writer's format, SPZ version or None, Spark's file type). SPZ version 4 (our
-#: default, zstd) is not read by Spark 2.2.0 (test_spark_refuses_spz_version_4); versions 2 and 3 are gzip.
+#: The formats rendered, as (our writer's format, SPZ version or None, Spark's file type). SPZ version 4 (zstd;
+#: our default is 3 for that reason) is not read by Spark 2.2.0 (test_spark_refuses_spz_version_4); versions 2 and 3 are gzip.
 FORMAT_CASES = {
     "ply": ("ply", None, "ply"),
     "compressed_ply": ("compressed_ply", None, "ply"),
