@@ -6,6 +6,8 @@ text cache; ``encode_gaussians`` for the semantic vectors); nothing is downloade
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import threading
 import time
 from pathlib import Path
@@ -81,6 +83,26 @@ def _summary(config: ViewConfig, state: ViewerState, viewer) -> dict:
     }
 
 
+#: How often the serving loop looks at its stop event (seconds): the delay between Ctrl-C and the shutdown.
+STOP_POLL_SECONDS = 0.2
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: threading.Event):
+    """While inside, Ctrl-C and SIGTERM only set ``stop`` (main thread only; the handlers are restored after), so an
+    interrupt never lands inside the server's or the GUI's code half-way through a call, nor between printing the
+    URL and serving."""
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def run_view(config: ViewConfig, *, predictor=None, progress: Callable[[str], None] | None = None,
              stop: threading.Event | None = None, on_ready: Callable | None = None) -> ViewReport:
     """Serve the viewer until ``stop`` is set or Ctrl-C (``KeyboardInterrupt``), or with ``config.export`` write
@@ -98,14 +120,12 @@ def run_view(config: ViewConfig, *, predictor=None, progress: Callable[[str], No
             summary.update(export=str(config.export), export_bytes=size)
             return ViewReport(summary, Path(config.export))
         summary.update(url=viewer.url, host=config.host, port=viewer.port)
-        if on_ready is not None:
-            on_ready(viewer)
         started = time.monotonic()
-        try:
-            while not (stop is not None and stop.is_set()):
-                time.sleep(0.2)
-        except KeyboardInterrupt:
-            pass
+        with _stop_on_signals(stop or threading.Event()) as stopping:
+            if on_ready is not None:
+                on_ready(viewer)
+            while not stopping.wait(STOP_POLL_SECONDS):
+                pass
         summary.update(_summary(config, state, viewer), url=viewer.url, host=config.host, port=viewer.port,
                        served_seconds=round(time.monotonic() - started, 1))
         return ViewReport(summary)
