@@ -85,7 +85,7 @@ def cases(scene, fitted: Gaussians, fitted_short: Gaussians, oracle: Gaussians, 
     out["fit-half-room"] = fitted.subset(np.flatnonzero(fitted.means[:, 0] < centre[0]))
     out["fit-shift-2cm"] = moved(fitted, eye, 1.0, np.array([0.02, 0.0, 0.0]), centre)
     for d in (0.25, 0.5, 1.0):
-        out[f"shift-{d:g}m"] = moved(fitted, eye, 1.0, np.array([d, 0.0, 0.0]) / np.sqrt(1.0), centre)
+        out[f"shift-{d:g}m"] = moved(fitted, eye, 1.0, np.array([d, 0.0, 0.0]), centre)
     for s in (0.33, 0.8, 1.25):
         out[f"scale-{s:g}"] = moved(fitted, eye, s, zero, centre)
     for deg in (10, 30, 90):

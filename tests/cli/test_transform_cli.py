@@ -75,10 +75,17 @@ def test_a_bad_transform_is_one_line(splat, tmp_path, content, needle):
     assert not (tmp_path / "x.png").exists()
 
 
-def test_render_with_transform_sees_the_moved_scene(splat, tmp_path):
+def test_render_with_transform_records_and_frames_the_moved_scene(splat, tmp_path):
     path, _ = splat
     out = tmp_path / "a.png"
     result = CliRunner().invoke(main, ["render", str(path), "--out", str(out), "--width", "32", "--height", "24",
                                        "--transform", "frame:RUB", "--json"])
     assert result.exit_code == 0, result.output
-    assert json.loads(result.output)["frame"]["reflection"] is False and out.is_file()
+    frame = json.loads(result.output)["frame"]
+    assert frame["reflection"] is False and out.is_file()
+    np.testing.assert_allclose(frame["world_from_splat"], np.diag([1.0, -1.0, -1.0, 1.0]), atol=1e-12)
+    plain = CliRunner().invoke(main, ["render", str(path), "--out", str(tmp_path / "b.png"), "--width", "32",
+                                      "--height", "24", "--json"])
+    assert plain.exit_code == 0 and json.loads(plain.output)["frame"] == {"transform": None}
+    # the orbit camera looks at the moved scene: its pose differs from the unmoved scene's
+    assert json.loads(result.output)["camera"]["viewmat"] != json.loads(plain.output)["camera"]["viewmat"]

@@ -20,6 +20,7 @@ from seggaussian.io.ply import write_gaussians_ply
 from seggaussian.oracle import sample_oracle_gaussians
 from seggaussian.sources.layout import find_scene_layout, reader
 from seggaussian.sources.synthetic import SynthConfig, synthesize
+from frames_common import axis_rotation
 
 #: Oracle Gaussians of the test room (enough to fix the pose to millimetres, few enough for a fast test).
 NUM_GAUSSIANS = 20_000
@@ -27,14 +28,6 @@ NUM_GAUSSIANS = 20_000
 #: scale within this relative error.
 MAX_ERROR_M = 0.03
 MAX_SCALE_ERROR = 0.01
-
-
-def _rotation(axis, degrees: float) -> np.ndarray:
-    """Rodrigues: the rotation by ``degrees`` about ``axis``."""
-    k = np.asarray(axis, float) / np.linalg.norm(axis)
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    t = np.radians(degrees)
-    return np.eye(3) + np.sin(t) * kx + (1 - np.cos(t)) * kx @ kx
 
 
 def _similarity(scale: float, rotation: np.ndarray, centre: np.ndarray, offset) -> np.ndarray:
@@ -66,7 +59,7 @@ def room(tmp_path_factory):
     g, _ = sample_oracle_gaussians(scene.points, scene.colors, scene.semantic, scene.faces,
                                    OracleConfig(num_gaussians=NUM_GAUSSIANS), np.random.default_rng(0),
                                    tuple(v.camera for v in scene.views))
-    rotation = _rotation([0.0, 1.0, 0.0], 37.0) @ _rotation([1.0, 2.0, 3.0], 90.0)
+    rotation = axis_rotation([0.0, 1.0, 0.0], 37.0) @ axis_rotation([1.0, 2.0, 3.0], 90.0)
     splat_from_world = _similarity(0.33, rotation, g.means.astype(np.float64).mean(axis=0), [0.0, 0.0, 0.0])
     splat = root / "gsplat_frame.ply"
     write_gaussians_ply(splat, _moved(g, splat_from_world))
@@ -136,7 +129,7 @@ def test_library_recovers_a_nerfstudio_like_similarity_onto_a_mesh_file(room, tm
     assert o3d.io.write_triangle_mesh(str(mesh_path), mesh)
     target = load_target(mesh_path)
     assert target.faces is not None and len(target.faces) == len(scene.faces)
-    splat_from_world = _similarity(0.1, _rotation([0.3, -1.0, 0.5], 140.0), np.array([1.0, -2.0, 0.5]),
+    splat_from_world = _similarity(0.1, axis_rotation([0.3, -1.0, 0.5], 140.0), np.array([1.0, -2.0, 0.5]),
                                    [0.2, 0.1, -0.3])
     result = align_gaussians(_moved(room["gaussians"], splat_from_world), target)
     assert result.failure is None, result.failure
@@ -189,7 +182,7 @@ def test_too_transparent_splat_is_refused_before_registering(room):
 
 
 def test_similarity_parts_and_the_rotation_sets():
-    rot = _rotation([1.0, 2.0, 3.0], 90.0)
+    rot = axis_rotation([1.0, 2.0, 3.0], 90.0)
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = 2.5 * rot, [1.0, 2.0, 3.0]
     scale, r, t = similarity_parts(m)

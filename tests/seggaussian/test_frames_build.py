@@ -24,16 +24,10 @@ from seggaussian.io.ply import write_gaussians_ply
 from seggaussian.oracle import sample_oracle_gaussians
 from seggaussian.sources import scannetpp
 from seggaussian.sources.synthetic import SynthConfig, synthesize
+from frames_common import axis_rotation
 
 #: Label agreement the issue asks of a splat brought home by its transform (against the aligned splat's labels).
 MIN_AGREEMENT = 0.99
-
-
-def _rotation(axis, degrees: float) -> np.ndarray:
-    axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    t = np.radians(degrees)
-    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +89,7 @@ def _gsplat_case(root: Path, scene_id: str, g: Gaussians, folder: Path) -> tuple
 def _nerfstudio_case(g: Gaussians, folder: Path) -> tuple[Gaussians, object]:
     """splatfacto trained on ScanNet++'s transforms.json: data world = the mesh frame with x, y swapped and z
     negated (frame:DRB), then nerfstudio's dataparser transform x = scale * (transform @ [p; 1])."""
-    rot = _rotation([0.3, 1.0, -0.2], 71.0)
+    rot = axis_rotation([0.3, 1.0, -0.2], 71.0)
     transform = np.concatenate([rot, np.array([[0.4], [-1.2], [0.7]])], axis=1)
     scale = 0.21
     (folder / "dataparser_transforms.json").write_text(json.dumps({"transform": transform.tolist(), "scale": scale}))
@@ -107,7 +101,7 @@ def _nerfstudio_case(g: Gaussians, folder: Path) -> tuple[Gaussians, object]:
 
 def _explicit_case(g: Gaussians, folder: Path) -> tuple[Gaussians, object]:
     """Recentred, scaled by 0.33 and turned 90 degrees, as the issue's gsplat-like export."""
-    splat_from_world = Similarity(_rotation([0, 0, 1], 90.0), np.array([-1.1, 0.4, -0.9]), 0.33)
+    splat_from_world = Similarity(axis_rotation([0, 0, 1], 90.0), np.array([-1.1, 0.4, -0.9]), 0.33)
     moved = transform_gaussians(g, splat_from_world)
     return moved, {"world_from_splat": splat_from_world.inverse().matrix.tolist()}
 

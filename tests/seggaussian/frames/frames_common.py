@@ -13,6 +13,14 @@ from seggaussian.gaussians import Gaussians
 from seggaussian.rotations import rotmats_to_quats
 
 
+def axis_rotation(axis, degrees: float) -> np.ndarray:
+    """Rodrigues: the rotation by ``degrees`` about ``axis``."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    t = np.radians(degrees)
+    return np.eye(3) + np.sin(t) * kx + (1 - np.cos(t)) * kx @ kx
+
+
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A proper rotation (det +1), uniform enough for tests (QR of a Gaussian matrix, signs fixed)."""
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))
