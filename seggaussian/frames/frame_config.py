@@ -4,7 +4,6 @@ of what was applied (import report, build record)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -27,12 +26,11 @@ class FrameConfig:
     from_frame: str | None = None
 
 
-def to_scene_frame(gaussians: Gaussians, config: FrameConfig, base_dir: Path | None = None
-                   ) -> tuple[Gaussians, FrameTransform | None]:
+def to_scene_frame(gaussians: Gaussians, config: FrameConfig) -> tuple[Gaussians, FrameTransform | None]:
     """(``gaussians`` moved by the transform ``config`` names, the ``FrameTransform`` or None when there is none)."""
     if config.transform is None and config.from_frame is None:
         return gaussians, None
-    frame = resolve_transform(config.transform, config.from_frame, base_dir=base_dir)
+    frame = resolve_transform(config.transform, config.from_frame)
     if frame is None:
         return gaussians, None
     return transform_gaussians(gaussians, frame.world_from_splat), frame
