@@ -133,7 +133,7 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
     from seggaussian.render.rasterize_numba import blend_fast
     from seggaussian.render.projection_numba import project_gaussians_fast
     from seggaussian.render.sh import sh_to_colors
-    from seggaussian.render.tiles import bin_gaussians
+    from seggaussian.render.tiles import bin_gaussians, bin_gaussians_argsort
 
     scene, viewmat, K = make_scene(num, width, height)
 
@@ -144,22 +144,57 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
 
     cpu: dict = {}
     total = _time(run, repeats, cpu, "forward")
+
+    def run_grad():
+        leaves = {k: v.clone().requires_grad_(True) for k, v in scene.items()}
+        res = rasterize(leaves["means"], leaves["quats"], leaves["log_scales"], leaves["opacity_logits"], viewmat, K,
+                        width, height, sh=leaves["sh"], backend="fast")
+        (res.image.sum() + res.alpha.sum()).backward()
+
+    total_grad = _time(run_grad, repeats, cpu, "forward_backward")
     with torch.no_grad():
-        t0 = time.perf_counter()
-        proj = project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K, width, height)
-        t1 = time.perf_counter()
+        proj_fn = lambda: project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K,  # noqa: E731
+                                                 width, height)
+        projection_s = _time(proj_fn, repeats)
+        proj = proj_fn()
         opac = torch.sigmoid(scene["opacity_logits"])
+        binning_s = _time(lambda: bin_gaussians(proj, width, height, opac), repeats)
+        binning_argsort_s = _time(lambda: bin_gaussians_argsort(proj, width, height, opac), max(1, repeats // 2))
         bins = bin_gaussians(proj, width, height, opac)
-        t2 = time.perf_counter()
         colors = torch.cat([sh_to_colors(scene["sh"], proj.view_dirs).float(), proj.depths.float()[:, None]], 1)
-        t3 = time.perf_counter()
-        blend_fast(proj.means2d.float(), proj.conics.float(), opac, colors, bins)
-        t4 = time.perf_counter()
+        m2, cn = proj.means2d.float(), proj.conics.float()
+        blend_s = _time(lambda: blend_fast(m2, cn, opac, colors, bins), repeats)
+
+    def blend_bwd():  # blending backward alone (forward excluded from the time)
+        leaves = [x.clone().requires_grad_(True) for x in (m2, cn, opac, colors)]
+        acc, alpha = blend_fast(*leaves, bins)
+        loss = acc.sum() + alpha.sum()
+        t0 = time.perf_counter()
+        loss.backward()
+        return time.perf_counter() - t0
+
+    blend_bwd()
+    blend_backward_s = statistics.median(blend_bwd() for _ in range(repeats))
+    means = scene["means"].clone().requires_grad_(True)
+    quats = scene["quats"].clone().requires_grad_(True)
+    scales = scene["log_scales"].clone().requires_grad_(True)
+
+    def proj_bwd():
+        p = project_gaussians_fast(means, quats, scales, viewmat, K, width, height)
+        loss = p.means2d.sum() + p.conics.sum() + p.depths.sum() + p.view_dirs.sum()
+        t0 = time.perf_counter()
+        loss.backward()
+        return time.perf_counter() - t0
+
+    proj_bwd()
+    projection_backward_s = statistics.median(proj_bwd() for _ in range(repeats))
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {"num_gaussians": num, "width": width, "height": height, "forward_s": total, "forward_cpu_s": cpu["forward"],
-            "projection_s": t1 - t0, "binning_s": t2 - t1, "colors_s": t3 - t2, "blend_s": t4 - t3,
+            "forward_backward_s": total_grad, "forward_backward_cpu_s": cpu["forward_backward"],
+            "projection_s": projection_s, "binning_s": binning_s, "binning_argsort_s": binning_argsort_s,
+            "blend_s": blend_s, "blend_backward_s": blend_backward_s, "projection_backward_s": projection_backward_s,
             "intersections": bins.num_intersections, "peak_rss_gb": peak_kb / 1024**2,
-            "threads": torch.get_num_threads()}
+            "threads": torch.get_num_threads(), "load_average_1min": os.getloadavg()[0]}
 
 
 def bench_large(num: int, width: int, height: int, repeats: int) -> dict:
@@ -213,12 +248,16 @@ def write_markdown(path: Path, small: dict, large: dict | None, command: str) ->
         lines += [
             f"## {large['num_gaussians']:,} Gaussians at {large['width']}x{large['height']} (forward, subprocess)",
             "",
-            f"- forward (full rasterize, SH degree 0, no grad): **{large['forward_s']:.2f} s** wall (target <= 5 s), "
-            f"{large['forward_cpu_s']:.2f} s process CPU",
-            f"- stages (one run each): projection {large['projection_s']:.2f} s, binning {large['binning_s']:.2f} s, "
-            f"colours {large['colors_s']:.2f} s, blending {large['blend_s']:.2f} s; "
-            f"{large['intersections']:,} tile intersections",
-            f"- peak RSS of the process: **{large['peak_rss_gb']:.2f} GB** (target <= 4 GB)",
+            f"- forward (full rasterize, SH degree 0, no grad): **{large['forward_s'] * 1e3:.0f} ms** wall, "
+            f"{large['forward_cpu_s'] * 1e3:.0f} ms process CPU; forward+backward **{large['forward_backward_s'] * 1e3:.0f}"
+            f" ms** wall, {large['forward_backward_cpu_s'] * 1e3:.0f} ms CPU",
+            f"- phases (median wall, each timed alone): projection {large['projection_s'] * 1e3:.0f} ms, binning "
+            f"{large['binning_s'] * 1e3:.0f} ms (former argsort binning, same run: {large['binning_argsort_s'] * 1e3:.0f}"
+            f" ms), blending {large['blend_s'] * 1e3:.0f} ms, blending backward {large['blend_backward_s'] * 1e3:.0f} ms,"
+            f" projection backward {large['projection_backward_s'] * 1e3:.0f} ms; {large['intersections']:,} tile "
+            "intersections",
+            f"- peak RSS of the process: **{large['peak_rss_gb']:.2f} GB** (target <= 4 GB); load average "
+            f"{large['load_average_1min']:.1f} at the end of the subprocess",
             "",
         ]
     lines += [

@@ -1,4 +1,4 @@
-"""EWA projection as fused numba kernels (float64, parallel over Gaussians), forward and backward.
+"""EWA projection as fused numba kernels (float64 arithmetic, parallel over Gaussians), forward and backward.
 
 Same mathematics, culling and outputs as ``projection.project_gaussians`` (the torch version, which is
 the reference the tests compare against); the backward is the hand-written chain rule through
@@ -48,24 +48,30 @@ def _unit_quat(q0, q1, q2, q3):
 
 
 @numba.njit(inline="always", **_JIT)
-def _rotmat(w, x, y, z, out):
-    out[0, 0] = 1 - 2 * (y * y + z * z)
-    out[0, 1] = 2 * (x * y - w * z)
-    out[0, 2] = 2 * (x * z + w * y)
-    out[1, 0] = 2 * (x * y + w * z)
-    out[1, 1] = 1 - 2 * (x * x + z * z)
-    out[1, 2] = 2 * (y * z - w * x)
-    out[2, 0] = 2 * (x * z - w * y)
-    out[2, 1] = 2 * (y * z + w * x)
-    out[2, 2] = 1 - 2 * (x * x + y * y)
+def _rotmat(w, x, y, z):
+    """Rotation matrix of the unit quaternion (w, x, y, z) as a row-major 9-tuple."""
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
 
 
 @numba.njit(inline="always", **_JIT)
-def _robust_det(t0, t1, a0, c0):
+def _matmul3(a, b):
+    """a @ b for row-major 9-tuples, each entry summed as (a_i0 b_0j + a_i1 b_1j) + a_i2 b_2j."""
+    return (a[0] * b[0] + a[1] * b[3] + a[2] * b[6], a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
+            a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
+            a[3] * b[0] + a[4] * b[3] + a[5] * b[6], a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
+            a[3] * b[2] + a[4] * b[5] + a[5] * b[8],
+            a[6] * b[0] + a[7] * b[3] + a[8] * b[6], a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
+            a[6] * b[2] + a[7] * b[5] + a[8] * b[8])
+
+
+@numba.njit(inline="always", **_JIT)
+def _robust_det(t00, t01, t02, t10, t11, t12, a0, c0):
     """det(T T^T + d I) as in ``projection.robust_det`` (Cauchy-Binet, no cancellation)."""
-    m01 = t0[0] * t1[1] - t0[1] * t1[0]
-    m02 = t0[0] * t1[2] - t0[2] * t1[0]
-    m12 = t0[1] * t1[2] - t0[2] * t1[1]
+    m01 = t00 * t11 - t01 * t10
+    m02 = t00 * t12 - t02 * t10
+    m12 = t01 * t12 - t02 * t11
     return m01 * m01 + m02 * m02 + m12 * m12 + COV2D_DILATION * (a0 + c0) + COV2D_DILATION * COV2D_DILATION
 
 
@@ -74,25 +80,34 @@ def _clamp_log_scale(v):
     return min(max(v, LOG_SCALE_MIN), LOG_SCALE_FLOAT32_MAX)
 
 
+@numba.njit(inline="always", **_JIT)
+def _f64(x):
+    """An input element as float64 (exact for float32 inputs, which are read without a converted copy)."""
+    return np.float64(x)
+
+
 @numba.njit(parallel=True, **_JIT)
 def _project_forward(means, quats, log_scales, w2c, centre, cam, width, height,
                      means2d, conics, depths, valid, pixel_box, view_dirs):
+    """One fused pass per Gaussian: no temporary arrays (all 3x3 / 2x3 products are scalars in registers)."""
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lxn, lxp = FOV_CLAMP * cx / fx, FOV_CLAMP * (width - cx) / fx
     lyn, lyp = FOV_CLAMP * cy / fy, FOV_CLAMP * (height - cy) / fy
+    w = (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[1, 0], w2c[1, 1], w2c[1, 2], w2c[2, 0], w2c[2, 1], w2c[2, 2])
+    c0_, c1_, c2_ = centre[0], centre[1], centre[2]
     for n in prange(means.shape[0]):
-        rx = means[n, 0] - centre[0]
-        ry = means[n, 1] - centre[1]
-        rz = means[n, 2] - centre[2]
+        rx = _f64(means[n, 0]) - c0_
+        ry = _f64(means[n, 1]) - c1_
+        rz = _f64(means[n, 2]) - c2_
         dist2 = rx * rx + ry * ry + rz * rz
         if dist2 > VIEW_DIR_EPS * VIEW_DIR_EPS:
             inv = 1.0 / math.sqrt(dist2)
             view_dirs[n, 0], view_dirs[n, 1], view_dirs[n, 2] = rx * inv, ry * inv, rz * inv
         else:
             view_dirs[n, 0], view_dirs[n, 1], view_dirs[n, 2] = 0.0, 0.0, 1.0
-        x = w2c[0, 0] * rx + w2c[0, 1] * ry + w2c[0, 2] * rz
-        y = w2c[1, 0] * rx + w2c[1, 1] * ry + w2c[1, 2] * rz
-        z = w2c[2, 0] * rx + w2c[2, 1] * ry + w2c[2, 2] * rz
+        x = w[0] * rx + w[1] * ry + w[2] * rz
+        y = w[3] * rx + w[4] * ry + w[5] * rz
+        z = w[6] * rx + w[7] * ry + w[8] * rz
         means2d[n, 0] = 0.0
         means2d[n, 1] = 0.0
         conics[n, 0] = 0.0
@@ -107,14 +122,15 @@ def _project_forward(means, quats, log_scales, w2c, centre, cam, width, height,
         depths[n] = z if in_depth else 0.0
         if not in_depth:
             continue
-        w, qx, qy, qz, _, _ = _unit_quat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3])
-        rq = np.empty((3, 3))
-        _rotmat(w, qx, qy, qz, rq)
-        m = np.empty((3, 3))  # W Rq S
-        for i in range(3):
-            for j in range(3):
-                m[i, j] = (w2c[i, 0] * rq[0, j] + w2c[i, 1] * rq[1, j] + w2c[i, 2] * rq[2, j]) * math.exp(
-                    _clamp_log_scale(log_scales[n, j]))
+        qw, qx, qy, qz, _, _ = _unit_quat(_f64(quats[n, 0]), _f64(quats[n, 1]), _f64(quats[n, 2]),
+                                          _f64(quats[n, 3]))
+        wr = _matmul3(w, _rotmat(qw, qx, qy, qz))  # W Rq
+        s0 = math.exp(_clamp_log_scale(_f64(log_scales[n, 0])))
+        s1 = math.exp(_clamp_log_scale(_f64(log_scales[n, 1])))
+        s2 = math.exp(_clamp_log_scale(_f64(log_scales[n, 2])))
+        m00, m01, m02 = wr[0] * s0, wr[1] * s1, wr[2] * s2  # M = W Rq S
+        m10, m11, m12 = wr[3] * s0, wr[4] * s1, wr[5] * s2
+        m20, m21, m22 = wr[6] * s0, wr[7] * s1, wr[8] * s2
         inv_z = 1.0 / z
         u, v = x * inv_z, y * inv_z
         uc = min(max(u, -lxn), lxp)
@@ -122,16 +138,13 @@ def _project_forward(means, quats, log_scales, w2c, centre, cam, width, height,
         j00, j02 = fx * inv_z, -fx * uc * inv_z
         j11, j12 = fy * inv_z, -fy * vc * inv_z
         # T = J M  (2 x 3); cov2d = T T^T
-        t0 = np.empty(3)
-        t1 = np.empty(3)
-        for j in range(3):
-            t0[j] = j00 * m[0, j] + j02 * m[2, j]
-            t1[j] = j11 * m[1, j] + j12 * m[2, j]
-        a0 = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2]
-        b = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
-        c0 = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2]
+        t00, t01, t02 = j00 * m00 + j02 * m20, j00 * m01 + j02 * m21, j00 * m02 + j02 * m22
+        t10, t11, t12 = j11 * m10 + j12 * m20, j11 * m11 + j12 * m21, j11 * m12 + j12 * m22
+        a0 = t00 * t00 + t01 * t01 + t02 * t02
+        b = t00 * t10 + t01 * t11 + t02 * t12
+        c0 = t10 * t10 + t11 * t11 + t12 * t12
         a, c = a0 + COV2D_DILATION, c0 + COV2D_DILATION
-        det = _robust_det(t0, t1, a0, c0)
+        det = _robust_det(t00, t01, t02, t10, t11, t12, a0, c0)
         mx, my = fx * u + cx, fy * v + cy
         if not (math.isfinite(det) and math.isfinite(a) and math.isfinite(c) and det > 0.0):
             continue
@@ -152,142 +165,158 @@ def _project_forward(means, quats, log_scales, w2c, centre, cam, width, height,
 
 
 @numba.njit(parallel=True, **_JIT)
-def _project_backward(means, quats, log_scales, w2c, centre, cam, width, height, valid, depths_out,
+def _project_backward(means, quats, log_scales, w2c, centre, cam, width, height, valid,
                       g_means2d, g_conics, g_depths, g_dirs, d_means, d_quats, d_log_scales):
+    """Chain rule of ``_project_forward``, one fused pass per Gaussian, no temporary arrays."""
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lxn, lxp = FOV_CLAMP * cx / fx, FOV_CLAMP * (width - cx) / fx
     lyn, lyp = FOV_CLAMP * cy / fy, FOV_CLAMP * (height - cy) / fy
+    w = (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[1, 0], w2c[1, 1], w2c[1, 2], w2c[2, 0], w2c[2, 1], w2c[2, 2])
+    c0_, c1_, c2_ = centre[0], centre[1], centre[2]
     for n in prange(means.shape[0]):
-        rx = means[n, 0] - centre[0]
-        ry = means[n, 1] - centre[1]
-        rz = means[n, 2] - centre[2]
-        d_r = np.zeros(3)
+        rx = _f64(means[n, 0]) - c0_
+        ry = _f64(means[n, 1]) - c1_
+        rz = _f64(means[n, 2]) - c2_
+        d_r0 = d_r1 = d_r2 = 0.0
         dist2 = rx * rx + ry * ry + rz * rz
         if dist2 > VIEW_DIR_EPS * VIEW_DIR_EPS:  # view direction r / |r|
             inv = 1.0 / math.sqrt(dist2)
             dx_, dy_, dz_ = rx * inv, ry * inv, rz * inv
-            dot = dx_ * g_dirs[n, 0] + dy_ * g_dirs[n, 1] + dz_ * g_dirs[n, 2]
-            d_r[0] = (g_dirs[n, 0] - dx_ * dot) * inv
-            d_r[1] = (g_dirs[n, 1] - dy_ * dot) * inv
-            d_r[2] = (g_dirs[n, 2] - dz_ * dot) * inv
-        for j in range(4):
-            d_quats[n, j] = 0.0
-        for j in range(3):
-            d_log_scales[n, j] = 0.0
-        x = w2c[0, 0] * rx + w2c[0, 1] * ry + w2c[0, 2] * rz
-        y = w2c[1, 0] * rx + w2c[1, 1] * ry + w2c[1, 2] * rz
-        z = w2c[2, 0] * rx + w2c[2, 1] * ry + w2c[2, 2] * rz
+            gd0, gd1, gd2 = _f64(g_dirs[n, 0]), _f64(g_dirs[n, 1]), _f64(g_dirs[n, 2])
+            dot = dx_ * gd0 + dy_ * gd1 + dz_ * gd2
+            d_r0 = (gd0 - dx_ * dot) * inv
+            d_r1 = (gd1 - dy_ * dot) * inv
+            d_r2 = (gd2 - dz_ * dot) * inv
+        d_quats[n, 0] = 0.0
+        d_quats[n, 1] = 0.0
+        d_quats[n, 2] = 0.0
+        d_quats[n, 3] = 0.0
+        d_log_scales[n, 0] = 0.0
+        d_log_scales[n, 1] = 0.0
+        d_log_scales[n, 2] = 0.0
+        x = w[0] * rx + w[1] * ry + w[2] * rz
+        y = w[3] * rx + w[4] * ry + w[5] * rz
+        z = w[6] * rx + w[7] * ry + w[8] * rz
         in_depth = z > NEAR_PLANE and z < FAR_PLANE
-        d_p = np.zeros(3)
+        d_p0 = d_p1 = d_p2 = 0.0
         if in_depth:
-            d_p[2] += g_depths[n]
+            d_p2 += _f64(g_depths[n])
         if valid[n]:
-            w, qx, qy, qz, qinv, q_ok = _unit_quat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3])
-            rq = np.empty((3, 3))
-            _rotmat(w, qx, qy, qz, rq)
-            s = np.empty(3)
-            ls_in = np.empty(3)
-            for j in range(3):
-                v_ = log_scales[n, j]
-                s[j] = math.exp(_clamp_log_scale(v_))
-                ls_in[j] = 1.0 if (v_ >= LOG_SCALE_MIN and v_ <= LOG_SCALE_FLOAT32_MAX) else 0.0
-            wr = np.empty((3, 3))  # W Rq
-            m = np.empty((3, 3))  # W Rq S
-            for i in range(3):
-                for j in range(3):
-                    wr[i, j] = w2c[i, 0] * rq[0, j] + w2c[i, 1] * rq[1, j] + w2c[i, 2] * rq[2, j]
-                    m[i, j] = wr[i, j] * s[j]
+            qw, qx, qy, qz, qinv, q_ok = _unit_quat(_f64(quats[n, 0]), _f64(quats[n, 1]), _f64(quats[n, 2]),
+                                                    _f64(quats[n, 3]))
+            rq = _rotmat(qw, qx, qy, qz)
+            l0, l1, l2 = _f64(log_scales[n, 0]), _f64(log_scales[n, 1]), _f64(log_scales[n, 2])
+            s0 = math.exp(_clamp_log_scale(l0))
+            s1 = math.exp(_clamp_log_scale(l1))
+            s2 = math.exp(_clamp_log_scale(l2))
+            in0 = 1.0 if (l0 >= LOG_SCALE_MIN and l0 <= LOG_SCALE_FLOAT32_MAX) else 0.0
+            in1 = 1.0 if (l1 >= LOG_SCALE_MIN and l1 <= LOG_SCALE_FLOAT32_MAX) else 0.0
+            in2 = 1.0 if (l2 >= LOG_SCALE_MIN and l2 <= LOG_SCALE_FLOAT32_MAX) else 0.0
+            wr = _matmul3(w, rq)  # W Rq
+            m00, m01, m02 = wr[0] * s0, wr[1] * s1, wr[2] * s2  # M = W Rq S
+            m10, m11, m12 = wr[3] * s0, wr[4] * s1, wr[5] * s2
+            m20, m21, m22 = wr[6] * s0, wr[7] * s1, wr[8] * s2
             inv_z = 1.0 / z
             u, v = x * inv_z, y * inv_z
             u_free = 1.0 if (u >= -lxn and u <= lxp) else 0.0
             v_free = 1.0 if (v >= -lyn and v <= lyp) else 0.0
             uc = min(max(u, -lxn), lxp)
             vc = min(max(v, -lyn), lyp)
-            jac = np.zeros((2, 3))
-            jac[0, 0], jac[0, 2] = fx * inv_z, -fx * uc * inv_z
-            jac[1, 1], jac[1, 2] = fy * inv_z, -fy * vc * inv_z
-            t0 = np.empty(3)  # T = J M (rows t0, t1); cov2d = T T^T + dilation
-            t1 = np.empty(3)
-            for j in range(3):
-                t0[j] = jac[0, 0] * m[0, j] + jac[0, 2] * m[2, j]
-                t1[j] = jac[1, 1] * m[1, j] + jac[1, 2] * m[2, j]
-            a0 = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2]
-            b = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
-            c0 = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2]
+            j00, j02 = fx * inv_z, -fx * uc * inv_z
+            j11, j12 = fy * inv_z, -fy * vc * inv_z
+            # T = J M (rows t0, t1); cov2d = T T^T + dilation
+            t00, t01, t02 = j00 * m00 + j02 * m20, j00 * m01 + j02 * m21, j00 * m02 + j02 * m22
+            t10, t11, t12 = j11 * m10 + j12 * m20, j11 * m11 + j12 * m21, j11 * m12 + j12 * m22
+            a0 = t00 * t00 + t01 * t01 + t02 * t02
+            b = t00 * t10 + t01 * t11 + t02 * t12
+            c0 = t10 * t10 + t11 * t11 + t12 * t12
             a, c = a0 + COV2D_DILATION, c0 + COV2D_DILATION
-            det = _robust_det(t0, t1, a0, c0)
+            det = _robust_det(t00, t01, t02, t10, t11, t12, a0, c0)
             # conic = (c, -b, a) / det with det in the Cauchy-Binet form: differentiate that form directly
             # (through -Q G Q the needle-like Gaussians of huge scale lose every digit to cancellation)
             inv_det = 1.0 / det
-            g0, g1, g2 = g_conics[n, 0], g_conics[n, 1], g_conics[n, 2]
+            g0, g1, g2 = _f64(g_conics[n, 0]), _f64(g_conics[n, 1]), _f64(g_conics[n, 2])
             d_a = g2 * inv_det
             d_b = -g1 * inv_det
             d_c = g0 * inv_det
             d_det = -(g0 * c - g1 * b + g2 * a) * inv_det * inv_det
-            m01 = t0[0] * t1[1] - t0[1] * t1[0]
-            m02 = t0[0] * t1[2] - t0[2] * t1[0]
-            m12 = t0[1] * t1[2] - t0[2] * t1[1]
+            mi01 = t00 * t11 - t01 * t10
+            mi02 = t00 * t12 - t02 * t10
+            mi12 = t01 * t12 - t02 * t11
             ka = 2.0 * (d_a + COV2D_DILATION * d_det)
             kc = 2.0 * (d_c + COV2D_DILATION * d_det)
-            k01, k02, k12 = 2.0 * d_det * m01, 2.0 * d_det * m02, 2.0 * d_det * m12
-            d_t = np.empty((2, 3))
-            for j in range(3):
-                d_t[0, j] = ka * t0[j] + d_b * t1[j]
-                d_t[1, j] = kc * t1[j] + d_b * t0[j]
-            d_t[0, 0] += k01 * t1[1] + k02 * t1[2]
-            d_t[0, 1] += -k01 * t1[0] + k12 * t1[2]
-            d_t[0, 2] += -k02 * t1[0] - k12 * t1[1]
-            d_t[1, 0] += -k01 * t0[1] - k02 * t0[2]
-            d_t[1, 1] += k01 * t0[0] - k12 * t0[2]
-            d_t[1, 2] += k02 * t0[0] + k12 * t0[1]
-            d_j = np.empty((2, 3))
-            for i in range(2):
-                for j in range(3):
-                    d_j[i, j] = d_t[i, 0] * m[j, 0] + d_t[i, 1] * m[j, 1] + d_t[i, 2] * m[j, 2]
-            d_m = np.empty((3, 3))
-            for i in range(3):
-                for j in range(3):
-                    d_m[i, j] = jac[0, i] * d_t[0, j] + jac[1, i] * d_t[1, j]
-            d_n = np.empty((3, 3))  # dL/d(Rq S) = W^T dL/dM
-            for i in range(3):
-                for j in range(3):
-                    d_n[i, j] = w2c[0, i] * d_m[0, j] + w2c[1, i] * d_m[1, j] + w2c[2, i] * d_m[2, j]
-            g_r = np.empty((3, 3))  # dL/dRq
-            for j in range(3):
-                d_s = 0.0
-                for i in range(3):
-                    g_r[i, j] = d_n[i, j] * s[j]
-                    d_s += d_n[i, j] * rq[i, j]
-                d_log_scales[n, j] = d_s * s[j] * ls_in[j]
-            d_w = 2.0 * (-qz * g_r[0, 1] + qy * g_r[0, 2] + qz * g_r[1, 0] - qx * g_r[1, 2] - qy * g_r[2, 0]
-                         + qx * g_r[2, 1])
-            d_x = 2.0 * (qy * g_r[0, 1] + qz * g_r[0, 2] + qy * g_r[1, 0] - 2.0 * qx * g_r[1, 1] - w * g_r[1, 2]
-                         + qz * g_r[2, 0] + w * g_r[2, 1] - 2.0 * qx * g_r[2, 2])
-            d_y = 2.0 * (-2.0 * qy * g_r[0, 0] + qx * g_r[0, 1] + w * g_r[0, 2] + qx * g_r[1, 0] + qz * g_r[1, 2]
-                         - w * g_r[2, 0] + qz * g_r[2, 1] - 2.0 * qy * g_r[2, 2])
-            d_zq = 2.0 * (-2.0 * qz * g_r[0, 0] - w * g_r[0, 1] + qx * g_r[0, 2] + w * g_r[1, 0]
-                          - 2.0 * qz * g_r[1, 1] + qy * g_r[1, 2] + qx * g_r[2, 0] + qy * g_r[2, 1])
+            k01, k02, k12 = 2.0 * d_det * mi01, 2.0 * d_det * mi02, 2.0 * d_det * mi12
+            dt00 = ka * t00 + d_b * t10 + (k01 * t11 + k02 * t12)
+            dt01 = ka * t01 + d_b * t11 + (-k01 * t10 + k12 * t12)
+            dt02 = ka * t02 + d_b * t12 + (-k02 * t10 - k12 * t11)
+            dt10 = kc * t10 + d_b * t00 + (-k01 * t01 - k02 * t02)
+            dt11 = kc * t11 + d_b * t01 + (k01 * t00 - k12 * t02)
+            dt12 = kc * t12 + d_b * t02 + (k02 * t00 + k12 * t01)
+            # dL/dJ = dT M^T (only the entries of J that vary are needed)
+            dj00 = dt00 * m00 + dt01 * m01 + dt02 * m02
+            dj02 = dt00 * m20 + dt01 * m21 + dt02 * m22
+            dj11 = dt10 * m10 + dt11 * m11 + dt12 * m12
+            dj12 = dt10 * m20 + dt11 * m21 + dt12 * m22
+            # dL/dM = J^T dT
+            dm00, dm01, dm02 = j00 * dt00, j00 * dt01, j00 * dt02
+            dm10, dm11, dm12 = j11 * dt10, j11 * dt11, j11 * dt12
+            dm20, dm21, dm22 = j02 * dt00 + j12 * dt10, j02 * dt01 + j12 * dt11, j02 * dt02 + j12 * dt12
+            # dL/d(Rq S) = W^T dL/dM
+            dn00 = w[0] * dm00 + w[3] * dm10 + w[6] * dm20
+            dn01 = w[0] * dm01 + w[3] * dm11 + w[6] * dm21
+            dn02 = w[0] * dm02 + w[3] * dm12 + w[6] * dm22
+            dn10 = w[1] * dm00 + w[4] * dm10 + w[7] * dm20
+            dn11 = w[1] * dm01 + w[4] * dm11 + w[7] * dm21
+            dn12 = w[1] * dm02 + w[4] * dm12 + w[7] * dm22
+            dn20 = w[2] * dm00 + w[5] * dm10 + w[8] * dm20
+            dn21 = w[2] * dm01 + w[5] * dm11 + w[8] * dm21
+            dn22 = w[2] * dm02 + w[5] * dm12 + w[8] * dm22
+            d_log_scales[n, 0] = (dn00 * rq[0] + dn10 * rq[3] + dn20 * rq[6]) * s0 * in0
+            d_log_scales[n, 1] = (dn01 * rq[1] + dn11 * rq[4] + dn21 * rq[7]) * s1 * in1
+            d_log_scales[n, 2] = (dn02 * rq[2] + dn12 * rq[5] + dn22 * rq[8]) * s2 * in2
+            g00, g01, g02 = dn00 * s0, dn01 * s1, dn02 * s2  # dL/dRq
+            g10, g11, g12 = dn10 * s0, dn11 * s1, dn12 * s2
+            g20, g21, g22 = dn20 * s0, dn21 * s1, dn22 * s2
+            d_w = 2.0 * (-qz * g01 + qy * g02 + qz * g10 - qx * g12 - qy * g20 + qx * g21)
+            d_x = 2.0 * (qy * g01 + qz * g02 + qy * g10 - 2.0 * qx * g11 - qw * g12 + qz * g20 + qw * g21
+                         - 2.0 * qx * g22)
+            d_y = 2.0 * (-2.0 * qy * g00 + qx * g01 + qw * g02 + qx * g10 + qz * g12 - qw * g20 + qz * g21
+                         - 2.0 * qy * g22)
+            d_zq = 2.0 * (-2.0 * qz * g00 - qw * g01 + qx * g02 + qw * g10 - 2.0 * qz * g11 + qy * g12 + qx * g20
+                          + qy * g21)
             if q_ok:  # through q / |q|
-                dot = w * d_w + qx * d_x + qy * d_y + qz * d_zq
-                d_quats[n, 0] = (d_w - w * dot) * qinv
+                dot = qw * d_w + qx * d_x + qy * d_y + qz * d_zq
+                d_quats[n, 0] = (d_w - qw * dot) * qinv
                 d_quats[n, 1] = (d_x - qx * dot) * qinv
                 d_quats[n, 2] = (d_y - qy * dot) * qinv
                 d_quats[n, 3] = (d_zq - qz * dot) * qinv
             # Jacobian entries -> z, clamped u, v
-            d_u = fx * g_means2d[n, 0]
-            d_v = fy * g_means2d[n, 1]
-            d_z = (-fx * d_j[0, 0] + fx * uc * d_j[0, 2] - fy * d_j[1, 1] + fy * vc * d_j[1, 2]) * inv_z * inv_z
-            d_u += -fx * inv_z * d_j[0, 2] * u_free
-            d_v += -fy * inv_z * d_j[1, 2] * v_free
-            d_p[0] += d_u * inv_z
-            d_p[1] += d_v * inv_z
-            d_p[2] += d_z - (d_u * x + d_v * y) * inv_z * inv_z
-        for i in range(3):
-            d_means[n, i] = d_r[i] + w2c[0, i] * d_p[0] + w2c[1, i] * d_p[1] + w2c[2, i] * d_p[2]
+            d_u = fx * _f64(g_means2d[n, 0])
+            d_v = fy * _f64(g_means2d[n, 1])
+            d_z = (-fx * dj00 + fx * uc * dj02 - fy * dj11 + fy * vc * dj12) * inv_z * inv_z
+            d_u += -fx * inv_z * dj02 * u_free
+            d_v += -fy * inv_z * dj12 * v_free
+            d_p0 += d_u * inv_z
+            d_p1 += d_v * inv_z
+            d_p2 += d_z - (d_u * x + d_v * y) * inv_z * inv_z
+        d_means[n, 0] = d_r0 + w[0] * d_p0 + w[3] * d_p1 + w[6] * d_p2
+        d_means[n, 1] = d_r1 + w[1] * d_p0 + w[4] * d_p1 + w[7] * d_p2
+        d_means[n, 2] = d_r2 + w[2] * d_p0 + w[5] * d_p1 + w[8] * d_p2
 
 
 def _np64(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float64)
+
+
+def _np_float(x: Tensor) -> np.ndarray:
+    """Contiguous numpy view of a float32 / float64 tensor (no copy when possible); other dtypes as float64.
+
+    The kernels read each element as float64 (exact for float32), so a float32 input needs no converted copy.
+    """
+    arr = x.detach().cpu().numpy()
+    if arr.dtype not in (np.float32, np.float64):
+        arr = arr.astype(np.float64)
+    return np.ascontiguousarray(arr)
 
 
 def _camera_arrays(viewmat: Tensor, K: Tensor):
@@ -302,14 +331,15 @@ class _ProjectFunction(torch.autograd.Function):
     def forward(ctx, means, quats, log_scales, viewmat, K, width, height):
         n = means.shape[0]
         w2c, centre, cam = _camera_arrays(viewmat, K)
-        arrays = (_np64(means), _np64(quats), _np64(log_scales))
-        means2d, conics = np.zeros((n, 2)), np.zeros((n, 3))
-        depths, valid = np.zeros(n), np.zeros(n, np.bool_)
-        pixel_box, view_dirs = np.zeros((n, 4), np.int64), np.zeros((n, 3))
+        arrays = (_np_float(means), _np_float(quats), _np_float(log_scales))
+        # every entry is written by the kernel
+        means2d, conics = np.empty((n, 2)), np.empty((n, 3))
+        depths, valid = np.empty(n), np.empty(n, np.bool_)
+        pixel_box, view_dirs = np.empty((n, 4), np.int64), np.empty((n, 3))
         if n:
             run_parallel(_project_forward, *arrays, w2c, centre, cam, width, height, means2d, conics, depths, valid,
                          pixel_box, view_dirs, chunk=GAUSSIANS_PER_CHUNK)
-        ctx.saved = (arrays, w2c, centre, cam, width, height, valid, depths)
+        ctx.saved = (arrays, w2c, centre, cam, width, height, valid)
         ctx.dtypes = (means.dtype, quats.dtype, log_scales.dtype)
         valid_t, box_t = torch.from_numpy(valid), torch.from_numpy(pixel_box)
         ctx.mark_non_differentiable(valid_t, box_t)
@@ -318,15 +348,16 @@ class _ProjectFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_depths, _g_valid, _g_box, g_dirs):
-        arrays, w2c, centre, cam, width, height, valid, depths = ctx.saved
+        arrays, w2c, centre, cam, width, height, valid = ctx.saved
         n = arrays[0].shape[0]
 
         def grad(g, shape):
-            return np.zeros(shape) if g is None else _np64(g)
+            return np.zeros(shape) if g is None else _np_float(g)
 
-        d_means, d_quats, d_log_scales = np.zeros((n, 3)), np.zeros((n, 4)), np.zeros((n, 3))
+        # every entry is written by the kernel
+        d_means, d_quats, d_log_scales = np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3))
         if n:
-            run_parallel(_project_backward, *arrays, w2c, centre, cam, width, height, valid, depths,
+            run_parallel(_project_backward, *arrays, w2c, centre, cam, width, height, valid,
                          grad(g_means2d, (n, 2)), grad(g_conics, (n, 3)), grad(g_depths, (n,)),
                          grad(g_dirs, (n, 3)), d_means, d_quats, d_log_scales, chunk=GAUSSIANS_PER_CHUNK)
         return (torch.from_numpy(d_means).to(ctx.dtypes[0]), torch.from_numpy(d_quats).to(ctx.dtypes[1]),

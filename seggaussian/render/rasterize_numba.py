@@ -214,9 +214,10 @@ def _forward_kernel(means2d, conics, opacities, colors, offsets, gids, tiles_x, 
 @numba.njit(parallel=True, **_JIT)
 def _backward_kernel(
     means2d, conics, opacities, colors, offsets, gids, tiles_x, width, height,
-    accum, trans, stop_pos, grad_accum, grad_alpha, slot_geo, slot_col,
+    accum, trans, stop_pos, grad_accum, grad_alpha, slot_rank, slot_geo, slot_col,
 ):
-    """slot_geo[k] = d(mean x, mean y, conic a, b, c, opacity); slot_col[k] = d(colour) per intersection k."""
+    """slot_geo[r] = d(mean x, mean y, conic a, b, c, opacity); slot_col[r] = d(colour) of intersection k, stored at
+    r = slot_rank[k] (identity, or the Gaussian-major numbering of ``tiles.SortedTileBins``)."""
     num_tiles = offsets.shape[0] - 1
     dim = colors.shape[1]
     for t in prange(num_tiles):
@@ -289,12 +290,13 @@ def _backward_kernel(
                 terms[5, i] = d_alpha * e
                 c_dot[i] = c_after
                 tr[i] = tr[i] * (_ONE - m * alpha)
+            r = slot_rank[k]
             for j in range(6):
-                slot_geo[k, j] = _tree_sum(terms[j])
+                slot_geo[r, j] = _tree_sum(terms[j])
             for ch in range(dim):
                 for i in range(_TILE_PIXELS):
                     terms[0, i] = weight[i] * g_acc[ch, i]
-                slot_col[k, ch] = _tree_sum(terms[0])
+                slot_col[r, ch] = _tree_sum(terms[0])
 
 
 @numba.njit(**_JIT)
@@ -308,6 +310,23 @@ def _sum_slots(gids, slot_geo, slot_col, num_gaussians):
             geo[g, j] += slot_geo[k, j]
         for j in range(slot_col.shape[1]):
             col[g, j] += slot_col[k, j]
+    return geo, col
+
+
+@numba.njit(parallel=True, **_JIT)
+def _sum_slots_grouped(order, isect_start, slot_geo, slot_col, num_gaussians):
+    """``_sum_slots`` for slots stored Gaussian-major (``tiles.SortedTileBins``): parallel over Gaussians, each one's
+    slots read sequentially and added in increasing intersection order, as the serial loop adds them (the same
+    float64 sums, bit for bit, for any thread count)."""
+    geo = np.zeros((num_gaussians, 6), np.float64)
+    col = np.zeros((num_gaussians, slot_col.shape[1]), np.float64)
+    for j in prange(order.shape[0]):
+        g = order[j]
+        for q in range(isect_start[j], isect_start[j + 1]):
+            for c in range(6):
+                geo[g, c] += slot_geo[q, c]
+            for c in range(slot_col.shape[1]):
+                col[g, c] += slot_col[q, c]
     return geo, col
 
 
@@ -395,12 +414,18 @@ class _BlendFunction(torch.autograd.Function):
         slot_col = np.zeros((num, dim), np.float32)
         g_acc = np.zeros_like(accum) if grad_accum is None else _as_np(grad_accum)
         g_alpha = np.zeros_like(trans) if grad_alpha is None else _as_np(grad_alpha)
+        inverse = getattr(bins, "inverse", None)  # tiles.SortedTileBins: slots stored grouped by Gaussian
+        slot_rank = np.arange(num, dtype=np.int64) if inverse is None else inverse[2]
         if num:
             run_parallel(
                 _backward_kernel, m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x,
-                bins.width, bins.height, accum, trans, stop_pos, g_acc, g_alpha, slot_geo, slot_col,
+                bins.width, bins.height, accum, trans, stop_pos, g_acc, g_alpha, slot_rank, slot_geo, slot_col,
             )
-        geo, dcol = _sum_slots(bins.gaussian_ids, slot_geo, slot_col, n)
+        if inverse is not None:
+            geo, dcol = run_parallel(_sum_slots_grouped, inverse[0], inverse[1], slot_geo, slot_col, n,
+                                     chunk=GAUSSIANS_PER_CHUNK)
+        else:
+            geo, dcol = _sum_slots(bins.gaussian_ids, slot_geo, slot_col, n)
         geo = torch.from_numpy(geo)
         d_means2d = geo[:, 0:2].to(ctx.dtypes[0])
         d_conics = geo[:, 2:5].to(ctx.dtypes[1])

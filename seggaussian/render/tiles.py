@@ -1,13 +1,38 @@
-"""Binning of projected Gaussians into 16x16 pixel tiles, each tile's list in front-to-back order."""
+"""Binning of projected Gaussians into 16x16 pixel tiles, each tile's list in front-to-back order.
+
+``bin_gaussians`` sorts by depth with a parallel radix sort and fills the tiles with a parallel counting sort
+(``binning_numba``); ``bin_gaussians_argsort`` is the former path (a stable ``argsort`` and a fill by bands of
+tile rows), kept as the reference the tests compare against and as the benchmark's "before". Both give the
+same lists: valid Gaussians by increasing depth, equal depths in index order.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
 from seggaussian.constants import ALPHA_MIN, TILE_SIZE
+from seggaussian.render.binning_numba import bin_sorted
 from seggaussian.render.projection import Projection
 from seggaussian.render.rasterize_numba import fill_tile_lists
 from seggaussian.render.results import TileBins
+
+
+class SortedTileBins(TileBins):
+    """``TileBins`` plus ``inverse = (order, isect_start, slot_rank)``: a Gaussian-major numbering of the
+    intersections (``binning_numba.bin_sorted``), so the blending backward stores its per-intersection gradients
+    grouped by Gaussian and sums them in parallel with sequential reads. A plain ``TileBins`` (no ``inverse``)
+    works everywhere; the backward then sums serially."""
+
+
+def _selected(projection: Projection, opacities) -> np.ndarray:  # ascending int64 indices
+    valid = projection.valid.detach().cpu().numpy()
+    if opacities is not None:
+        valid = valid & (opacities.detach().cpu().numpy() >= ALPHA_MIN)
+    return np.flatnonzero(valid)
+
+
+def _tile_grid(width: int, height: int) -> tuple[int, int]:
+    return (width + TILE_SIZE - 1) // TILE_SIZE, (height + TILE_SIZE - 1) // TILE_SIZE
 
 
 def bin_gaussians(
@@ -17,15 +42,22 @@ def bin_gaussians(
     opacities=None,  # [N] optional: Gaussians with opacity < ALPHA_MIN can never blend and are skipped
 ) -> TileBins:
     """Sort the valid Gaussians by depth (stable) and append each to every tile its pixel box touches."""
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
-    valid = projection.valid.detach().cpu().numpy()
-    if opacities is not None:
-        valid = valid & (opacities.detach().cpu().numpy() >= ALPHA_MIN)
-    idx = np.flatnonzero(valid)
+    tiles_x, tiles_y = _tile_grid(width, height)
+    idx = _selected(projection, opacities)
+    offsets, ids, order, isect_start, slot_rank = bin_sorted(
+        idx, projection.depths.detach().cpu().numpy(), projection.pixel_box.detach().cpu().numpy(), TILE_SIZE,
+        tiles_x, tiles_y)
+    bins = SortedTileBins(width, height, tiles_x, tiles_y, offsets, ids)
+    bins.inverse = (order, isect_start, slot_rank)
+    return bins
+
+
+def bin_gaussians_argsort(projection: Projection, width: int, height: int, opacities=None) -> TileBins:
+    """The former binning (stable argsort by depth, fill by bands of tile rows): reference and benchmark only."""
+    tiles_x, tiles_y = _tile_grid(width, height)
+    idx = _selected(projection, opacities)
     depths = projection.depths.detach().cpu().numpy().astype(np.float64)[idx]
     order = idx[np.argsort(depths, kind="stable")].astype(np.int64)
-
     pixel_box = np.ascontiguousarray(projection.pixel_box.detach().cpu().numpy())
     offsets, ids = fill_tile_lists(order, pixel_box, tiles_x, tiles_y)
     return TileBins(width, height, tiles_x, tiles_y, offsets, ids)
