@@ -10,7 +10,8 @@ import click
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
 from seggaussian.build_config import BuildConfig, OracleConfig, TransferConfig, ViewConfig
-from seggaussian.fit_config import FitConfig
+from cli.seg_fit import PRESET_HELP
+from seggaussian.fit_config import PRESETS, FitConfig
 
 
 @click.command("build")
@@ -31,6 +32,7 @@ from seggaussian.fit_config import FitConfig
 @config_option(BuildConfig, "seed", "--seed", type=int, default=0, show_default=True)
 @config_option(TransferConfig, "max_distance", "--gate", type=float, default=None)
 @config_option(OracleConfig, "num_gaussians", "--oracle-gaussians", type=int, default=None)
+@click.option("--fit-preset", type=click.Choice(PRESETS), default="default", show_default=True, help=PRESET_HELP)
 @config_option(FitConfig, "iterations", "--fit-iterations", type=int, default=None)
 @config_option(ViewConfig, "max_image_side", "--max-image-side", type=int, default=None)
 @config_option(ViewConfig, "view_stride", "--view-stride", type=int, default=None)
@@ -40,7 +42,7 @@ from seggaussian.fit_config import FitConfig
 @json_option
 @guarded
 def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussians_mode, ply_dir, seed, gate,
-            oracle_gaussians, fit_iterations, max_image_side, view_stride, keep_going, progress, as_json) -> None:
+            oracle_gaussians, fit_preset, fit_iterations, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
     from seggaussian.build import build_dataset, summary_table
 
@@ -52,6 +54,8 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
         config = replace(config, transfer=replace(config.transfer, max_distance=gate))
     if oracle_gaussians is not None:
         config = replace(config, oracle=replace(config.oracle, num_gaussians=oracle_gaussians))
+    if fit_preset != "default":
+        config = replace(config, fit_config=FitConfig.preset(fit_preset))
     if fit_iterations is not None:
         config = replace(config, fit_config=config.fit_config.with_iterations(fit_iterations))
     if max_image_side is not None:

@@ -9,7 +9,11 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from seggaussian.fit_config import FitConfig
+from seggaussian.fit_config import PRESETS, FitConfig
+
+#: Help of ``--preset`` / ``seggaussian build --fit-preset``.
+PRESET_HELP = ("FitConfig to start from: `default` (FitConfig()) or `profile` (FitConfig.profile(): the ~30 s CPU "
+               "fit of a 160x120 profile room, depth from the mesh, no opacity reset). Other fit options override it.")
 
 
 @click.command("fit")
@@ -20,6 +24,7 @@ from seggaussian.fit_config import FitConfig
 @click.option("--scene", "scene_id", required=True, help="Scene id.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="PLY to write; metrics go to SCENE.fit.json next to it.")
+@click.option("--preset", type=click.Choice(PRESETS), default="default", show_default=True, help=PRESET_HELP)
 @config_option(FitConfig, "iterations", "--iterations", type=int, default=None)
 @config_option(FitConfig, "downscale", "--downscale", type=float, default=None)
 @config_option(FitConfig, "max_gaussians", "--max-gaussians", type=int, default=None)
@@ -29,7 +34,7 @@ from seggaussian.fit_config import FitConfig
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(source, root, scene_id, out, iterations, downscale, max_gaussians, sh_degree, time_budget, seed, progress,
+def command(source, root, scene_id, out, preset, iterations, downscale, max_gaussians, sh_degree, time_budget, seed, progress,
             as_json) -> None:
     """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json.
 
@@ -38,7 +43,7 @@ def command(source, root, scene_id, out, iterations, downscale, max_gaussians, s
 
     overrides = {"downscale": downscale, "max_gaussians": max_gaussians, "sh_degree": sh_degree,
                  "time_budget_seconds": time_budget}
-    config = FitConfig()
+    config = FitConfig.preset(preset)
     if iterations is not None:  # the whole schedule scales with the number of iterations
         config = config.with_iterations(iterations)
     config = replace(config, **{k: v for k, v in overrides.items() if v is not None})

@@ -2,8 +2,12 @@
 
 Data flow: ``validate_scene`` -> ``load_views`` (images as float tensors, optional downscale) ->
 ``initialize_gaussians`` (voxel-averaged points, scales from nearest neighbours) -> ``fit_scene``
-(Adam with the 3DGS learning rates, L1 + D-SSIM loss, densification by the accumulated view-space
-gradient, pruning, opacity resets, evaluation and early stop) -> ``FitResult``.
+(Adam with the 3DGS learning rates, L1 + D-SSIM loss plus an optional depth term against the scene mesh's
+raycast depth, densification by the accumulated view-space gradient, pruning, optional opacity resets,
+evaluation and early stop) -> ``FitResult``. With ``keep_best`` (default) the parameters are snapshotted
+whenever the held-out PSNR improves and the best evaluated state is returned, whatever ended the run
+(completion, early stop, time budget); ``metrics["returned_iteration"]`` names it and the novel-view
+metrics are those of the returned state.
 
 View-space gradient used for densification: the shared rasterizer returns no screen-space means, so
 the gradient of the loss with respect to each Gaussian's projected centre is recovered from the
@@ -36,10 +40,11 @@ from seggaussian.fit_config import FitConfig
 from seggaussian.fit_densify import densify_and_prune, reset_opacity, view_space_stats
 from seggaussian.fit_init import compute_scene_extent, initialize_gaussians
 from seggaussian.fit_params import GaussianParameters, render_view
-from seggaussian.fit_views import ViewData, evenly_spaced, load_views, masked_render, validate_scene
+from seggaussian.fit_views import (ViewData, evenly_spaced, load_views, masked_render, validate_scene,
+                                   with_mesh_depth)
 from seggaussian.gaussians import Gaussians
 from seggaussian.io.ply import write_gaussians_ply
-from seggaussian.losses import fitting_loss, l1_loss, psnr, ssim
+from seggaussian.losses import depth_loss, fitting_loss, l1_loss, psnr, ssim
 from seggaussian.scene import Scene
 from seggaussian.sources.layout import find_scene_layout, reader
 
@@ -144,6 +149,9 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
     novel_views = load_views(scene.views_with_role("novel"), config.downscale)
     holdout_views = load_views(holdout, config.downscale)
     early_stop_views = evenly_spaced(holdout_views or novel_views, config.eval_max_views)
+    if config.lambda_depth > 0.0:  # exact depth of the scene's mesh, where it has one
+        train_views = with_mesh_depth(train_views, scene.points, scene.faces)
+    depth_views = sum(v.depth is not None for v in train_views)
 
     extent = compute_scene_extent([v.camera for v in train_views], scene.points)
     initial, init_stats = initialize_gaussians(scene.points, scene.colors, config, rng)
@@ -152,6 +160,8 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
 
     history: list[dict] = []
     best_psnr, best_iteration, evals_since_best = -math.inf, 0, 0
+    best_state: dict | None = None  # parameters and SH degree at the best held-out evaluation
+    last_eval_iteration = -1
     stop_reason = "completed all iterations"
     densify_log: list[dict] = []
     order: list[int] = []
@@ -161,6 +171,9 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
         held = evaluate(params, early_stop_views, 0, background)
         history.append({"iteration": 0, "seconds": time.perf_counter() - start, "loss": None,
                         "heldout_psnr": held["psnr"], "gaussians": len(params)})
+        last_eval_iteration = 0
+        if config.keep_best:
+            best_psnr, best_state = held["psnr"], {"params": params.snapshot(), "sh_degree": 0, "iteration": 0}
     bar = tqdm(total=config.iterations, disable=not progress, desc=f"fit {scene.scene_id}", unit="it")
     for iteration in range(1, config.iterations + 1):
         if not order:
@@ -171,6 +184,9 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
 
         out = render_view(params, view, sh_degree, background)
         loss = fitting_loss(masked_render(out.image, view), view.image, config.lambda_dssim)
+        if (view.depth is not None and config.lambda_depth > 0.0
+                and (not config.depth_until or iteration <= config.depth_until)):
+            loss = loss + config.lambda_depth * depth_loss(out.depth, view.depth, view.valid)
         loss.backward()
         loss_value = float(loss.detach())
         if not math.isfinite(loss_value):
@@ -192,7 +208,8 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
             if config.densify_from <= iteration <= config.densify_until and iteration % config.densify_every == 0:
                 counts = densify_and_prune(params, config, extent, iteration > config.opacity_reset_every, generator)
                 densify_log.append(dict(counts, iteration=iteration))
-            if iteration < config.densify_until and iteration % config.opacity_reset_every == 0:
+            if (config.opacity_reset and iteration < config.densify_until
+                    and iteration % config.opacity_reset_every == 0):
                 reset_opacity(params, config.opacity_reset_value)
 
         if progress and (iteration % 10 == 0 or iteration == 1):
@@ -204,10 +221,15 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
             history.append({"iteration": iteration, "seconds": time.perf_counter() - start, "loss": float(np.mean(window_losses)),
                             "heldout_psnr": held["psnr"], "gaussians": len(params)})
             window_losses = []
+            last_eval_iteration = iteration
             if held["psnr"] > best_psnr + config.min_psnr_gain:
-                best_psnr, best_iteration, evals_since_best = held["psnr"], iteration, 0
+                best_iteration, evals_since_best = iteration, 0
             else:
                 evals_since_best += 1
+            if held["psnr"] > best_psnr:
+                best_psnr = held["psnr"]
+                if config.keep_best:
+                    best_state = {"params": params.snapshot(), "sh_degree": sh_degree, "iteration": iteration}
             # opacity resets and densification make the PSNR jump: the rule applies after densification
             if config.patience and iteration > config.densify_until and evals_since_best >= config.patience:
                 stop_reason = (f"early stop: held-out PSNR gained < {config.min_psnr_gain} dB in "
@@ -226,6 +248,23 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
         stop_reason += " (no held-out or novel views: early stop off)"
 
     final_degree = min(config.sh_degree, (iteration - 1) // config.sh_increase_every)
+    final_heldout = None
+    if config.keep_best and best_state is not None and early_stop_views:
+        if last_eval_iteration != iteration:  # the last state competes too
+            held = evaluate(params, early_stop_views, final_degree, background)
+            final_heldout = held["psnr"]
+            history.append({"iteration": iteration, "seconds": time.perf_counter() - start,
+                            "loss": float(np.mean(window_losses)) if window_losses else None,
+                            "heldout_psnr": held["psnr"], "gaussians": len(params)})
+        else:
+            final_heldout = history[-1]["heldout_psnr"]
+        if final_heldout > best_psnr:
+            best_psnr, best_state = final_heldout, None
+    returned_iteration = iteration
+    if best_state is not None and config.keep_best and best_state["iteration"] != iteration:
+        params.restore(best_state["params"])
+        final_degree = best_state["sh_degree"]
+        returned_iteration = best_state["iteration"]
     novel = evaluate(params, novel_views, final_degree, background) if novel_views else None
     gaussians = params.to_gaussians()
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
@@ -240,6 +279,10 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
         "train_views": len(train_views),
         "holdout_views": len(holdout_views),
         "iterations": iteration,
+        "returned_iteration": returned_iteration,
+        "best_heldout_psnr": None if best_psnr == -math.inf else best_psnr,
+        "final_heldout_psnr": final_heldout,
+        "depth_views": depth_views,
         "seconds": time.perf_counter() - start,
         "early_stop_reason": stop_reason,
         "gaussians": len(gaussians),

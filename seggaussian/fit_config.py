@@ -70,6 +70,15 @@ class FitConfig:
     lambda_dssim: float = 0.2
     """Loss = (1 - lambda) * L1 + lambda * (1 - SSIM)."""
 
+    lambda_depth: float = 0.0
+    """Weight of the depth term: mean relative error |D - D_mesh| / D_mesh of the rendered expected depth
+    against the depth of the scene's mesh (raycast once per train view), over the pixels the mesh covers.
+    0 (or a scene without a mesh) turns it off."""
+
+    depth_until: int = 0
+    """Last iteration of the depth term (0: the whole run). The term shapes the geometry early; the
+    photometric loss alone then refines the appearance."""
+
     # --- densification and pruning -----------------------------------------------------------
     densify_from: int = 100
     """First iteration of densification. 3DGS: 500 of 30,000."""
@@ -109,6 +118,10 @@ class FitConfig:
     opacity_reset_value: float = 0.01
     """Opacity ceiling after a reset."""
 
+    opacity_reset: bool = True
+    """Whether the opacity resets happen at all (3DGS: yes). On short CPU schedules of a few sparse views
+    the reset costs more than it cleans up (see benchmarks/results/fit.md): the profile turns it off."""
+
     # --- evaluation and early stop -------------------------------------------------------------
     eval_every: int = 250
     """Evaluate the held-out PSNR every this many iterations (0: never, no early stop)."""
@@ -130,8 +143,28 @@ class FitConfig:
     time_budget_seconds: float = 0.0
     """Stop after this much wall time (0: no limit)."""
 
+    keep_best: bool = True
+    """Return the state with the best held-out PSNR seen at any evaluation (including a final one
+    at the last iteration) instead of the last state."""
+
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def profile(cls) -> "FitConfig":
+        """The fit of a profile room (``seggaussian synth --width 160``: 160x120 images, 14 train views) in
+        about 30 s of one CPU core, chosen by the sweep in benchmarks/results/fit.md: coarser initial voxels
+        (fewer, larger Gaussians), opaque-ish initial Gaussians, depth supervision from the scene's mesh,
+        a short schedule with densification up to a cap and no opacity reset, SH degree 3 reached by
+        two thirds of the run, the best evaluated state kept."""
+        return cls(**PROFILE_SETTINGS)
+
+    @classmethod
+    def preset(cls, name: str) -> "FitConfig":
+        """``default`` (``FitConfig()``) or ``profile`` (``FitConfig.profile()``)."""
+        if name not in PRESETS:
+            raise ValueError(f"fit preset must be one of {', '.join(PRESETS)}, got {name!r}")
+        return cls.profile() if name == "profile" else cls()
 
     def with_iterations(self, iterations: int) -> "FitConfig":
         """This config with ``iterations`` changed and every iteration-valued schedule field
@@ -151,6 +184,7 @@ class FitConfig:
             densify_from=scaled(self.densify_from), densify_until=scaled(self.densify_until),
             densify_every=max(1, min(self.densify_every, (scaled(self.densify_until) - scaled(self.densify_from)) // 3)),
             opacity_reset_every=scaled(self.opacity_reset_every),
+            depth_until=scaled(self.depth_until) if self.depth_until else 0,
             eval_every=scaled(self.eval_every) if self.eval_every else 0,
         )
 
@@ -174,6 +208,8 @@ class FitConfig:
             "eval_max_views": self.eval_max_views >= 1,
             "patience": self.patience >= 0,
             "time_budget_seconds": self.time_budget_seconds >= 0.0,
+            "lambda_depth": self.lambda_depth >= 0.0,
+            "depth_until": self.depth_until >= 0,
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
@@ -181,3 +217,13 @@ class FitConfig:
                              + ", ".join(f"{n}={getattr(self, n)!r}" for n in bad))
         if len(self.background) != 3:
             raise ValueError(f"FitConfig: background must have 3 values, got {self.background!r}")
+
+
+#: ``FitConfig.profile()``: the fields it changes from the defaults.
+PROFILE_SETTINGS = dict(
+    iterations=320, init_voxel_size=0.08, init_opacity=0.5, max_gaussians=30_000, sh_increase_every=64,
+    densify_from=50, densify_until=200, densify_every=50, opacity_reset=False, lambda_depth=0.1,
+    eval_every=40, patience=0,
+)
+#: Names of ``FitConfig.preset``.
+PRESETS = ("default", "profile")

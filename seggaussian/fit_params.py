@@ -122,6 +122,16 @@ class GaussianParameters:
             new_state = {key: torch.zeros_like(state[key]) for key in ("exp_avg", "exp_avg_sq")}
         self._swap(name, value.detach().clone(), new_state)
 
+    def snapshot(self) -> dict:
+        """A detached copy of every parameter tensor (what ``restore`` takes back)."""
+        return {name: self.params[name].detach().clone() for name in PARAMETER_NAMES}
+
+    def restore(self, snapshot: dict) -> None:
+        """Set every parameter to ``snapshot``'s copy; Adam moments and densification statistics start afresh."""
+        for name in PARAMETER_NAMES:
+            self._swap(name, snapshot[name].clone(), None)
+        self.reset_stats()
+
     def to_gaussians(self) -> Gaussians:
         p = self.params
         return Gaussians.from_arrays(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], self.sh())

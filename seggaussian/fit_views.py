@@ -29,6 +29,7 @@ class ViewData(NamedTuple):
     viewmat: "torch.Tensor"  # [4, 4] float32
     K: "torch.Tensor"  # [3, 3] float32
     valid: "torch.Tensor | None" = None  # [H, W] bool, False on anonymized pixels; None = all valid
+    depth: "torch.Tensor | None" = None  # [H, W] float32 camera z of the scene's mesh, 0 = no hit; None = no mesh
 
 
 def masked_render(image: "torch.Tensor", view: ViewData) -> "torch.Tensor":
@@ -105,3 +106,17 @@ def evenly_spaced(items: Sequence, count: int) -> list:
     if count >= len(items):
         return list(items)
     return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
+
+
+def with_mesh_depth(views: Sequence[ViewData], points: np.ndarray, faces: np.ndarray | None) -> list[ViewData]:
+    """``views`` with ``depth`` set to the camera z of the mesh ``(points, faces)`` per pixel centre (raycast,
+    0 where a ray misses); unchanged when there is no mesh (``faces`` None or empty)."""
+    import torch
+
+    if faces is None or len(faces) == 0 or not views:
+        return list(views)
+    from seggaussian.sources.raycast import MeshRaycaster
+
+    caster = MeshRaycaster(points, faces)
+    return [view._replace(depth=torch.from_numpy(caster.cast(view.camera).depth.astype(np.float32)))
+            for view in views]

@@ -107,3 +107,20 @@ def fitting_loss(image: torch.Tensor, target: torch.Tensor, lambda_dssim: float)
     if lambda_dssim > 0.0:
         loss = loss + lambda_dssim * (1.0 - ssim(image, target))
     return loss
+
+
+def depth_loss(depth: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean relative depth error ``|D - D*| / D*`` over the pixels where the target depth is positive
+    (and ``mask`` is True): ``depth`` is the rendered expected depth ``[H, W]``, ``target`` the reference
+    depth ``[H, W]`` (0 = unknown, e.g. a ray that missed the mesh). Scalar; 0 when no pixel counts."""
+    if depth.shape != target.shape:
+        raise ValueError(f"depth_loss: depth shape {tuple(depth.shape)} differs from target {tuple(target.shape)}")
+    known = target > 0.0
+    if mask is not None:
+        known = known & mask
+    count = known.sum()
+    if int(count) == 0:
+        return depth.sum() * 0.0
+    safe = torch.where(known, target, torch.ones_like(target))
+    err = torch.where(known, (depth - target).abs() / safe, torch.zeros_like(depth))
+    return err.sum() / count

@@ -32,8 +32,11 @@ class FitSweep:
     """``FitConfig.max_gaussians`` values."""
     patience: tuple[int, ...] = (0, 2, 4)
     """``FitConfig.patience`` values (0 = no early stop)."""
+    preset: str = "default"
+    """``FitConfig.preset`` the rows start from: ``default`` (``FitConfig()``) or ``profile``
+    (``FitConfig.profile()``, the ~30 s CPU fit of a 160x120 profile room)."""
     base: dict = field(default_factory=dict)
-    """Overrides of ``FitConfig()`` used as the base of every fit row ({} = the shipped default)."""
+    """Overrides of the preset used as the base of every fit row ({} = the preset as shipped)."""
     eval_scale: float = 1.0
     """Novel views are scored at this share of the source image size, whatever the fit's downscale."""
 

@@ -38,7 +38,7 @@ def score_novel_views(gaussians, views, sh_degree: int, eval_scale: float, confi
 def sweep_fit(config: StageSweepConfig, tasks: list, progress: Progress | None = None) -> tuple[list, list]:
     """(rows, skipped) of the fit sweep over ``tasks``."""
     sweep = config.fit
-    base_config = replace(FitConfig(), **sweep.base)
+    base_config = replace(FitConfig.preset(sweep.preset), **sweep.base)
     base = {k: getattr(base_config, k) for k in FIT_KNOBS}
     rows = one_at_a_time(base, {k: getattr(sweep, k) for k in FIT_KNOBS})
     scenes = []
@@ -74,5 +74,5 @@ def sweep_fit(config: StageSweepConfig, tasks: list, progress: Progress | None =
                    "iterations_run": int(sum(f["iterations"] for f in facts)),
                    "gaussians": int(sum(f["gaussians"] for f in facts)), "per_scene": facts}
         trials.append(Trial("fit", knob, settings, seconds, float(np.mean([s["psnr"] for s in scores])), metrics,
-                            fit_config == FitConfig()))
+                            fit_config == FitConfig.preset(sweep.preset)))
     return trials, []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -464,3 +465,130 @@ def test_config_with_iterations_scales_the_schedule():
     tiny = base.with_iterations(1)
     assert tiny.densify_every >= 1 and tiny.opacity_reset_every >= 1 and tiny.sh_increase_every >= 1
     assert base.with_iterations(base.iterations) == base
+
+
+# --- keep the best held-out state ---------------------------------------------------------------------
+
+
+def test_early_stop_returns_the_best_heldout_state(tiny_scene, monkeypatch):
+    """Means that jump far every step make the held-out PSNR fall after the start: early stop must hand
+    back the snapshot taken at the best evaluation, its novel metrics and its iteration, not the last state."""
+    snapshots = []
+    original = GaussianParameters.snapshot
+
+    def recording(self):
+        snap = original(self)
+        snapshots.append({k: v.clone() for k, v in snap.items()})
+        return snap
+
+    monkeypatch.setattr(GaussianParameters, "snapshot", recording)
+    config = small_config(iterations=200, eval_every=5, patience=3, min_psnr_gain=0.0, densify_from=5,
+                          densify_until=10, densify_every=5, lr_means_init=0.05, lr_means_final=0.05)
+    r = fit_scene(tiny_scene, config, seed=0, progress=False)
+    m, hist = r.metrics, r.history
+    assert m["early_stop_reason"].startswith("early stop")
+    psnrs = [h["heldout_psnr"] for h in hist]
+    best = int(np.argmax(psnrs))
+    assert psnrs[best] > psnrs[-1] + 1.0  # the held-out PSNR really degraded
+    assert m["returned_iteration"] == hist[best]["iteration"] < m["iterations"]
+    assert m["best_heldout_psnr"] == pytest.approx(psnrs[best])
+    # the novel views are the held-out views here: the returned state scores the best PSNR again
+    assert m["novel_psnr"] == pytest.approx(psnrs[best], abs=1e-4)
+    snap = snapshots[-1]  # snapshots are taken on improvements only: the last one is the best
+    np.testing.assert_array_equal(r.gaussians.means, snap["means"].numpy())
+    np.testing.assert_array_equal(r.gaussians.opacity_logits, snap["opacity_logits"].numpy())
+    np.testing.assert_array_equal(r.gaussians.sh[:, :1], snap["f_dc"].numpy())
+
+
+def test_keep_best_off_returns_the_last_state(tiny_scene):
+    config = small_config(iterations=30, eval_every=5, densify_from=5, densify_until=10, densify_every=5,
+                          lr_means_init=0.05, lr_means_final=0.05, keep_best=False)
+    r = fit_scene(tiny_scene, config, seed=0, progress=False)
+    assert r.metrics["returned_iteration"] == 30
+    assert r.metrics["novel_psnr"] == pytest.approx(r.history[-1]["heldout_psnr"], abs=1e-4)
+
+
+def test_no_opacity_reset_when_turned_off(tiny_scene):
+    config = small_config(iterations=20, eval_every=0, opacity_reset_every=10, densify_until=40, opacity_reset=False,
+                          init_opacity=0.5)
+    opacity = {}
+    for reset in (True, False):
+        r = fit_scene(tiny_scene, replace(config, opacity_reset=reset), seed=0, progress=False)
+        opacity[reset] = float((1.0 / (1.0 + np.exp(-r.gaussians.opacity_logits))).max())
+    assert opacity[True] <= 0.01 + 1e-6  # clamped at 10 and 20
+    assert opacity[False] > 0.3
+
+
+# --- depth supervision ------------------------------------------------------------------------------
+
+
+def _depth_loss_loop(depth, target, mask):
+    total, count = 0.0, 0
+    for i in range(depth.shape[0]):
+        for j in range(depth.shape[1]):
+            if target[i, j] > 0 and (mask is None or mask[i, j]):
+                total += abs(float(depth[i, j]) - float(target[i, j])) / float(target[i, j])
+                count += 1
+    return total / count if count else 0.0
+
+
+def test_depth_loss_matches_loop_reference_and_gradient():
+    from seggaussian.losses import depth_loss
+
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(7, 9, generator=g) * 3.0 + 0.5
+    target[torch.rand(7, 9, generator=g) < 0.3] = 0.0  # misses
+    mask = torch.rand(7, 9, generator=g) > 0.2
+    depth = (torch.rand(7, 9, generator=g) * 4.0).requires_grad_(True)
+    for m in (None, mask):
+        loss = depth_loss(depth, target, m)
+        assert float(loss) == pytest.approx(_depth_loss_loop(depth.detach(), target, m), rel=1e-5)
+    loss = depth_loss(depth, target, mask)
+    loss.backward()
+    known = (target > 0) & mask
+    expected = torch.where(known, torch.sign(depth.detach() - target) / target.clamp_min(1e-9), torch.zeros_like(target))
+    torch.testing.assert_close(depth.grad, expected / known.sum(), rtol=1e-5, atol=1e-7)
+    assert float(depth_loss(depth, torch.zeros_like(target))) == 0.0
+
+
+def test_mesh_depth_of_views_matches_reference_raycaster(tiny_scene):
+    """The fit's depth targets are the mesh's camera z per pixel centre (the slow reference caster agrees)."""
+    from seggaussian.fit_views import load_views, with_mesh_depth
+    from seggaussian.sources.raycast import cast_rays_reference
+
+    points = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0],
+                       [-1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    views = load_views(tiny_scene.views_with_role("train")[:2], 1.0)
+    assert all(v.depth is None for v in with_mesh_depth(views, points, None))
+    for view in with_mesh_depth(views, points, faces):
+        ref = cast_rays_reference(points, faces, view.camera).depth
+        np.testing.assert_allclose(view.depth.numpy(), ref, rtol=1e-4, atol=1e-4)
+        assert (view.depth > 0).float().mean() > 0.5
+
+
+def test_depth_term_runs_and_pulls_rendered_depth_to_the_mesh(tiny_scene):
+    import dataclasses
+
+    points = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0],
+                       [-1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    # the two planes of the tiny scene as a mesh; the scene's points stay the noisy initial cloud
+    init_pts = tiny_scene.points
+    mesh_scene = dataclasses.replace(tiny_scene, points=np.concatenate([init_pts, points]),
+                                     colors=np.concatenate([tiny_scene.colors, np.full((8, 3), 128, np.uint8)]),
+                                     faces=faces + init_pts.shape[0],
+                                     instance=np.zeros(init_pts.shape[0] + 8, np.int32),
+                                     semantic=np.zeros(init_pts.shape[0] + 8, np.int32))
+    r = fit_scene(mesh_scene, small_config(iterations=20, eval_every=10, lambda_depth=0.5), seed=0, progress=False)
+    assert r.metrics["depth_views"] == r.metrics["train_views"] == 6
+    assert np.isfinite(r.metrics["novel_psnr"])
+
+
+def test_presets():
+    profile = FitConfig.profile()
+    assert FitConfig.preset("profile") == profile and FitConfig.preset("default") == FitConfig()
+    assert profile.sh_degree == 3 and not profile.opacity_reset and profile.lambda_depth > 0 and profile.keep_best
+    assert profile.densify_until < profile.iterations
+    with pytest.raises(ValueError, match="preset"):
+        FitConfig.preset("fast")
