@@ -40,6 +40,10 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @config_option(TrainConfig, "voxel_size", "--voxel-size", type=click.FloatRange(min=0, min_open=True), default=None)
 @config_option(TrainConfig, "use_coordinates", "--use-coordinates/--no-coordinates", default=TrainConfig.use_coordinates,
                show_default=True)
+@config_option(TrainConfig, "input_encoding", "--input-encoding", type=click.Choice(["robust", "raw"]),
+               default=TrainConfig.input_encoding, show_default=True)
+@config_option(TrainConfig, "pool_weighting", "--pool-weighting", type=click.Choice(["opacity", "mean"]),
+               default=TrainConfig.pool_weighting, show_default=True)
 @config_option(LossConfig, "class_balance", "--class-balance", type=click.FloatRange(min=0),
                default=LossConfig.class_balance, show_default=True)
 @config_option(LossConfig, "unlabelled_as_unseen", "--unlabelled-as-unseen", is_flag=True)
@@ -48,6 +52,7 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @config_option(LossConfig, "temperature", "--temperature", type=click.FloatRange(min=0, min_open=True),
                default=LossConfig.temperature, show_default=True)
 @config_option(DataConfig, "holdout_classes", "--holdout-classes", type=str, default="")
+@config_option(DataConfig, "splat_augment", "--splat-augment", is_flag=True)
 @config_option(DataConfig, "verify", "--verify", is_flag=True)
 @config_option(TrainConfig, "keep_checkpoints", "--keep-checkpoints", type=click.IntRange(min=0),
                default=TrainConfig.keep_checkpoints, show_default=True)
@@ -56,8 +61,8 @@ from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, Teacher
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
-            use_coordinates, class_balance, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
-            verify, keep_checkpoints, progress, as_json):
+            use_coordinates, input_encoding, pool_weighting, class_balance, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
+            splat_augment, verify, keep_checkpoints, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
@@ -66,11 +71,12 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
     config = TrainConfig(
         out=out, epochs=epochs, batch_scenes=batch_scenes, seed=seed, device=device, resume=resume,
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
-        voxel_size=voxel_size, use_coordinates=use_coordinates,
+        voxel_size=voxel_size, use_coordinates=use_coordinates, input_encoding=input_encoding,
+        pool_weighting=pool_weighting,
         keep_checkpoints=keep_checkpoints,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
                         holdout_classes=tuple(n.strip() for n in holdout_classes.split(",") if n.strip()),
-                        verify=verify),
+                        splat_augment=splat_augment, verify=verify),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),
         loss=LossConfig(temperature=temperature, no_3dt_align=no_3dt_align, no_vs_align=no_vs_align,

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from ovgaussian.model import OVGaussianNet
-from ovgaussian.model_config import OVGaussianNetConfig
+from ovgaussian.model_config import LEGACY_FIELD_VALUES, OVGaussianNetConfig
 from ovgaussian.train_config import config_from_dict
 from seggaussian.atomic import atomic_dir, atomic_path, remove_dir_atomic, sweep_temps, write_json_atomic
 from seggaussian.jsonsafe import NAN_IS_ERROR
@@ -207,6 +207,12 @@ class TrainedModel(NamedTuple):
     seen_class_ids: list
 
 
+def saved_model_config(payload: dict) -> OVGaussianNetConfig:
+    """The network config a run folder saved: fields added since it was written take the values that run was
+    trained with (``LEGACY_FIELD_VALUES``), not today's defaults, so an old run loads and predicts as before."""
+    return config_from_dict(OVGaussianNetConfig, {**LEGACY_FIELD_VALUES, **payload})
+
+
 def load_trained_model(run_dir: Path, checkpoint: Path | None = None, device: str = "cpu") -> TrainedModel:
     """The network of a run (latest checkpoint unless ``checkpoint`` is given), ready for inference.
 
@@ -218,7 +224,7 @@ def load_trained_model(run_dir: Path, checkpoint: Path | None = None, device: st
     folder = Path(checkpoint) if checkpoint is not None else latest_checkpoint(run_dir)
     if folder is None:
         raise CheckpointError(f"{run_dir / CHECKPOINTS_DIR}: no checkpoint (train first)")
-    model_config = config_from_dict(OVGaussianNetConfig, run_config["model"])
+    model_config = saved_model_config(run_config["model"])
     net = build_network(model_config, run_config.get("teacher_width"))
     load_checkpoint(folder, net, device=device)
     net.to(device).eval()

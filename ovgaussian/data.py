@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 import numpy as np
 import torch
 
-from ovgaussian.augmentation import augment_gaussians, sample_augmentation
+from ovgaussian.augmentation import SPLAT_AUGMENT_PROBABILITY, augment_gaussians, sample_augmentation, splat_statistics
 from ovgaussian.cache_budget import folder_bytes
 from ovgaussian.scene_source import ScanResult, SceneSource, scan_scenes
 from ovgaussian.teacher import sample_patch_features
@@ -294,9 +294,13 @@ class TrainingData:
         teacher = None
         if view.teacher is not None:
             teacher = sample_patch_features(view.teacher, pixels, (h, w))
+        opacity_logits, sh_dc, labels = scene.opacity_logits, scene.sh_dc, scene.labels
+        if self.config.splat_augment and rng.random() < SPLAT_AUGMENT_PROBABILITY:
+            means, quats, log_scales, opacity_logits, sh_dc, labels = splat_statistics(
+                rng, means, quats, log_scales, opacity_logits, sh_dc, labels, IGNORE_LABEL)
         return SceneSample(
             scene_id, view_name, torch.from_numpy(means), torch.from_numpy(quats), torch.from_numpy(log_scales),
-            torch.from_numpy(scene.opacity_logits), torch.from_numpy(scene.sh_dc), torch.from_numpy(scene.labels),
+            torch.from_numpy(opacity_logits), torch.from_numpy(sh_dc), torch.from_numpy(labels),
             pixels, pixel_ids, pixel_weights, torch.from_numpy(view.labels.reshape(-1)[flat]), teacher, (h, w),
         )
 

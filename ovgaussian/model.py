@@ -42,6 +42,17 @@ ATTRIBUTE_GROUPS = (("colour", 3), ("opacity", 1), ("scales", 3), ("quats", 4))
 #: A scene whose half-extent is below this (metres; e.g. one Gaussian) is not rescaled when its
 #: coordinates are normalized (avoids dividing by zero).
 COORD_NORMALIZATION_MIN_EXTENT = 1e-6
+#: ``input_encoding="robust"``: log-scales are measured in voxel edges (``log(scale / voxel_size)``) and clipped to
+#: this range, e^-6 (a 0.25 mm splat at 10 cm voxels) to e^2 voxels: the thin and the room-sized Gaussians a fit
+#: leaves behind saturate instead of dominating the input.
+ROBUST_LOG_SCALE_RANGE = (-6.0, 2.0)
+#: ``input_encoding="robust"``: coordinates are normalized by the per-axis quantile box at these levels (not the
+#: bounding box, which one floater far outside the room stretches) and clipped to +-``ROBUST_COORD_CLIP``.
+ROBUST_COORD_QUANTILES = (0.01, 0.99)
+ROBUST_COORD_CLIP = 1.5
+#: ``pool_weighting="opacity"``: smallest weight of a Gaussian, so a voxel of only transparent Gaussians still
+#: gets the mean of its inputs rather than 0/0.
+POOL_MIN_WEIGHT = 1e-3
 #: Per-Gaussian stages (adapter, decoders) run in chunks of this many rows under activation
 #: checkpointing when gradients are recorded: a chunk's activations are recomputed in backward instead
 #: of kept (about 2.7 KB per Gaussian for the adapter, 4 KB for phi + its 384-d output: 20 GB at
@@ -120,6 +131,34 @@ def normalized_coordinates(means: Tensor, batch_index: Tensor) -> Tensor:
     centre = 0.5 * (lo + hi)
     half = (0.5 * (hi - lo)).amax(dim=1).clamp_min(COORD_NORMALIZATION_MIN_EXTENT)
     return (means - centre[batch_index]) / half[batch_index, None]
+
+
+def robust_coordinates(means: Tensor, batch_index: Tensor) -> Tensor:
+    """``[N, 3]`` positions minus the centre of their scene's ``ROBUST_COORD_QUANTILES`` box (per axis), over that
+    box's largest half-extent, clipped to ``+-ROBUST_COORD_CLIP``: a few floaters far outside the room move no
+    other Gaussian's coordinates (a bounding box would)."""
+    out = torch.empty_like(means)
+    low_q, high_q = ROBUST_COORD_QUANTILES
+    for scene in torch.unique(batch_index):
+        rows = torch.nonzero(batch_index == scene).reshape(-1)
+        pts = means[rows]
+        n = pts.shape[0]
+        lo = pts.kthvalue(1 + int(low_q * (n - 1)), dim=0).values
+        hi = pts.kthvalue(1 + int(high_q * (n - 1)), dim=0).values
+        half = (0.5 * (hi - lo)).amax().clamp_min(COORD_NORMALIZATION_MIN_EXTENT)
+        out[rows] = ((pts - 0.5 * (lo + hi)) / half).clamp(-ROBUST_COORD_CLIP, ROBUST_COORD_CLIP)
+    return out
+
+
+def encode_attributes(attributes: Tensor, voxel_size: float) -> Tensor:
+    """``input_encoding="robust"`` of the 11 physical attributes (:func:`gaussian_attributes` columns):
+    colour clamped to [0, 1]; opacity as is; scales as ``log(scale / voxel_size)`` clipped to
+    ``ROBUST_LOG_SCALE_RANGE`` and halved (order 1); quaternions as is."""
+    colour = attributes[:, 0:3].clamp(0.0, 1.0)
+    opacity = attributes[:, 3:4]
+    low, high = ROBUST_LOG_SCALE_RANGE
+    log_scales = torch.log(attributes[:, 4:7].clamp_min(1e-30) / voxel_size).clamp(low, high) * 0.5
+    return torch.cat([colour, opacity, log_scales, attributes[:, 7:11]], dim=1)
 
 
 def _relu(x: SparseVoxels) -> SparseVoxels:
@@ -305,11 +344,22 @@ class OVGaussianNet(nn.Module):
         if not bool(torch.isfinite(attributes).all()):
             raise ValueError("attributes contain NaN or Inf")
         width = attributes.shape[1]
+        robust = self.config.input_encoding == "robust"
+        if width == NUM_GAUSSIAN_ATTRIBUTES and robust:
+            attributes = encode_attributes(attributes, self.config.voxel_size)
         if self.config.use_coordinates and width == NUM_GAUSSIAN_ATTRIBUTES:
-            attributes = torch.cat([attributes, normalized_coordinates(means.detach(), batch_index)], dim=1)
+            coordinates = (robust_coordinates if robust else normalized_coordinates)(means.detach(), batch_index)
+            attributes = torch.cat([attributes, coordinates], dim=1)
         elif width != self.config.num_attributes:
             raise ValueError(f"attributes have {width} columns, the config expects {self.config.num_attributes}")
         return attributes
+
+    def pool_weights(self, attributes: Tensor) -> "Tensor | None":
+        """``[N]`` weights of the Gaussians in their voxel's pooled input (``pool_weighting="opacity"``: the
+        opacity, column 3 of the attributes, floored at ``POOL_MIN_WEIGHT``), or None for a plain mean."""
+        if self.config.pool_weighting == "mean":
+            return None
+        return attributes[:, 3].detach().clamp_min(POOL_MIN_WEIGHT)
 
     def forward(
         self,
@@ -319,7 +369,8 @@ class OVGaussianNet(nn.Module):
     ) -> Tensor:
         """Semantic vectors ``[N, semantic_width]``."""
         attributes = self.prepare_inputs(means, attributes, batch_index)
-        vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent)
+        vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
+                              weights=self.pool_weights(attributes))
         voxel_features = self.backbone(vox.voxels)  # [M, S]
         per_gaussian = voxel_features[vox.point_to_voxel]  # [N, S]
         if self.config.use_adapter:
@@ -329,5 +380,6 @@ class OVGaussianNet(nn.Module):
 
 __all__ = [
     "ATTRIBUTE_GROUPS", "OVGaussianNet", "OVGaussianNetConfig", "SparseUNet", "VoxelToPointAdapter",
-    "VoxelSites", "canonical_quat_sign", "gaussian_attributes", "normalized_coordinates",
+    "VoxelSites", "canonical_quat_sign", "encode_attributes", "gaussian_attributes", "normalized_coordinates",
+    "robust_coordinates",
 ]

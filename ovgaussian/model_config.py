@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 #: MinkUNet34C (MinkowskiEngine / Pointcept): encoder widths 32, 64, 128, 256, decoder 256, 128, 96, 96.
 MINKUNET34C_WIDTHS = (32, 64, 128, 256, 256, 128, 96, 96)
@@ -34,6 +35,15 @@ class OVGaussianNetConfig:
     use_coordinates: bool = False
     """Append 3 normalized coordinates (position minus scene centre, divided by the scene's
     half-extent, so in [-1, 1]) to the 11 attributes: backbone and adapter see 14 inputs."""
+    input_encoding: Literal["raw", "robust"] = "robust"
+    """How the 11 physical attributes (and the coordinates) are fed to the network. ``raw``: as
+    ``gaussian_attributes`` returns them (scales in metres, colour unclamped, coordinates over the bounding box), the
+    encoding of runs trained before fitted splats were supported. ``robust``: what a fitted splat's heavy tails
+    cannot throw off: colour clamped to [0, 1], log-scales relative to the voxel edge and clipped, coordinates over
+    the 1 %..99 % quantile box of the scene and clipped to [-1.5, 1.5] (floaters far outside the room move nothing)."""
+    pool_weighting: Literal["mean", "opacity"] = "opacity"
+    """How a voxel's input features are pooled from its Gaussians: ``mean`` (each Gaussian counts once) or
+    ``opacity`` (weighted by opacity, so the faint Gaussians a fit leaves everywhere count little)."""
     semantic_width: int = 16
     """Width of the per-Gaussian semantic vector s (paper: 16); also the backbone's output width."""
     use_adapter: bool = True
@@ -60,6 +70,10 @@ class OVGaussianNetConfig:
             raise ValueError(f"stem_kernel_size must be 1, 3, 5 or 7, got {self.stem_kernel_size}")
         if not self.voxel_size > 0:
             raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
+        if self.input_encoding not in ("raw", "robust"):
+            raise ValueError(f"input_encoding must be 'raw' or 'robust', got {self.input_encoding!r}")
+        if self.pool_weighting not in ("mean", "opacity"):
+            raise ValueError(f"pool_weighting must be 'mean' or 'opacity', got {self.pool_weighting!r}")
         if self.adapter_attention_width % self.adapter_heads:
             raise ValueError("adapter_attention_width must be divisible by adapter_heads")
 
@@ -74,3 +88,8 @@ class OVGaussianNetConfig:
         fields = dict(widths=SLIM_WIDTHS, stem_width=8, stem_kernel_size=3)
         fields.update(overrides)
         return cls(**fields)
+
+
+#: Values of the fields added after runs were first saved, for a run folder whose config lacks them: such a run
+#: was trained with these behaviours (``ovgaussian.checkpoint`` loads it with them, not with today's defaults).
+LEGACY_FIELD_VALUES = {"input_encoding": "raw", "pool_weighting": "mean"}

@@ -41,7 +41,7 @@ from tqdm import tqdm
 from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, DATASET_INTERNAL_FOLDERS, folder_bytes
 from ovgaussian.checkpoint import (
     CONFIG_NAME, METRICS_NAME, CheckpointError, build_network, latest_checkpoint, load_checkpoint, read_json,
-    retain_checkpoints, save_checkpoint, sweep_run_temps,
+    retain_checkpoints, save_checkpoint, saved_model_config, sweep_run_temps,
 )
 from ovgaussian.data import TrainingData
 from ovgaussian.devices import resolve_device
@@ -96,7 +96,8 @@ class TrainResult(NamedTuple):
 def make_model_config(config: TrainConfig, text_width: int) -> OVGaussianNetConfig:
     """The network config of the preset, with ``embedding_width`` = text width and the adapter switch."""
     fields = dict(embedding_width=int(text_width), use_adapter=config.use_adapter, seed=config.seed,
-                  use_coordinates=config.use_coordinates)
+                  use_coordinates=config.use_coordinates, input_encoding=config.input_encoding,
+                  pool_weighting=config.pool_weighting)
     if config.voxel_size is not None:
         fields["voxel_size"] = float(config.voxel_size)
     if config.model_preset == "slim":
@@ -205,7 +206,7 @@ def training_network(config: TrainConfig, saved: dict | None, model_config, teac
     saved run, identical on every process, in training mode."""
     teacher_width = None if teacher is None else int(teacher.feature_dim)
     if saved is not None:
-        model_config = config_from_dict(OVGaussianNetConfig, saved["model"])
+        model_config = saved_model_config(saved["model"])
         teacher_width = saved["teacher_width"]
     elif model_config is None:
         model_config = make_model_config(config, text_width)

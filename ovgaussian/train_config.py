@@ -38,6 +38,10 @@ class DataConfig:
     """Range of the uniform random scale factor."""
     flip_probability: float = 0.5
     """Probability of mirroring x and, independently, y."""
+    splat_augment: bool = False
+    """Give any scene a fitted splat's statistics at training time (``ovgaussian.augmentation.splat_statistics``):
+    per scene, with probability 1/2, opacities redrawn from a fit's spread, log-scales made anisotropic,
+    colour noise, and unlabelled floaters added. For training on oracle Gaussians that must then work on fits."""
     verify: bool = False
     """Check every shard read against the manifest's sha256 (sizes are always checked)."""
 
@@ -137,6 +141,13 @@ class TrainConfig:
     use_coordinates: bool = False
     """Also give the network each Gaussian's position, normalized by the scene's extent (height above the floor
     tells floor, wall and ceiling objects apart); off keeps the paper's 11 attributes."""
+    input_encoding: Literal["raw", "robust"] = "robust"
+    """How the Gaussians' attributes enter the network: ``robust`` (colour clamped, log-scales relative to the voxel,
+    coordinates over the scene's 1-99 % quantile box: a fitted splat's floaters and huge or faint Gaussians throw
+    nothing off) or ``raw`` (as runs trained before fitted splats were supported)."""
+    pool_weighting: Literal["mean", "opacity"] = "opacity"
+    """Pooling of Gaussians into a voxel: weighted by ``opacity`` (faint Gaussians count little) or a plain
+    ``mean``."""
     progress: bool = True
     """Show a tqdm progress bar with the running losses."""
     keep_checkpoints: int = 2

@@ -111,13 +111,15 @@ def voxelize_points(
     batch_index: Tensor,  # [N] int scene index, 0..B-1
     voxel_size: float,
     max_grid_extent: int,
+    weights: "Tensor | None" = None,  # [N] positive pooling weights; None: plain mean
 ) -> Voxelization:
     """Voxelize points per scene: ``coords = floor((p - scene_min) / voxel_size)``.
 
     The voxel size of a scene grows beyond ``voxel_size`` only when the scene would span more than
     ``max_grid_extent`` voxels along some axis; it is then ``extent / (max_grid_extent - 1)`` so that
     the grid fits (the adaptive cap, reported in ``Voxelization.voxel_size``).
-    Features are mean-pooled per voxel (differentiable in ``features``).
+    Features are mean-pooled per voxel (differentiable in ``features``), or weighted-mean pooled with
+    ``weights`` (each > 0; not differentiated).
     """
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be [N, 3], got {tuple(points.shape)}")
@@ -149,7 +151,15 @@ def voxelize_points(
     coords = coords.clamp_(0, max_grid_extent - 1)  # the scene maximum lands exactly on the cap
     sites, inverse = VoxelSites.from_coords(batch_index, coords)
     m = len(sites)
-    pooled = features.new_zeros(m, features.shape[1]).index_add_(0, inverse, features)
-    counts = torch.bincount(inverse, minlength=m).clamp_min(1).to(features.dtype)
-    pooled = pooled / counts[:, None]
+    if weights is None:
+        pooled = features.new_zeros(m, features.shape[1]).index_add_(0, inverse, features)
+        counts = torch.bincount(inverse, minlength=m).clamp_min(1).to(features.dtype)
+        pooled = pooled / counts[:, None]
+    else:
+        if weights.shape != (n,) or (n and not bool((weights > 0).all())):
+            raise ValueError(f"weights must be [{n}] and positive, got {tuple(weights.shape)}")
+        w = weights.detach().to(features.dtype)
+        pooled = features.new_zeros(m, features.shape[1]).index_add_(0, inverse, features * w[:, None])
+        totals = features.new_zeros(m).index_add_(0, inverse, w)
+        pooled = pooled / totals[:, None]
     return Voxelization(SparseVoxels(pooled, sites), inverse, sizes.float(), lo.float())

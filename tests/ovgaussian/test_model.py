@@ -179,9 +179,14 @@ def test_empty_scene_and_bad_inputs():
         net(bad, attrs, batch)
 
 
-def test_coordinates_option_accepts_11_or_14_columns():
-    net = OVGaussianNet(OVGaussianNetConfig(**TINY, use_coordinates=True)).eval()
+@pytest.mark.parametrize("encoding", ["raw", "robust"])
+def test_coordinates_option_accepts_11_or_14_columns(encoding):
+    """14 columns are inputs already prepared (encoded, coordinates appended): the network takes them as they are."""
+    net = OVGaussianNet(OVGaussianNetConfig(**TINY, use_coordinates=True, input_encoding=encoding)).eval()
     means, attrs, batch = random_scenes(9, (200, 100))
     coords = normalized_coordinates(means, batch)
     assert coords.abs().max() <= 1.0 + 1e-6 and coords.abs().max() > 0.9
-    torch.testing.assert_close(net(means, attrs, batch), net(means, torch.cat([attrs, coords], 1), batch))
+    prepared = net.prepare_inputs(means, attrs, batch)
+    if encoding == "raw":
+        torch.testing.assert_close(prepared, torch.cat([attrs, coords], 1))
+    torch.testing.assert_close(net(means, attrs, batch), net(means, prepared, batch))

@@ -792,3 +792,37 @@ def test_a_run_saved_before_a_config_field_existed_resumes(scenes, tmp_path):
         del saved["train"]["loss"][key]
     path.write_text(json.dumps(saved))
     assert train(tiny_config(tmp_path, 2, resume=True), **common).steps == 4
+
+
+def test_splat_augment_gives_fitted_statistics_and_keeps_the_views_blend(scenes):
+    """``--splat-augment``: opacity spread as a fit's, floaters appended as ignored rows, the stored Gaussians' pixel
+    weights unchanged (they index the first rows), and a training step on it has finite gradients."""
+    from ovgaussian.augmentation import SPLAT_FLOATER_SHARE
+    from ovgaussian.checkpoint import build_network
+    from ovgaussian.train_losses import batch_losses
+
+    voc = training_vocabulary(20)
+    plain = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
+    augmented = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200,
+                                                                splat_augment=True), voc)
+    n = len(scenes[0].gaussians)
+    hits = 0
+    for seed in range(8):
+        s = augmented.sample("scene00", np.random.default_rng(seed))
+        ref = plain.sample("scene00", np.random.default_rng(seed))
+        assert torch.equal(s.pixel_ids, ref.pixel_ids) and torch.equal(s.pixel_weights, ref.pixel_weights)
+        if len(s.means) == n:  # not drawn this time: the sample is the plain one
+            assert torch.equal(s.opacity_logits, ref.opacity_logits)
+            continue
+        hits += 1
+        extra = len(s.means) - n
+        assert extra == round(SPLAT_FLOATER_SHARE * n)
+        assert (s.labels[n:] == IGNORE_LABEL).all() and torch.equal(s.labels[:n], ref.labels)
+        opacity = torch.sigmoid(s.opacity_logits[:n])
+        assert 0.05 < float(opacity.median()) < 0.3 and float(opacity.std()) > 0.1
+        assert not torch.equal(s.log_scales[:n], ref.log_scales)
+        net = build_network(tiny_model_config(12))
+        terms = batch_losses(net, [s], text_stub(), tiny_config(Path("unused"), 1), False, "cpu")
+        sum(t.total for t in terms).backward()
+        assert all(p.grad is None or torch.isfinite(p.grad).all() for p in net.parameters())
+    assert 1 <= hits <= 7
