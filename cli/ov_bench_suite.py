@@ -19,6 +19,8 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "scenes", "--scenes", type=click.IntRange(min=1), default=D.scenes, show_default=True)
 @config_option(SuiteConfig, "replica_scenes", "--replica-scenes", type=click.IntRange(min=1), default=D.replica_scenes,
                show_default=True)
+@config_option(SuiteConfig, "splats", "--splats", type=click.Choice(["fit", "oracle"]), default=D.splats,
+               show_default=True)
 @config_option(SuiteConfig, "gaussians", "--gaussians", type=click.IntRange(min=1), default=D.gaussians,
                show_default=True)
 @config_option(SuiteConfig, "epochs", "--epochs", type=click.IntRange(min=1), default=D.epochs, show_default=True)
@@ -30,11 +32,11 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "progress", "--progress/--no-progress", default=D.progress, show_default=True)
 @json_option
 @guarded
-def command(out, scenes, replica_scenes, gaussians, epochs, max_views, ablation, jobs, seed, progress, as_json):
+def command(out, scenes, replica_scenes, splats, gaussians, epochs, max_views, ablation, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
     from ovgaussian.bench_suite import run_suite
 
-    config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, gaussians=gaussians, epochs=epochs,
+    config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, splats=splats, gaussians=gaussians, epochs=epochs,
                          max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)
     report = run_suite(config, log=(lambda m: click.echo(m, err=True)) if progress and not as_json else None)
     passed = sum(ok for ok, _ in report.checks.values())

@@ -191,3 +191,15 @@ def test_a_rerun_keeps_the_times_of_the_invocations_before_it(tmp_path):
     assert S.invocation_history(path) == [first, second]
     path.write_text("{not json")
     assert S.invocation_history(path) == []
+
+
+def test_the_control_row_scores_the_full_run_on_oracle_gaussians_and_the_share_is_checked():
+    control = [r for r in TABLE1_ROWS if r.scored_on == "oracle"]
+    assert len(control) == 1 and control[0].run == "full" and control[0].predictor == "model"
+    reports = {"full": payload({k: 0.45 for k in ALL}), "control": payload({k: 0.48 for k in ALL})}
+    (name, (ok, detail)), = S.control_checks(reports, "full", ["control"], "fit").items()
+    assert ok and "94 %" in detail and "fitted 45.0" in detail
+    reports["full"] = payload({k: 0.40 for k in ALL})
+    assert not S.control_checks(reports, "full", ["control"], "fit")[name][0]
+    assert S.control_checks(reports, "full", ["control"], "oracle") == {}  # an oracle profile has no such check
+    assert SuiteConfig().splats == "fit" and not SuiteConfig().ablation
