@@ -34,6 +34,7 @@ from seggaussian.fit_config import PRESETS, FitConfig
 @config_option(OracleConfig, "num_gaussians", "--oracle-gaussians", type=int, default=None)
 @click.option("--fit-preset", type=click.Choice(PRESETS), default="default", show_default=True, help=PRESET_HELP)
 @config_option(FitConfig, "iterations", "--fit-iterations", type=int, default=None)
+@config_option(FitConfig, "max_gaussians", "--fit-max-gaussians", type=click.IntRange(min=1), default=None)
 @config_option(ViewConfig, "max_image_side", "--max-image-side", type=int, default=None)
 @config_option(ViewConfig, "view_stride", "--view-stride", type=int, default=None)
 @click.option("--keep-going", is_flag=True,
@@ -42,7 +43,7 @@ from seggaussian.fit_config import PRESETS, FitConfig
 @json_option
 @guarded
 def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussians_mode, ply_dir, seed, gate,
-            oracle_gaussians, fit_preset, fit_iterations, max_image_side, view_stride, keep_going, progress, as_json) -> None:
+            oracle_gaussians, fit_preset, fit_iterations, fit_max_gaussians, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
     from seggaussian.build import build_dataset, summary_table
 
@@ -58,6 +59,8 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
         config = replace(config, fit_config=FitConfig.preset(fit_preset))
     if fit_iterations is not None:
         config = replace(config, fit_config=config.fit_config.with_iterations(fit_iterations))
+    if fit_max_gaussians is not None:
+        config = replace(config, fit_config=replace(config.fit_config, max_gaussians=fit_max_gaussians))
     if max_image_side is not None:
         config = replace(config, views=replace(config.views, max_image_side=max_image_side))
     if view_stride is not None:
