@@ -13,7 +13,10 @@ PNG=${PNG:-docs/images/colour_by_semantic.png}
 mkdir -p "$OUT"
 VAL=$($BIN/python -c "from seggaussian.shards import list_scenes; print(list_scenes('$DEMO/dataset', 'val')[0])")
 $BIN/seggaussian export-ply "$DEMO/dataset" --scene "$VAL" --out "$OUT/scene.ply" | tail -n 1
-$BIN/ovgaussian predict "$OUT/scene.ply" --run "$DEMO/run" --vocab "wall, floor, ceiling, chair, table, sofa, bed, bookshelf, curtain" \
+# the vocabulary in the order of the ScanNet++ top-100 list, so a class has the same colour in both pictures (the
+# palette is indexed by vocabulary position in a prediction and by class id in the ground truth)
+VOCAB="wall, ceiling, floor, table, door, ceiling lamp, cabinet, blinds, curtain, chair, storage cabinet, office chair, bookshelf, whiteboard, window, box, window frame, monitor, shelf, doorframe, pipe, heater, kitchen cabinet, sofa, windowsill, bed"
+$BIN/ovgaussian predict "$OUT/scene.ply" --run "$DEMO/run" --vocab "$VOCAB" \
     --out "$OUT/labelled.compressed.ply" --color-by semantic | tail -n 1
 $BIN/seggaussian render "$OUT/labelled.compressed.ply" --out "$PNG" --width 480 --height 360 --azimuth -60 --elevation 35
 cp "$OUT/labelled.compressed.legend.png" "${PNG%.png}.legend.png"
