@@ -9,8 +9,12 @@ from dataclasses import replace
 
 import pytest
 
-#: Largest gap in val 3D CSA (mIoU) between the room's oracle Gaussians and its fitted splat, same run.
-CSA_GAP_TOLERANCE = 0.12
+#: Largest gap in val 3D CSA (mIoU) between the room's oracle Gaussians and its fitted splat, same run, as a share of
+#: the larger of the two. Measured at this size (4 rooms of 64x48, 30 epochs): fitted 0.048, oracle 0.076, majority
+#: 0.027 (the tiny run learns the large classes only; the full figure is the profile's).
+CSA_GAP_SHARE = 0.5
+#: Both scores must beat the majority baseline by this factor.
+ABOVE_MAJORITY = 1.5
 
 
 @pytest.fixture(scope="module")
@@ -58,5 +62,5 @@ def test_a_run_trained_on_fitted_splats_scores_a_room_alike_as_splat_and_as_orac
     on_fit, on_oracle = val_csa(fitted, tmp_path / "run"), val_csa(oracle, tmp_path / "run")
     majority = val_csa(fitted, predictor="majority")
     print(f"val 3D CSA: fitted {on_fit:.3f}, oracle {on_oracle:.3f}, majority {majority:.3f}")
-    assert on_fit > majority and on_oracle > majority, (on_fit, on_oracle, majority)
-    assert abs(on_fit - on_oracle) <= CSA_GAP_TOLERANCE, (on_fit, on_oracle)
+    assert on_fit > ABOVE_MAJORITY * majority and on_oracle > ABOVE_MAJORITY * majority, (on_fit, on_oracle, majority)
+    assert abs(on_fit - on_oracle) <= CSA_GAP_SHARE * max(on_fit, on_oracle), (on_fit, on_oracle)
