@@ -449,6 +449,12 @@ def check_settings(config: SuiteConfig) -> None:
                          "use a new --out, or the settings recorded in " + SETTINGS_NAME)
 
 
+def table1_rows(config: SuiteConfig) -> tuple[Table1Row, ...]:
+    """The Table-1 rows of this profile: every row of :data:`TABLE1_ROWS`, less the control rows when the profile
+    itself runs on oracle Gaussians (they would repeat the full run's row)."""
+    return tuple(r for r in TABLE1_ROWS if config.splats == "fit" or r.scored_on == "splats")
+
+
 def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> SuiteReport:
     """Run (or finish) the whole profile; see the module docstring. Library entry point of ``bench-suite``."""
     say = log or (lambda message: None)
@@ -473,21 +479,23 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     data = stage("data: synth + fit + build + split", build_data, config)
     dataset = data.splats
     sizes = split_sizes(dataset)
-    needed = {name for row in TABLE1_ROWS for name in (row.run, row.stacking_run) if name is not None}
+    rows = table1_rows(config)
+    needed = {name for row in rows for name in (row.run, row.stacking_run) if name is not None}
     if config.ablation:
         needed |= {row.run for row in ABLATION_ROWS}
     specs = [spec for spec in RUNS if spec.name in needed]
     runs = {spec.name: run_dir(config, spec.name) for spec in specs}
     # one queue: the trainings first (longest first), then each bench row as soon as the runs it scores are done
-    tasks = [Task(f"train: {spec.name}", train_run, (config, spec, dataset)) for spec in specs]
+    tasks = [Task(f"train: {spec.name}", train_run,
+                  (config, spec, data.oracle if spec.trained_on == "oracle" else dataset)) for spec in specs]
     reports_dir = out / "reports"
     tasks += [Task(f"bench: {row.label}", bench_row,
                    (config, bench_config(config, data.oracle if row.scored_on == "oracle" else dataset, row),
                     reports_dir / f"table1-{index:02d}.json"),
                    tuple(f"train: {name}" for name in (row.run, row.stacking_run) if name is not None))
-              for index, row in enumerate(TABLE1_ROWS)]
+              for index, row in enumerate(rows)]
     # a run scored by a Table-1 row without an open-vocabulary method needs no bench of its own for Table 2
-    plain_rows = {r.run: r.label for r in TABLE1_ROWS
+    plain_rows = {r.run: r.label for r in rows
                   if r.run is not None and not r.options and not r.stacking_run and r.scored_on == "splats"}
     ablation_runs = sorted({row.run for row in ABLATION_ROWS}) if config.ablation else []
     ablation_only = [name for name in ablation_runs if name not in plain_rows]
@@ -498,22 +506,24 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     values, task_times = run_tasks(tasks, config.jobs, stamped)
     times += task_times
     values = values[len(specs):]  # the trainings' values are their run folders, known beforehand
-    reports = {row.label: payload for row, payload in zip(TABLE1_ROWS, values)}
-    extra = dict(zip(ablation_only, values[len(TABLE1_ROWS):]))
+    reports = {row.label: payload for row, payload in zip(rows, values)}
+    extra = dict(zip(ablation_only, values[len(rows):]))
     run_reports = {name: reports[plain_rows[name]] if name in plain_rows else extra[name] for name in ablation_runs}
 
     full_label = plain_rows["full"]
-    baselines = tuple(r.label for r in TABLE1_ROWS if r.predictor != "model")
+    baselines = tuple(r.label for r in rows if r.predictor != "model")
     table1 = format_table1(reports)
     ablation = format_ablation(run_reports, vs_available=False) if config.ablation else ""
     classes = format_classes(reports)
     result = {"profile size (at least 40 train, 10 val, 8 xval rooms)": (
         all(sizes[k] >= n for k, n in MIN_SCENES.items()), ", ".join(f"{sizes[k]} {k}" for k in MIN_SCENES)),
         **checks(reports, full_label, baselines, run_reports,
-                 tuple(r.label for r in TABLE1_ROWS if r.stacking_run is not None),
-                 tuple(r.label for r in TABLE1_ROWS if r.predictor == "model" and r.label != full_label
+                 tuple(r.label for r in rows if r.stacking_run is not None),
+                 tuple(r.label for r in rows if r.predictor == "model" and r.label != full_label
                        and r.scored_on == "splats")),
-        **control_checks(reports, full_label, [r.label for r in TABLE1_ROWS if r.scored_on == "oracle"],
+        **control_checks(reports, full_label, [r.label for r in rows
+                                               if r.scored_on == "oracle" and r.run in runs
+                                               and next(s for s in RUNS if s.name == r.run).trained_on == "oracle"],
                          config.splats)}
     wall, cpu = time.perf_counter() - started[0], _cpu_seconds() - started[1]
     invocation = {"times": [t._asdict() for t in times],
@@ -523,7 +533,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     summary = {
         "config": config_to_dict(config),
         "splits": sizes,
-        "runs": {name: config_to_dict(train_config(config, spec, dataset))
+        "runs": {name: config_to_dict(train_config(config, spec, data.oracle if spec.trained_on == "oracle" else dataset))
                  for spec in RUNS for name in [spec.name] if name in runs},
         "table1": {label: {f"{d}_{m}": list(interval_of(p, d, m)[:3]) for d, m in TABLE1_COLUMNS}
                    for label, p in reports.items()},

@@ -193,9 +193,13 @@ def test_a_rerun_keeps_the_times_of_the_invocations_before_it(tmp_path):
     assert S.invocation_history(path) == []
 
 
-def test_the_control_row_scores_the_full_run_on_oracle_gaussians_and_the_share_is_checked():
+def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the_share_is_checked():
     control = [r for r in TABLE1_ROWS if r.scored_on == "oracle"]
-    assert len(control) == 1 and control[0].run == "full" and control[0].predictor == "model"
+    trained = {spec.name: spec.trained_on for spec in RUNS}
+    assert sorted(trained[r.run] for r in control) == ["oracle", "splats"]  # the control and the full run on oracle
+    assert trained["full-oracle"] == "oracle" and trained["full"] == "splats"
+    assert S.table1_rows(SuiteConfig(splats="oracle")) == tuple(r for r in TABLE1_ROWS if r.scored_on == "splats")
+    assert S.table1_rows(SuiteConfig()) == TABLE1_ROWS
     reports = {"full": payload({k: 0.45 for k in ALL}), "control": payload({k: 0.48 for k in ALL})}
     (name, (ok, detail)), = S.control_checks(reports, "full", ["control"], "fit").items()
     assert ok and "94 %" in detail and "fitted 45.0" in detail
