@@ -12,6 +12,7 @@ import numpy as np
 from seggaussian.cameras import Camera
 from seggaussian.scene import Scene
 from seggaussian.sources._common import read_valid_mask
+from seggaussian.sources.raycast import MeshRaycaster
 
 if TYPE_CHECKING:
     import torch
@@ -115,8 +116,6 @@ def with_mesh_depth(views: Sequence[ViewData], points: np.ndarray, faces: np.nda
 
     if faces is None or len(faces) == 0 or not views:
         return list(views)
-    from seggaussian.sources.raycast import MeshRaycaster
-
     caster = MeshRaycaster(points, faces)
     return [view._replace(depth=torch.from_numpy(caster.cast(view.camera).depth.astype(np.float32)))
             for view in views]
