@@ -12,7 +12,7 @@ from cli._output import finish, guarded, json_option
 from seggaussian.fit_config import PRESETS, FitConfig
 
 #: Help of ``--preset`` / ``seggaussian build --fit-preset``.
-PRESET_HELP = ("FitConfig to start from: `default` (FitConfig()) or `profile` (FitConfig.profile(): the ~30 s CPU "
+PRESET_HELP = ("FitConfig to start from: `default` (FitConfig()) or `profile` (FitConfig.profile(): the ~37 s CPU "
                "fit of a 160x120 profile room, depth from the mesh, no opacity reset). Other fit options override it.")
 
 

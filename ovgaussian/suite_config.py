@@ -177,8 +177,8 @@ class SuiteConfig:
     max_views: int = 4
     """Views scored per scene in 2D."""
     ablation: bool = False
-    """Also train and score the Table-2 runs (two more trainings; opt-in so that the profile with its 72 fits
-    stays within an hour on 2 cores)."""
+    """Also train and score the Table-2 runs (two more trainings; opt-in because the profile's 72 fits already
+    lengthen it: its time with them is not yet measured on a quiet machine)."""
     jobs: int = 2
     """Processes working at once: scenes of the build, then training runs and bench rows, a row once the runs it
     scores are done (each process with cpu_count // jobs torch and numba threads)."""

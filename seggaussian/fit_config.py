@@ -153,7 +153,7 @@ class FitConfig:
     @classmethod
     def profile(cls) -> "FitConfig":
         """The fit of a profile room (``seggaussian synth --width 160``: 160x120 images, 14 train views) in
-        about 30 s of one CPU core, chosen by the sweep in benchmarks/results/fit.md: coarser initial voxels
+        about 37 s of one CPU core (36.5 s with 16 views, 38.6 s with 32), chosen by the sweep in benchmarks/results/fit.md: coarser initial voxels
         (fewer, larger Gaussians), opaque-ish initial Gaussians, depth supervision from the scene's mesh,
         a short schedule with densification up to a cap and no opacity reset, SH degree 3 reached by
         two thirds of the run, the best evaluated state kept. The state is chosen on 2 train views held out of
