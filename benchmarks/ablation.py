@@ -13,7 +13,7 @@ The 2D-to-text alignment is always on. The visual-semantic (MaskCLIP) loss needs
 (``--clip-model PATH``); without one the trainer switches it off and the table marks those rows.
 
 Each (configuration, K) pair is trained on the train split with a K-class vocabulary (the K - 4 seen
-classes supervised), then scored by ``ovgaussian.bench`` on the same dataset. ``--shared-k`` trains once
+classes supervised), then scored by ``ovgaussian.bench.evaluate`` on the same dataset. ``--shared-k`` trains once
 per configuration at the largest K and scores that model at every K (faster, not the paper's protocol).
 
 Example (synthetic data from scripts/demo.sh)::
@@ -79,8 +79,8 @@ def parse_args(argv=None):
 
 
 def train_run(args, label: str, no_vs: bool, no_3dt: bool, adapter: bool, k: int) -> tuple[Path, tuple]:
-    from ovgaussian.train import train
-    from ovgaussian.train_config import DataConfig, LossConfig, TeacherConfig, TrainConfig
+    from ovgaussian.train.loop import train
+    from ovgaussian.run.config import DataConfig, LossConfig, TeacherConfig, TrainConfig
 
     run = args.out / "runs" / f"{label.replace(' ', '').replace('+', '_')}-K{k}"
     if args.no_train or (run / "checkpoints" / "latest.json").is_file():
@@ -104,9 +104,9 @@ def train_run(args, label: str, no_vs: bool, no_3dt: bool, adapter: bool, k: int
 
 
 def score(args, run: Path, k: int) -> dict:
-    from ovgaussian.bench import run_bench
-    from seggaussian.atomic import write_json_atomic
-    from ovgaussian.bench_config import BenchConfig
+    from ovgaussian.bench.evaluate import run_bench
+    from seggaussian.util.atomic import write_json_atomic
+    from ovgaussian.bench.config import BenchConfig
 
     config = BenchConfig(dataset=args.data, run=run, metrics=("CSA", "NVA"), dims=("3d", "2d"), num_classes=k,
                          max_views_per_scene=args.max_views, max_scenes=args.max_scenes, progress=False)

@@ -43,12 +43,12 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
 
-    from seggaussian.build_config import OracleConfig
-    from seggaussian.gaussians import Gaussians
-    from seggaussian.io.ply import write_gaussians_ply
-    from seggaussian.oracle import sample_oracle_gaussians
+    from seggaussian.labels.config import OracleConfig
+    from seggaussian.core.gaussians import Gaussians
+    from seggaussian.io.ply.reader import write_gaussians_ply
+    from seggaussian.labels.oracle import sample_oracle_gaussians
     from seggaussian.sources.layout import find_scene_layout, reader
-    from seggaussian.sources.synthetic import SynthConfig, synthesize
+    from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_align_"))
     raw = work / "raw"

@@ -5,7 +5,7 @@
 
 Each build runs as a child process (``python -m cli.seggaussian_cli build ...``) so that its wall time and
 peak RSS (``RUSAGE_CHILDREN``) are its own. The raw tree (default synthetic set: 9 ScanNet++-layout +
-3 Replica-layout rooms, ``seggaussian.sources.synthetic`` defaults) is synthesized once into ``WORK/raw``.
+3 Replica-layout rooms, ``seggaussian.sources.synthetic.generate`` defaults) is synthesized once into ``WORK/raw``.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def main() -> None:
     results: dict = {}
     if not raw.exists():
         sys.path.insert(0, str(REPO))
-        from seggaussian.sources.synthetic import synthesize
+        from seggaussian.sources.synthetic.generate import synthesize
 
         t = time.perf_counter()
         synthesize(raw / "scannetpp", args.scannetpp, 0, "scannetpp")

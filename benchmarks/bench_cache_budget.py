@@ -3,7 +3,7 @@
 Two measurements, each printed with its figure; exit status 1 when a budget is missed:
 
 1. ``--data DATASET --run RUN`` (e.g. the demo's ``out/demo/dataset`` and ``out/demo/run``): bytes of
-   ``RUN/caches`` against the dataset's bytes (``ovgaussian.cache_budget.run_cache_usage``).
+   ``RUN/caches`` against the dataset's bytes (``ovgaussian.data.cache_budget.run_cache_usage``).
 2. A paper-scale scene (``--gaussians`` 1,000,000 Gaussians with SH degree 3, ``--views`` 584x876 train
    views) written as the dataset's Parquet tables (gaussians + views, default ShardConfig) to measure
    its bytes, then every view prepared by ``TrainingData`` as training does, with a MaskCLIP teacher of
@@ -39,7 +39,7 @@ def old_blend_cache_bytes(height: int, width: int, top_k: int = TOP_K) -> int:
 
 
 def measure_run(data: Path, run: Path) -> dict:
-    from ovgaussian.cache_budget import run_cache_usage
+    from ovgaussian.data.cache_budget import run_cache_usage
 
     usage = run_cache_usage(run, data)
     return {"what": f"run {run} on {data}", "cache_bytes": usage.cache_bytes, "dataset_bytes": usage.dataset_bytes,
@@ -52,15 +52,15 @@ def measure_paper_scene(num_gaussians: int, num_views: int, workdir: Path) -> di
     from transformers import CLIPConfig, CLIPModel
 
     from bench_paper_step import HEIGHT, WIDTH, make_room
-    from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, folder_bytes
-    from ovgaussian.data import TrainingData
-    from ovgaussian.scene_source import InMemorySource
-    from ovgaussian.teacher import DenseTeacher
-    from ovgaussian.train_config import DataConfig, TeacherConfig
-    from ovgaussian.vocabulary import training_vocabulary
+    from ovgaussian.data.cache_budget import CACHE_BUDGET_FRACTION, folder_bytes
+    from ovgaussian.data.training_data import TrainingData
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.text.teacher import DenseTeacher
+    from ovgaussian.run.config import DataConfig, TeacherConfig
+    from ovgaussian.text.vocabulary import training_vocabulary
     from seggaussian import shards
-    from seggaussian.build_config import ShardConfig
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.shards.config import ShardConfig
+    from seggaussian.core.gaussians import Gaussians
     from seggaussian.render import render_gaussians
 
     t0 = time.perf_counter()

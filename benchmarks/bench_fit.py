@@ -62,8 +62,8 @@ def main() -> None:
     import numpy as np
     import torch
 
-    from seggaussian.fit import fit_scene, read_source_scene
-    from seggaussian.fit_config import FitConfig
+    from seggaussian.fit.optimize import fit_scene, read_source_scene
+    from seggaussian.fit.config import FitConfig
 
     torch.set_num_threads(args.threads)
     if not (args.root / "scannetpp" / "data").is_dir():

@@ -34,7 +34,7 @@ def _median_seconds(fn, repeats: int) -> tuple[float, float]:
 
 
 def _gaussians(n: int, degree: int, seed: int = 0):
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.core.gaussians import Gaussians
 
     rng = np.random.default_rng(seed)
     k = (degree + 1) ** 2

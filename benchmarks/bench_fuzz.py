@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_fuzz.py [--mutants 20000] [--seed 18] [--out benchmarks/results/fuzz.md]
 
 Seeds: the real PLYs in ../shared/realdata (or $SEGGAUSSIAN_SHARED/realdata) and files our writer makes
-(``seggaussian.tools.fuzz_ply.ply_target``). Every mutant is classified as accepted-and-finite, clean error,
+(``seggaussian.tools.fuzz.ply.ply_target``). Every mutant is classified as accepted-and-finite, clean error,
 non-finite, crash or hang; the run fails (exit 1) on any crash, hang or non-finite acceptance. CI runs
 1,600 of the same mutants in tests/seggaussian/tools/test_fuzz.py.
 """
@@ -27,8 +27,8 @@ def realdata() -> Path | None:
 
 
 def main() -> int:
-    from seggaussian.tools import fuzz, fuzz_ply
-
+    from seggaussian.tools.fuzz import engine as fuzz
+    from seggaussian.tools.fuzz import ply as fuzz_ply
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mutants", type=int, default=20000)
     parser.add_argument("--seed", type=int, default=18)
@@ -57,7 +57,7 @@ def main() -> int:
     text = "\n".join(lines).rstrip() + "\n"
     print(text)
     if args.out is not None:
-        from seggaussian.atomic import write_text_atomic
+        from seggaussian.util.atomic import write_text_atomic
 
         write_text_atomic(args.out, text)
     return 1 if failures else 0

@@ -1,6 +1,6 @@
 """The 2D benchmark of one paper-scale scene: 1,000,000 Gaussians, 50 views of 584x876 (issue 17).
 
-Runs ``ovgaussian.bench.evaluate`` (2D CSA on the ``val`` split) with the real blend weights, streamed
+Runs ``ovgaussian.bench.evaluate.evaluate`` (2D CSA on the ``val`` split) with the real blend weights, streamed
 band by band (``--band-rows``; nothing per pixel cached), and a stand-in predictor: random 16-d
 per-Gaussian vectors classified by a fixed random linear map (the time of a trained network's
 ``encode`` is not part of the 2D evaluation). Prints wall time, process CPU time, time per view and
@@ -88,7 +88,7 @@ def main() -> int:
                         help="only compare the torch and compiled M = W S on one view (interleaved per band)")
     args = parser.parse_args()
     if args.compare_render:
-        from ovgaussian.bench_config import DEFAULT_BAND_ROWS
+        from ovgaussian.predict.config import DEFAULT_BAND_ROWS
 
         r = compare_render(args.gaussians, args.band_rows or DEFAULT_BAND_ROWS)
         print(json.dumps(r))
@@ -97,9 +97,9 @@ def main() -> int:
         return 0
 
     from bench_paper_step import make_room
-    from ovgaussian.bench import evaluate
-    from ovgaussian.vocabulary import benchmark_vocabulary
-    from ovgaussian.bench_config import DEFAULT_BAND_ROWS
+    from ovgaussian.bench.evaluate import evaluate
+    from ovgaussian.text.vocabulary import benchmark_vocabulary
+    from ovgaussian.predict.config import DEFAULT_BAND_ROWS
 
     band_rows = args.band_rows or DEFAULT_BAND_ROWS
     t0 = time.perf_counter()

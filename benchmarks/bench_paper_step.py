@@ -7,7 +7,7 @@ not part of a step). A step = sampling (view, augmentation, pixels), blend weigh
 (computed on the fly, nothing cached), network forward, M = W S, the three losses, backward, SGD step.
 
 Phases (wall seconds, timed by wrapping the library functions in this process only):
-    sample      view, augmentation of the Gaussians, pixel draw (ovgaussian.data, without the next line)
+    sample      view, augmentation of the Gaussians, pixel draw (ovgaussian.data.training_data, without the next line)
     blend       blend weights at the sampled pixels (projection, tile binning, pixel kernel)
     voxelize    ovgaussian.sparse.voxelize_points
     kernel_maps submanifold / downsample maps and their gather plans (built once per step: new voxels)
@@ -55,8 +55,8 @@ def make_room(seed: int, num_gaussians: int, width: int = WIDTH, height: int = H
     ``views`` cameras looking into it (label maps: the stand-in classes, the weights do not depend on them)."""
     import numpy as np
 
-    from seggaussian.cameras import Camera, intrinsics, look_at
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
+    from seggaussian.core.gaussians import Gaussians
     from seggaussian.shards import SceneRecord, ViewRecord
 
     rng = np.random.default_rng(seed)
@@ -131,10 +131,10 @@ class PhaseTimer:
 
 def instrument(timer: PhaseTimer, data, net) -> None:
     """Wrap the library functions of each phase (this process only)."""
-    import ovgaussian.model as model_module
+    import ovgaussian.model.network as model_module
     import ovgaussian.sparse.gather_gemm as gather_gemm
     import ovgaussian.sparse.kernel_map as kernel_map
-    import ovgaussian.train_losses as train_losses
+    import ovgaussian.train.step_losses as train_losses
 
     voxelize = model_module.voxelize_points
 
@@ -157,13 +157,13 @@ def run(args) -> dict:
     import numpy as np
     import torch
 
-    from ovgaussian.checkpoint import build_network
-    from ovgaussian.data import TrainingData
-    from ovgaussian.scene_source import InMemorySource
-    from ovgaussian.train import make_model_config
-    from ovgaussian.train_config import DataConfig, TrainConfig
-    from ovgaussian.train_losses import batch_losses
-    from ovgaussian.vocabulary import training_vocabulary
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.data.training_data import TrainingData
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.train.loop import make_model_config
+    from ovgaussian.run.config import DataConfig, TrainConfig
+    from ovgaussian.train.step_losses import batch_losses
+    from ovgaussian.text.vocabulary import training_vocabulary
 
     t_setup = time.perf_counter()
     config = TrainConfig(model_preset=args.preset, data=DataConfig(pixels_per_view=args.pixels))
@@ -221,9 +221,9 @@ def compare_text_loss(rows: int, repeats: int) -> dict:
     expression, what a step used before) vs decoded_text_logits (Gram form), interleaved; default widths."""
     import torch
 
-    from ovgaussian.losses import compute_text_logits, masked_cross_entropy
-    from ovgaussian.model import OVGaussianNet
-    from ovgaussian.train_losses import decoded_text_logits
+    from ovgaussian.train.losses import compute_text_logits, masked_cross_entropy
+    from ovgaussian.model.network import OVGaussianNet
+    from ovgaussian.train.step_losses import decoded_text_logits
 
     torch.manual_seed(0)
     phi = OVGaussianNet().phi  # 16 -> 128 -> 512 (CLIP width); the MiniLM run uses 384
@@ -248,7 +248,7 @@ def compare_adapter(rows: int, repeats: int, chunk_rows: tuple[int, ...]) -> dic
     (``forward_reference``) vs ``forward``, at each checkpoint chunk size, interleaved; default widths."""
     import torch
 
-    from ovgaussian.model import OVGaussianNet, checkpointed_rows
+    from ovgaussian.model.network import OVGaussianNet, checkpointed_rows
 
     torch.manual_seed(0)
     adapter = OVGaussianNet().adapter

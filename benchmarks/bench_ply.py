@@ -30,8 +30,8 @@ def _median_seconds(fn, repeats: int) -> tuple[float, float]:
 
 
 def main() -> None:
-    from seggaussian.gaussians import Gaussians
-    from seggaussian.io.ply import (read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile,
+    from seggaussian.core.gaussians import Gaussians
+    from seggaussian.io.ply.reader import (read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile,
                                     vertex_table_to_gaussians, write_gaussians_ply)
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

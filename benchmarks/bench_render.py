@@ -31,7 +31,7 @@ def make_scene(num: int, width: int, height: int, seed: int = 0):
     """(tensors dict, viewmat [4,4] float64, K [3,3] float64) of the synthetic benchmark scene."""
     import torch
 
-    from seggaussian.cameras import intrinsics, look_at
+    from seggaussian.core.cameras import intrinsics, look_at
 
     rng = np.random.default_rng(seed)
     f32 = lambda a: torch.from_numpy(np.asarray(a, np.float32))  # noqa: E731

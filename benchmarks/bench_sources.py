@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from seggaussian.constants import IGNORE_LABEL  # noqa: E402
+from seggaussian.core.constants import IGNORE_LABEL  # noqa: E402
 from seggaussian.sources import replica, scannetpp, synthetic  # noqa: E402
 
 #: Depth test of the round-trip check (metres), as in tests/seggaussian/sources/test_sources_roundtrip.py.

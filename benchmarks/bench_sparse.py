@@ -196,7 +196,7 @@ def make_spconv(sites, features, weights, upstream, ours):
 
 def room_gaussians(num_scenes: int, per_scene: int, seed: int):
     """Synthetic rooms: Gaussians on the six faces of a 6 x 5 x 3 m box plus 12 random boxes."""
-    from ovgaussian.model import gaussian_attributes
+    from ovgaussian.model.network import gaussian_attributes
 
     g = torch.Generator().manual_seed(seed)
     means, batch = [], []
@@ -230,8 +230,8 @@ def bench_net_one(width: str, reps: int, method: str) -> dict:
     import functools
 
     import ovgaussian.sparse.conv as conv_module
-    from ovgaussian.model import OVGaussianNet
-    from ovgaussian.model_config import OVGaussianNetConfig
+    from ovgaussian.model.network import OVGaussianNet
+    from ovgaussian.model.config import OVGaussianNetConfig
     from ovgaussian.sparse import voxelize_points
 
     conv_module.sparse_conv = functools.partial(conv_module.sparse_conv, method=method)
@@ -281,8 +281,8 @@ def bench_net_interleaved(width: str, reps: int, methods: list[str]) -> dict:
     import functools
 
     import ovgaussian.sparse.conv as conv_module
-    from ovgaussian.model import OVGaussianNet
-    from ovgaussian.model_config import OVGaussianNetConfig
+    from ovgaussian.model.network import OVGaussianNet
+    from ovgaussian.model.config import OVGaussianNetConfig
 
     original = conv_module.sparse_conv
     config = OVGaussianNetConfig() if width == "default" else OVGaussianNetConfig.slim()

@@ -39,8 +39,8 @@ def make_scene(seed: int):
     """A 6 x 5 x 3 m room: Gaussians on the floor, walls and ceiling plus furniture boxes, labelled."""
     import numpy as np
 
-    from seggaussian.cameras import Camera, intrinsics, look_at
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
+    from seggaussian.core.gaussians import Gaussians
     from seggaussian.shards import SceneRecord, ViewRecord
 
     rng = np.random.default_rng(seed)
@@ -70,13 +70,13 @@ def run_one(preset: str, pixels: int | None, steps: int) -> dict:
     import numpy as np
     import torch
 
-    from ovgaussian.checkpoint import build_network
-    from ovgaussian.data import TrainingData
-    from ovgaussian.scene_source import InMemorySource
-    from ovgaussian.train import make_model_config
-    from ovgaussian.train_config import DataConfig, TrainConfig
-    from ovgaussian.train_losses import batch_losses
-    from ovgaussian.vocabulary import training_vocabulary
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.data.training_data import TrainingData
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.train.loop import make_model_config
+    from ovgaussian.run.config import DataConfig, TrainConfig
+    from ovgaussian.train.step_losses import batch_losses
+    from ovgaussian.text.vocabulary import training_vocabulary
 
     config = TrainConfig(model_preset=preset, data=DataConfig(pixels_per_view=pixels))
     vocabulary = training_vocabulary(20)

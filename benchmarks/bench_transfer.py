@@ -27,9 +27,9 @@ def main() -> None:
 
     from scipy.spatial import cKDTree
 
-    from seggaussian.build_config import TransferConfig
-    from seggaussian.constants import IGNORE_LABEL
-    from seggaussian.transfer import transfer_labels
+    from seggaussian.labels.config import TransferConfig
+    from seggaussian.core.constants import IGNORE_LABEL
+    from seggaussian.labels.transfer import transfer_labels
 
     rng = np.random.default_rng(0)
     # points on the surfaces of a 6 x 5 x 3 m room-sized box (a scan-like 2-manifold), Gaussians near them

@@ -44,7 +44,7 @@ RECEIVE_TIMEOUT_S = 60.0
 
 def synthetic_gaussians(num: int, seed: int = 0):
     """``num`` small random Gaussians in a 10 m x 10 m x 3 m room volume (what the splat arrays are built from)."""
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.core.gaussians import Gaussians
 
     rng = np.random.default_rng(seed)
     return Gaussians.from_arrays(rng.uniform([-5, -5, 0], [5, 5, 3], (num, 3)), rng.normal(size=(num, 4)),
@@ -56,10 +56,10 @@ def tiny_run(folder: Path) -> Path:
     """A run folder holding a randomly initialized slim network (the decoder phi is the real architecture)."""
     import torch
 
-    from ovgaussian.checkpoint import CONFIG_NAME, build_network, save_checkpoint
-    from ovgaussian.model_config import OVGaussianNetConfig
-    from ovgaussian.train_config import TextConfig, config_to_dict
-    from seggaussian.atomic import write_json_atomic
+    from ovgaussian.run.checkpoint import CONFIG_NAME, build_network, save_checkpoint
+    from ovgaussian.model.config import OVGaussianNetConfig
+    from ovgaussian.run.config import TextConfig, config_to_dict
+    from seggaussian.util.atomic import write_json_atomic
 
     config = OVGaussianNetConfig.slim(embedding_width=384, blocks=(1,) * 8, voxel_size=0.2)
     net = build_network(config)
@@ -110,7 +110,7 @@ class WireClient:
 def run(num: int, num_queries: int) -> dict:
     import torch
 
-    from ovgaussian.predict import load_model_predictor
+    from ovgaussian.predict.query import load_model_predictor
     from ovgaussian.view.app import QueryViewer
     from ovgaussian.view.field import QueryField
     from ovgaussian.view.scene import ViewScene
@@ -192,7 +192,7 @@ def markdown(result: dict) -> str:
         f"| query -> recoloured buffer received (target <= {result['target_s']:.1f} s) | {q['median']:.3f} | "
         f"{q['max']:.3f} |",
         f"| of which text embedding + scoring + relevancy + colours | {c['median']:.3f} | {c['max']:.3f} |",
-        f"| of which the text encoder alone (MiniLM, loaded once per process by ovgaussian.text) | {e['median']:.3f} | "
+        f"| of which the text encoder alone (MiniLM, loaded once per process by ovgaussian.text.encoders) | {e['median']:.3f} | "
         f"{e['max']:.3f} |",
         f"| query -> received, text encoder excluded | {w['median']:.3f} | {w['max']:.3f} |",
         f"| threshold moved -> buffer received | {t['median']:.3f} | {t['max']:.3f} |",

@@ -1,7 +1,7 @@
 """What caps NVA (issue 16): the ground-truth Gaussian labels scored through the bench's 2D pipeline, and the
 unseen classes' share of a trained model's NVA.
 
-The oracle (``ovgaussian.baseline.GroundTruthPredictor``) encodes each Gaussian as the one-hot vector of its
+The oracle (``ovgaussian.bench.baselines.GroundTruthPredictor``) encodes each Gaussian as the one-hot vector of its
 stored top-100 label, so its 2D scores say how much the rendering path (blend weights, alpha threshold, argmax
 of blended vectors) loses against the stored label maps. With a bench report (``ovgaussian bench --out REPORT``), it also prints
 ``ovgaussian.metrics.unseen_share`` of the report's NVA confusion matrix.
@@ -20,10 +20,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ovgaussian.baseline import GroundTruthPredictor  # noqa: E402
-from ovgaussian.bench import run_bench  # noqa: E402
-from ovgaussian.bench_config import BenchConfig  # noqa: E402
-from ovgaussian.bench_suite import report_unseen_share  # noqa: E402
+from ovgaussian.bench.baselines import GroundTruthPredictor  # noqa: E402
+from ovgaussian.bench.evaluate import run_bench  # noqa: E402
+from ovgaussian.bench.config import BenchConfig  # noqa: E402
+from ovgaussian.suite.profile import report_unseen_share  # noqa: E402
 
 
 def _pct(value: float | None) -> float | None:

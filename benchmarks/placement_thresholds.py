@@ -1,7 +1,7 @@
-"""Where the build's placement thresholds sit: both shares of ``seggaussian.placement`` on aligned and misplaced
+"""Where the build's placement thresholds sit: both shares of ``seggaussian.labels.placement`` on aligned and misplaced
 splats of the synthetic rooms, and the margins of the shipped thresholds.
 
-Aligned cases (must pass): oracle Gaussians sampled on the mesh; CPU-fitted splats (``seggaussian.fit``, short
+Aligned cases (must pass): oracle Gaussians sampled on the mesh; CPU-fitted splats (``seggaussian.fit.optimize``, short
 and longer fits); the fitted splat thinned to 10 % (sparse), with 50 % more Gaussians as floaters spread over the
 room's box at fitted opacities (floater-heavy), cut to one half of the room (partly captured), and a 2 cm shift
 (registration noise).
@@ -25,17 +25,17 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.build_config import OracleConfig, TransferConfig
-from seggaussian.fit import fit_scene
-from seggaussian.fit_config import FitConfig
-from seggaussian.gaussians import Gaussians
+from seggaussian.labels.config import OracleConfig, TransferConfig
+from seggaussian.fit.optimize import fit_scene
+from seggaussian.fit.config import FitConfig
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians_raw
-from seggaussian.io.ply import write_gaussians_ply
-from seggaussian.oracle import sample_oracle_gaussians
-from seggaussian.placement import measure_placement, placement_failure
-from seggaussian.seeds import scene_seed
+from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.labels.oracle import sample_oracle_gaussians
+from seggaussian.labels.placement import measure_placement, placement_failure
+from seggaussian.util.seeds import scene_seed
 from seggaussian.sources.layout import reader
-from seggaussian.transfer import densify_labelled_mesh, transfer_labels
+from seggaussian.labels.transfer import densify_labelled_mesh, transfer_labels
 
 ALIGNED = ("oracle", "fit-short", "fit", "fit-sparse10", "fit-floaters50", "fit-half-room", "fit-shift-2cm")
 MISPLACED = ("shift-0.25m", "shift-0.5m", "shift-1m", "scale-0.33", "scale-0.8", "scale-1.25", "rot-10deg",
@@ -133,7 +133,7 @@ def main(argv=None) -> int:
     if raw is None:
         raw = args.work / "raw"
         if not (raw / "scannetpp").is_dir():
-            from seggaussian.sources.synthetic import SynthConfig, synthesize
+            from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
             synthesize(raw / "scannetpp", args.rooms, args.seed, "scannetpp", SynthConfig(width=160, num_views=16))
     root = raw / "scannetpp"

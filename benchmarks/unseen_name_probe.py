@@ -21,9 +21,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ovgaussian.predict import load_model_predictor  # noqa: E402
-from ovgaussian.scene_source import ShardSource  # noqa: E402
-from ovgaussian.vocabulary import benchmark_vocabulary, to_vocabulary_labels  # noqa: E402
+from ovgaussian.predict.query import load_model_predictor  # noqa: E402
+from ovgaussian.data.scene_source import ShardSource  # noqa: E402
+from ovgaussian.text.vocabulary import benchmark_vocabulary, to_vocabulary_labels  # noqa: E402
 
 
 def shares(chosen: np.ndarray, truth: np.ndarray, names: list[str]) -> dict:

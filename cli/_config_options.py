@@ -1,7 +1,7 @@
 """CLI options whose help is the field doc of a config dataclass (one copy of each sentence).
 
 A config field is documented either by a string right after it (``FitConfig``, ``BenchConfig``, ``TrainConfig``)
-or by ``#:`` comment lines right before it (``BuildConfig``); ``seggaussian.field_docs`` reads both.
+or by ``#:`` comment lines right before it (``BuildConfig``); ``seggaussian.util.field_docs`` reads both.
 ``config_option`` is ``click.option`` with ``help`` taken from ``field_docs(config)[field]``; the option remembers
 its field, so
 ``tests/cli/test_cli_help.py`` checks every such option of every command against the config it names.
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import click
 
-from seggaussian.field_docs import field_docs
+from seggaussian.util.field_docs import field_docs
 
 
 class ConfigOption(click.Option):

@@ -12,7 +12,7 @@ from typing import Callable, NoReturn
 
 import click
 
-from seggaussian.jsonsafe import json_safe
+from seggaussian.util.jsonsafe import json_safe
 
 json_option = click.option("--json", "as_json", is_flag=True, help="Print one JSON document instead of text.")
 

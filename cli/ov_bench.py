@@ -8,7 +8,8 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
+from ovgaussian.bench.config import BenchConfig, METRICS
+from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 
 
 @click.command("bench")
@@ -41,8 +42,8 @@ from ovgaussian.bench_config import METRICS, BenchConfig, DEFAULT_MIN_ALPHA
 def command(dataset, run, checkpoint, predictor, prompt_ensemble, generative, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
             out, label, verify, device, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
-    from ovgaussian.bench import run_bench, table1_header, table1_row
-    from seggaussian.atomic import write_json_atomic
+    from ovgaussian.bench.evaluate import run_bench, table1_header, table1_row
+    from seggaussian.util.atomic import write_json_atomic
 
     metrics = METRICS if metric.lower() == "all" else (metric.upper(),)
     dims = ("3d", "2d") if dim == "both" else (dim,)

@@ -8,7 +8,7 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from ovgaussian.suite_config import SuiteConfig
+from ovgaussian.suite.config import SuiteConfig
 
 D = SuiteConfig()
 
@@ -34,7 +34,7 @@ D = SuiteConfig()
 @guarded
 def command(out, scenes, replica_scenes, splats, gaussians, epochs, max_views, ablation, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
-    from ovgaussian.bench_suite import run_suite
+    from ovgaussian.suite.profile import run_suite
 
     config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, splats=splats, gaussians=gaussians, epochs=epochs,
                          max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)

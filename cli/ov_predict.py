@@ -8,8 +8,8 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from ovgaussian.bench_config import DEFAULT_MIN_ALPHA
-from ovgaussian.predict_config import PredictConfig
+from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
+from ovgaussian.predict.config import PredictConfig
 
 
 @click.command("predict")
@@ -44,7 +44,7 @@ from ovgaussian.predict_config import PredictConfig
 def command(scene, run, checkpoint, vocab, out, output_format, spz_version, color_by, cameras, views_dir, colour_mode,
             on_invalid, prompt_ensemble, stacking_gamma, min_alpha, device, as_json):
     """Open-vocabulary segmentation of SCENE (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat) with a trained run."""
-    from ovgaussian.predict import parse_vocabulary, run_predict
+    from ovgaussian.predict.query import parse_vocabulary, run_predict
 
     names = parse_vocabulary(vocab)
     config = PredictConfig(run=run, checkpoint=checkpoint, vocabulary=names, colour_mode=colour_mode,

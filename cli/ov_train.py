@@ -8,7 +8,7 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TeacherConfig, TextConfig, TrainConfig
+from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherConfig, TextConfig, TrainConfig
 
 
 @click.command("train")
@@ -84,7 +84,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
                         unlabelled_weight=unlabelled_weight),
         optim=OptimConfig(lr=lr, schedule=schedule),
     )
-    from ovgaussian.train import train
+    from ovgaussian.train.loop import train
 
     result = train(config)
     m = result.last_epoch_metrics

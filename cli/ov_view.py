@@ -36,7 +36,7 @@ def command(scene, run, checkpoint, dataset, scene_id, vocab, query, mode, thres
             device, transform, from_frame, as_json):
     """Query SCENE (any splat format) with free text in the browser: RGB, ground-truth, predicted-label and
     query modes, click a Gaussian to inspect it. Serves until Ctrl-C; --export writes a file and exits."""
-    from ovgaussian.predict import parse_vocabulary
+    from ovgaussian.predict.query import parse_vocabulary
     from ovgaussian.view.session import run_view
     from seggaussian.frames.frame_config import FrameConfig
 

@@ -23,9 +23,9 @@ from cli._output import finish, guarded, json_option
 @guarded
 def command(splat: Path, to: Path, scene_id: str | None, out: Path, as_json: bool) -> None:
     """Register SPLAT (any splat format) onto the mesh of --to (rotation, translation, uniform scale: coarse FPFH +
-    RANSAC, then scaled ICP; see seggaussian/align.py) and write the transform. Refuses, writing nothing, when the
+    RANSAC, then scaled ICP; see seggaussian/align/registration.py) and write the transform. Refuses, writing nothing, when the
     aligned Gaussians do not reach the build's placement thresholds."""
-    from seggaussian.align import run_align
+    from seggaussian.align.registration import run_align
 
     result, payload = run_align(splat, to, out, scene_id)
     where = f"{to} scene {scene_id}" if scene_id else str(to)

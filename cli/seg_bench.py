@@ -1,4 +1,4 @@
-"""``seggaussian bench``: the stage sweeps (``seggaussian.tools.stage_sweep``): sweep a stage's speed knobs and
+"""``seggaussian bench``: the stage sweeps (``seggaussian.tools.sweep.run``): sweep a stage's speed knobs and
 measure time against error (Pareto front). The command keeps the name ``bench`` that users know; in the code
 the tool is the "stage sweep" (``ovgaussian bench`` is the model evaluation)."""
 
@@ -13,7 +13,7 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from seggaussian.tools.sweep_config import STAGES, StageSweepConfig, quick_config, with_params
+from seggaussian.tools.sweep.config import STAGES, StageSweepConfig, quick_config, with_params
 
 STAGE_CHOICES = ("fit", "transfer", "render", "build", "all")
 
@@ -43,9 +43,9 @@ def command(stages, data, work_dir, scenes, seed, quick, plot, markdown, params,
     synthetic meshes (or held-out views / meshes of real raw data). P marks Pareto-optimal rows, D the shipped
     default. (The command is named bench for continuity; it benchmarks pipeline stages, not the model: that is
     ovgaussian bench.)"""
-    from seggaussian.tools.pareto import PARETO_TIME_TOLERANCE, QUALITY_TOLERANCE, StageSweepResult, mark_pareto
-    from seggaussian.tools.stage_sweep import run_stage_sweep
-    from seggaussian.tools.sweep_report import default_verdict, format_table, plot_trials, write_markdown
+    from seggaussian.tools.sweep.pareto import PARETO_TIME_TOLERANCE, QUALITY_TOLERANCE, StageSweepResult, mark_pareto
+    from seggaussian.tools.sweep.run import run_stage_sweep
+    from seggaussian.tools.sweep.report import default_verdict, format_table, plot_trials, write_markdown
 
     if not stages and not from_json:
         raise click.UsageError("give --stage (fit, transfer, render, build or all) or --from-json")

@@ -14,13 +14,13 @@ from cli._output import finish, guarded, json_option
 @click.option("--scene", "scene_id", required=True, help="Scene id.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="PLY to write.")
 @click.option("--color-by", "color_by", type=click.Choice(["semantic", "instance"]), default=None,
-              help="Paint each Gaussian in its label's fixed palette colour (seggaussian/palette.py; higher SH "
+              help="Paint each Gaussian in its label's fixed palette colour (seggaussian/labels/palette.py; higher SH "
                    "zeroed, labels kept) and write OUT.legend.json + OUT.legend.png beside it.")
 @json_option
 @guarded
 def command(dataset: Path, scene_id: str, out: Path, color_by: str | None, as_json: bool) -> None:
     """Write a scene's Gaussians with semantic, instance (int) and transfer_distance vertex properties."""
-    from seggaussian.export import export_scene_ply
+    from seggaussian.build.export import export_scene_ply
 
     info = export_scene_ply(dataset, scene_id, out, color_by=color_by)
     summary = (f"{out}: scene {scene_id} ({info['split']}), {info['gaussians']} Gaussians, "

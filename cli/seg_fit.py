@@ -9,7 +9,7 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from seggaussian.fit_config import PRESETS, FitConfig
+from seggaussian.fit.config import PRESETS, FitConfig
 
 #: Help of ``--preset`` / ``seggaussian build --fit-preset``.
 PRESET_HELP = ("FitConfig to start from: `default` (FitConfig()) or `profile` (FitConfig.profile(): the ~37 s CPU "
@@ -39,7 +39,7 @@ def command(source, root, scene_id, out, preset, iterations, downscale, max_gaus
     """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json.
 
     Unset options keep the FitConfig default; --iterations scales the densification/reset schedule with it."""
-    from seggaussian.fit import fit_to_ply, metrics_path
+    from seggaussian.fit.optimize import fit_to_ply, metrics_path
 
     overrides = {"downscale": downscale, "max_gaussians": max_gaussians, "sh_degree": sh_degree,
                  "time_budget_seconds": time_budget}

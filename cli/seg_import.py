@@ -26,7 +26,7 @@ def command(scene: Path, out_dir: Path, on_invalid: str, transform: str | None, 
     """Read a splat file (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat; detected by content), validate it, write a
     standard 3DGS PLY and a JSON report into OUT."""
     from seggaussian.frames.frame_config import FrameConfig
-    from seggaussian.io.ply_import import ImportConfig, import_ply
+    from seggaussian.io.importing import ImportConfig, import_ply
     from seggaussian.io.splat_common import FORMAT_TITLES
 
     result = import_ply(scene, out_dir, ImportConfig(on_invalid=on_invalid, frame=FrameConfig(transform, from_frame)))

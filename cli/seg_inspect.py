@@ -67,7 +67,7 @@ def command(path: Path, verify: bool, as_json: bool) -> None:
             _inspect_dataset(path, as_json, verify)
             return
         raise click.ClickException(f"{path}: a folder without manifest.json is not a dataset")
-    from seggaussian.io.ply_inspect import inspect_scene
+    from seggaussian.io.inspection import inspect_scene
     from seggaussian.io.validate import ValidationReport
 
     info = inspect_scene(path)

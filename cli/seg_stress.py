@@ -21,7 +21,7 @@ def command(cases: int, seed: int, backend: str, as_json: bool) -> None:
     errors, repairs and NaN/Inf outputs (which must be 0). Exit status 1 when anything failed."""
     from tqdm import tqdm
 
-    from ovgaussian.stress_losses import LOSS_FAMILY
+    from ovgaussian.train.stress_losses import LOSS_FAMILY
     from seggaussian.tools.stress import DATASET_FAMILIES, StressConfig, run_stress
 
     config = StressConfig(cases=cases, seed=seed, backend=backend)

@@ -28,7 +28,7 @@ from cli._output import finish, guarded, json_option
 @guarded
 def command(out, scenes, replica_scenes, seed, layout, width, views, max_edge, progress, as_json) -> None:
     """Write synthetic furnished rooms (mesh, labels, cameras, RGB and ground-truth label images)."""
-    from seggaussian.sources.synthetic import SynthConfig, synthesize
+    from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
     config = SynthConfig(width=width, num_views=views, max_edge=max_edge)
     if layout == "both":

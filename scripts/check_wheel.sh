@@ -18,7 +18,7 @@ wheel=$(ls "$work"/dist/seggaussian-*.whl)
 
 cd "$work"   # nothing of the checkout on sys.path from here on
 "$work/venv/bin/python" - <<'PY'
-import seggaussian.constants as c, seggaussian.classes as k
+import seggaussian.core.constants as c, seggaussian.core.classes as k
 assert "site-packages" in str(c.DATA_SPECS_DIR), c.DATA_SPECS_DIR
 assert len(k.class_names()) == 100 and k.class_names()[0] == "wall"
 print("package data from", c.DATA_SPECS_DIR)
@@ -29,8 +29,8 @@ if [ ! -f "$ply" ]; then
   ply="$work/written.ply"
   "$work/venv/bin/python" - "$ply" <<'PY'
 import sys, numpy as np
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import write_gaussians_ply
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import write_gaussians_ply
 rng = np.random.default_rng(0)
 n = 100
 f = lambda *s: rng.normal(size=s).astype(np.float32)

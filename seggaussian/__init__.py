@@ -14,9 +14,9 @@ _os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # numba's kernel cache in a folder named by the digest of every numba module's source, so an update never
-# runs a stale cached kernel (numba checks only the jitted function's own file; seggaussian/numba_cache.py).
+# runs a stale cached kernel (numba checks only the jitted function's own file; seggaussian/util/numba_cache.py).
 if "NUMBA_CACHE_DIR" not in _os.environ:
-    from seggaussian.numba_cache import default_numba_cache_dir as _default_numba_cache_dir
+    from seggaussian.util.numba_cache import default_numba_cache_dir as _default_numba_cache_dir
 
     _folder = _default_numba_cache_dir()
     if _folder is not None:

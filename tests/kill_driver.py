@@ -21,8 +21,9 @@ sys.path[:0] = [str(TESTS.parent), str(TESTS / "ovgaussian")]
 
 
 def job_build(root: str, out: str) -> None:
-    from seggaussian.build import build_dataset
-    from seggaussian.build_config import BuildConfig, OracleConfig
+    from seggaussian.build.dataset import build_dataset
+    from seggaussian.build.config import BuildConfig
+    from seggaussian.labels.config import OracleConfig
 
     build_dataset(BuildConfig(source="synthetic", root=Path(root), out=Path(out), gaussians="oracle",
                               progress=False, oracle=OracleConfig(num_gaussians=300)))
@@ -31,9 +32,9 @@ def job_build(root: str, out: str) -> None:
 def job_train(out: str, epochs: int) -> None:
     import torch
 
-    from ovgaussian.checkpoint import CONFIG_NAME
-    from ovgaussian.scene_source import InMemorySource
-    from ovgaussian.train import train
+    from ovgaussian.run.checkpoint import CONFIG_NAME
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.train.loop import train
     from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
     torch.set_num_threads(1)
@@ -48,8 +49,8 @@ JOBS = {"build": job_build, "train": job_train}
 
 
 def main() -> None:
-    import seggaussian.build  # noqa: F401 -- imported once, before any fork
-    import ovgaussian.train  # noqa: F401
+    import seggaussian.build.dataset  # noqa: F401 -- imported once, before any fork
+    import ovgaussian.train.loop  # noqa: F401
     import test_train  # noqa: F401
 
     for line in sys.stdin:

@@ -29,7 +29,7 @@ def train_digest(out: Path) -> str:
     """sha256 over every tensor of every checkpoint (sorted) and the step and epoch metrics of a run folder."""
     from safetensors.torch import load_file
 
-    from ovgaussian.run_folder import read_metrics
+    from ovgaussian.run.folder import read_metrics
 
     h = hashlib.sha256()
     for path in sorted(out.glob("checkpoints/*/*.safetensors")):
@@ -43,8 +43,8 @@ def train_digest(out: Path) -> str:
 
 
 def run_train(out: Path, epochs: int) -> str:
-    from ovgaussian.scene_source import InMemorySource
-    from ovgaussian.train import train
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.train.loop import train
     from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
     scenes = [make_scene(s, per_box=20, views=2) for s in range(2)]
@@ -54,8 +54,8 @@ def run_train(out: Path, epochs: int) -> str:
 
 
 def run_fit(raw: Path, scene: str, out: Path) -> str:
-    from seggaussian.fit import fit_to_ply
-    from seggaussian.fit_config import FitConfig
+    from seggaussian.fit.optimize import fit_to_ply
+    from seggaussian.fit.config import FitConfig
 
     config = FitConfig().with_iterations(FIT_ITERATIONS)
     fit_to_ply("synthetic", raw, scene, out, config, seed=0, progress=False)

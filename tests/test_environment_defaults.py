@@ -45,7 +45,7 @@ def test_the_ovgaussian_command_gets_the_defaults_before_torch_loads():
     assert out == ["False", "PASSIVE"]
 
 
-# --- numba's kernel cache folder (seggaussian/numba_cache.py) ------------------------------------------------
+# --- numba's kernel cache folder (seggaussian/util/numba_cache.py) ------------------------------------------------
 
 HELPER = "import numba\n\n@numba.njit(cache=True)\ndef offset():\n    return {value}\n"
 KERNEL = ("import numba\nfrom seggaussian.helper import offset\n\n@numba.njit(cache=True)\n"
@@ -69,7 +69,7 @@ def _run_kernel(root, cache_dir) -> str:
 
 
 def test_the_cache_folder_follows_every_numba_module_and_only_those(tmp_path):
-    from seggaussian.numba_cache import kernel_source_digest
+    from seggaussian.util.numba_cache import kernel_source_digest
 
     _tree(tmp_path, 10)
     before = kernel_source_digest(tmp_path)
@@ -80,7 +80,7 @@ def test_the_cache_folder_follows_every_numba_module_and_only_those(tmp_path):
 
 
 def test_an_updated_helper_module_is_never_served_from_a_stale_cache(tmp_path):
-    from seggaussian.numba_cache import kernel_source_digest
+    from seggaussian.util.numba_cache import kernel_source_digest
 
     root, shared_cache = tmp_path / "src", tmp_path / "one-folder"
     _tree(root, 10)
@@ -111,12 +111,12 @@ def test_importing_seggaussian_names_a_cache_folder_under_the_user_cache(tmp_pat
 
 
 def test_the_digest_covers_what_kernels_import_and_not_what_only_names_numba(tmp_path):
-    from seggaussian.numba_cache import kernel_modules, kernel_source_digest
+    from seggaussian.util.numba_cache import kernel_modules, kernel_source_digest
 
     _tree(tmp_path, 10)
     package = tmp_path / "seggaussian"
     (package / "constants.py").write_text("LIMIT = 1.0\n")                 # frozen into a kernel at compile time
-    (package / "kernel.py").write_text(KERNEL.replace("import numba\n", "import numba\nfrom seggaussian.constants import LIMIT\n"))
+    (package / "kernel.py").write_text(KERNEL.replace("import numba\n", "import numba\nfrom seggaussian.core.constants import LIMIT\n"))
     (package / "threads.py").write_text("import numba\n\ndef use(n):\n    numba.set_num_threads(n)\n")
     assert kernel_modules(tmp_path) == ("seggaussian.helper", "seggaussian.kernel")
     before = kernel_source_digest(tmp_path)

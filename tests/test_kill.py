@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from seggaussian.atomic import is_temp_name
+from seggaussian.util.atomic import is_temp_name
 
 REPO = Path(__file__).resolve().parents[1]
 #: SIGKILLs per test (the issue asks for at least 10).
@@ -117,7 +117,7 @@ def _files(folder: Path, skip=()) -> dict[str, bytes]:
 
 @pytest.fixture(scope="module")
 def raw(tmp_path_factory):
-    from seggaussian.sources.synthetic import SynthConfig, synthesize
+    from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("raw")
     cfg = SynthConfig(width=32, num_views=3)

@@ -7,7 +7,7 @@ import pytest
 
 tomllib = pytest.importorskip("tomllib")
 
-from seggaussian.constants import DATA_SPECS_DIR
+from seggaussian.core.constants import DATA_SPECS_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 

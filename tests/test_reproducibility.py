@@ -45,8 +45,7 @@ def test_training_cold_and_warm_numba_cache_hash_equal(tmp_path):
 
 
 def test_fit_cold_and_warm_numba_cache_write_identical_ply(tmp_path):
-    from seggaussian.sources import synthetic
-
+    from seggaussian.sources.synthetic import generate as synthetic
     raw = tmp_path / "raw"
     (scene_id,) = synthetic.synthesize(raw / "scannetpp", 1, 0, "scannetpp",
                                        synthetic.SynthConfig(width=48, num_views=9, max_edge=0.25))

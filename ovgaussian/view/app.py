@@ -18,7 +18,7 @@ import numpy as np
 
 from ovgaussian.view.relevancy import DEFAULT_THRESHOLD, parse_queries
 from ovgaussian.view.state import MODE_TITLES, Colouring, ViewerState
-from seggaussian.atomic import atomic_path
+from seggaussian.util.atomic import atomic_path
 
 #: Scene node name of the splats.
 SPLATS_NODE = "/scene"

@@ -52,6 +52,6 @@ class ViewConfig:
     frame: FrameConfig = field(default_factory=FrameConfig)
     """The splat file's frame (``--transform``, ``--from-frame``), applied on reading."""
     on_invalid: Literal["error", "drop", "repair"] = "error"
-    """What to do with invalid Gaussians in the input file (see seggaussian.io.ply.read_gaussians_ply)."""
+    """What to do with invalid Gaussians in the input file (see seggaussian.io.ply.reader.read_gaussians_ply)."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Device of the model (the scores are computed on the CPU)."""

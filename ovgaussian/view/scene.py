@@ -10,7 +10,7 @@ import numpy as np
 
 from seggaussian import shards
 from seggaussian.frames.frame_config import FrameConfig, frame_record, to_scene_frame
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians
 
 #: A click ray picks Gaussians whose centre lies within this many of their largest standard deviations of it.

@@ -13,14 +13,14 @@ import time
 from pathlib import Path
 from typing import Callable, NamedTuple
 
-from ovgaussian.checkpoint import CONFIG_NAME, read_json
-from ovgaussian.predict import load_model_predictor
+from ovgaussian.run.checkpoint import CONFIG_NAME, read_json
+from ovgaussian.predict.query import load_model_predictor
 from ovgaussian.view.app import QueryViewer
 from ovgaussian.view.config import ViewConfig
 from ovgaussian.view.field import QueryField
 from ovgaussian.view.scene import load_view_scene
 from ovgaussian.view.state import ViewerState
-from seggaussian.constants import read_class_names
+from seggaussian.core.constants import read_class_names
 
 
 def run_vocabulary(run: Path) -> tuple[str, ...]:

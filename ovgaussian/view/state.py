@@ -14,8 +14,8 @@ from ovgaussian.view.field import QueryField
 from ovgaussian.view.relevancy import (CANONICAL_NEGATIVES, DEFAULT_THRESHOLD, QueryHits, dimmed_colours,
                                        query_colours, query_hits, relevancy, top_k)
 from ovgaussian.view.scene import ViewScene, pick_gaussian, splat_arrays
-from seggaussian.constants import IGNORE_LABEL, read_class_names
-from seggaussian.palette import label_colours, palette
+from seggaussian.core.constants import IGNORE_LABEL, read_class_names
+from seggaussian.labels.palette import label_colours, palette
 
 #: Scores listed for a clicked Gaussian.
 INSPECT_TOP_K = 3

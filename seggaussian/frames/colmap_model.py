@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.rotations import quats_to_rotmats
+from seggaussian.core.rotations import quats_to_rotmats
 
 #: A COLMAP quaternion whose norm is below this cannot be normalized (rotation undefined).
 COLMAP_QUAT_NORM_EPS = 1e-12

@@ -9,7 +9,7 @@ import numpy as np
 
 from seggaussian.frames.similarity import transform_gaussians
 from seggaussian.frames.transform_spec import FrameTransform, resolve_transform
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 The basis is the one ``seggaussian.render.sh.evaluate_sh`` evaluates, signs included: band 1 is
 ``(-C1 y, C1 z, -C1 x)``, bands 2 and 3 carry the signed constants ``SH_C2``, ``SH_C3`` of
-``seggaussian.constants``. ``sh_basis`` below is the same polynomial basis in numpy (the tests check the two agree).
+``seggaussian.core.constants``. ``sh_basis`` below is the same polynomial basis in numpy (the tests check the two agree).
 
 For an orthogonal ``M`` (a rotation, or a reflection with det -1) each band ``l`` is mapped onto itself:
 ``Y_l(M d) = D_l(M) Y_l(d)`` for every unit direction ``d``, with ``D_l(M)`` orthogonal (the basis is orthonormal up
@@ -21,7 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from seggaussian.constants import MAX_SH_DEGREE, SH_C0, SH_C1, SH_C2, SH_C3
+from seggaussian.core.constants import MAX_SH_DEGREE, SH_C0, SH_C1, SH_C2, SH_C3
 
 #: A matrix counts as orthogonal when ``max |M^T M - I| <= ROTATION_TOL``: float32 matrices carry ~1e-7 of
 #: rounding and matrices printed with 6-7 digits ~1e-6; a real shear or non-uniform scale is far beyond this.

@@ -25,8 +25,8 @@ from seggaussian.frames.sh_rotation import (
     rotate_sh_reference,
     sh_rotation_matrix,
 )
-from seggaussian.gaussians import Gaussians
-from seggaussian.rotations import quats_to_rotmats, rotmats_to_quats
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.core.rotations import quats_to_rotmats, rotmats_to_quats
 
 #: ``from_matrix`` accepts a 3x3 block ``A`` as ``s * orthogonal`` when ``max |A^T A / s^2 - I| <= SIMILARITY_TOL``
 #: (``s^2`` the mean eigenvalue of ``A^T A``): matrices written to JSON with ~6 significant digits deviate by ~1e-6;

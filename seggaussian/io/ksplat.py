@@ -62,8 +62,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from seggaussian.atomic import write_bytes_atomic
-from seggaussian.gaussians import Gaussians
+from seggaussian.util.atomic import write_bytes_atomic
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.splat_common import (
     SplatFormatError,
     dc_from_rgb,

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import write_atomic
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import write_atomic
 from seggaussian.io.splat_common import (
     SplatFormatError,
     dc_from_rgb,

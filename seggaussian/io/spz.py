@@ -64,9 +64,9 @@ from pathlib import Path
 import deflate
 import numpy as np
 
-from seggaussian.atomic import write_bytes_atomic
+from seggaussian.util.atomic import write_bytes_atomic
 from seggaussian.frames.axes import axes_to_rdf
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io import spz_kernels
 from seggaussian.io.splat_common import SplatFormatError, logit_from_unit, read_file_bytes, unit_from_logit
 

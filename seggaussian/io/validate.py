@@ -36,8 +36,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from seggaussian.constants import LOG_SCALE_FLOAT32_MAX, OPACITY_LOGIT_SATURATION, QUAT_NORM_EPS
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX, OPACITY_LOGIT_SATURATION, QUAT_NORM_EPS
+from seggaussian.core.gaussians import Gaussians
 
 __all__ = ["ValidationReport", "InvalidGaussiansError", "validate_gaussians", "ON_INVALID_CHOICES"]
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TRANSMITTANCE_MIN
+from seggaussian.core.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TRANSMITTANCE_MIN
 from seggaussian.render.inputs import check_inputs
 from seggaussian.render.projection import project_gaussians
 from seggaussian.render.projection_numba import project_gaussians_fast

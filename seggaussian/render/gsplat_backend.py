@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from seggaussian.constants import COV2D_DILATION, FAR_PLANE, NEAR_PLANE, TILE_SIZE
+from seggaussian.core.constants import COV2D_DILATION, FAR_PLANE, NEAR_PLANE, TILE_SIZE
 
 
 class GsplatUnavailable(RuntimeError):

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.render.results import BlendWeights
 
 #: A pixel whose accumulated alpha (all contributors, captured or residual) is below this gets

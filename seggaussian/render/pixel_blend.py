@@ -27,7 +27,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from seggaussian.constants import TILE_SIZE
+from seggaussian.core.constants import TILE_SIZE
 from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights
 from seggaussian.render.inputs import check_inputs
 from seggaussian.render.projection_numba import project_gaussians_fast

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from seggaussian.constants import (
+from seggaussian.core.constants import (
     COV2D_DILATION,
     FAR_PLANE,
     FOV_CLAMP,
@@ -23,7 +23,7 @@ from seggaussian.constants import (
     QUAT_NORM_EPS,
     RADIUS_SIGMAS,
 )
-from seggaussian.rotations import quats_to_rotmats_torch
+from seggaussian.core.rotations import quats_to_rotmats_torch
 
 #: Log-scales are clamped below this before ``exp`` (exp(-30) ~ 1e-13 m, far below any pixel), so
 #: ``-inf`` (a zero scale) gives finite values and gradients.

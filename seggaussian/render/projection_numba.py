@@ -16,7 +16,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from seggaussian.constants import (
+from seggaussian.core.constants import (
     COV2D_DILATION,
     FAR_PLANE,
     FOV_CLAMP,

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.atomic import atomic_path
-from seggaussian.cameras import Camera, intrinsics, look_at
+from seggaussian.util.atomic import atomic_path
+from seggaussian.core.cameras import Camera, intrinsics, look_at
 from seggaussian.frames.frame_config import FrameConfig, frame_record, to_scene_frame
 from seggaussian.io.formats import read_gaussians
 from seggaussian.render.rasterize import render_gaussians

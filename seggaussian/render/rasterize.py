@@ -24,8 +24,8 @@ from seggaussian.render.tiles import bin_gaussians
 from seggaussian.render.torch_tiles import blend_torch_tiles
 
 if TYPE_CHECKING:
-    from seggaussian.cameras import Camera
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.core.cameras import Camera
+    from seggaussian.core.gaussians import Gaussians
 
 BACKENDS = ("auto", "fast", "reference", "torch", "gsplat")
 #: Accumulated alpha below this counts as empty when normalizing the expected depth (any blended

@@ -29,7 +29,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
+from seggaussian.core.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
 from seggaussian.render.results import BlendWeights, TileBins
 
 _f32 = np.float32

@@ -27,7 +27,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TRANSMITTANCE_MIN
+from seggaussian.core.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TRANSMITTANCE_MIN
 
 
 def depth_order(depths: Tensor, valid: Tensor) -> Tensor:  # -> [M] int64 indices of valid Gaussians

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from seggaussian.constants import MAX_SH_DEGREE, SH_C0, SH_C1, SH_C2, SH_C3
+from seggaussian.core.constants import MAX_SH_DEGREE, SH_C0, SH_C1, SH_C2, SH_C3
 
 
 def sh_degree_of(sh: Tensor) -> int:  # sh: [N, num_sh_coeffs, 3]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from seggaussian.constants import ALPHA_MIN, TILE_SIZE
+from seggaussian.core.constants import ALPHA_MIN, TILE_SIZE
 from seggaussian.render.binning_numba import bin_sorted
 from seggaussian.render.projection import Projection
 from seggaussian.render.rasterize_numba import fill_tile_lists

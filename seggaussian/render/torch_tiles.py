@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from seggaussian.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
+from seggaussian.core.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
 from seggaussian.render.results import TileBins
 
 #: Upper bound on (tiles x 256 pixels x padded list length) evaluated at once, to bound memory.

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.shards.layout import SPLITS
 from seggaussian.shards.schema import GAUSSIANS_TABLE, IMAGE_COLUMNS, SCHEMA_VERSION, SCHEMAS, VIEWS_TABLE
 

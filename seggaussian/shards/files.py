@@ -3,7 +3,7 @@ metadata), the JSON files, and their sha256.
 
 Every file is written to a temporary name in its folder and renamed; files whose bytes would not change are
 not rewritten (their mtime stays). The dataset's JSON files (manifest, splits, build records) are written by
-``seggaussian.atomic.write_json_atomic`` with keys sorted, ``only_if_changed`` and NaN/Inf as null.
+``seggaussian.util.atomic.write_json_atomic`` with keys sorted, ``only_if_changed`` and NaN/Inf as null.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from typing import Iterable
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from seggaussian import atomic
-from seggaussian.build_config import ShardConfig
+from seggaussian.util import atomic
+from seggaussian.shards.config import ShardConfig
 from seggaussian.shards.layout import ShardError
 from seggaussian.shards.schema import (
     META_CLASS_NAMES,

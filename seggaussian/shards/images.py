@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.shards.layout import ShardError
 
 

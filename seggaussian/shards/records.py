@@ -8,8 +8,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from seggaussian.cameras import Camera
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.cameras import Camera
+from seggaussian.core.gaussians import Gaussians
 
 
 class ViewRecord(NamedTuple):

@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
-from seggaussian.cameras import Camera
-from seggaussian.constants import IGNORE_LABEL
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.cameras import Camera
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.shards.images import decode_label_map, decode_rgb, image_format
 from seggaussian.shards.layout import ShardError
 from seggaussian.shards.records import ViewRecord, ViewRow

@@ -11,11 +11,11 @@ from typing import NamedTuple
 
 import pyarrow.parquet as pq
 
-from seggaussian import atomic
-from seggaussian.atomic import write_bytes_atomic, write_json_atomic
-from seggaussian.build_config import ShardConfig
-from seggaussian.constants import IGNORE_LABEL
-from seggaussian.jsonsafe import NAN_AS_NULL
+from seggaussian.util import atomic
+from seggaussian.util.atomic import write_bytes_atomic, write_json_atomic
+from seggaussian.shards.config import ShardConfig
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.util.jsonsafe import NAN_AS_NULL
 from seggaussian.shards.card import dataset_card
 from seggaussian.shards.files import footer_metadata, read_fragment, sha256_file, write_parquet_atomic
 from seggaussian.shards.layout import CARD_NAME, MANIFEST_NAME, SHARD_NAME, SPLITS, ShardError, shard_name

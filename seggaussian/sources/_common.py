@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.atomic import write_bytes_atomic
+from seggaussian.util.atomic import write_bytes_atomic
 
 
 class SourceError(ValueError):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from seggaussian.cameras import Camera, intrinsics, look_at
+from seggaussian.core.cameras import Camera, intrinsics, look_at
 
 
 def generate_camera_path(

@@ -1,6 +1,6 @@
 """Render a triangle mesh into a pinhole camera by raycasting (open3d ``RaycastingScene``, CPU).
 
-One ray per pixel through the pixel centre (``u + 0.5, v + 0.5``, see ``seggaussian.cameras``).
+One ray per pixel through the pixel centre (``u + 0.5, v + 0.5``, see ``seggaussian.core.cameras``).
 Colour is the barycentric interpolation of the vertex colours at the hit point; labels come from
 the hit face; depth is the camera-space z of the hit (0 where the ray misses).
 
@@ -13,8 +13,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from seggaussian.cameras import Camera
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.cameras import Camera
+from seggaussian.core.constants import IGNORE_LABEL
 
 #: open3d reports a missed ray with this primitive id (uint32 max).
 MISS_PRIMITIVE = 4294967295

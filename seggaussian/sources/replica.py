@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.cameras import Camera, intrinsics
-from seggaussian.classes import replica_class_to_top100
-from seggaussian.constants import IGNORE_LABEL
-from seggaussian.scene import Scene, View
+from seggaussian.core.cameras import Camera, intrinsics
+from seggaussian.core.classes import replica_class_to_top100
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.core.scene import Scene, View
 from seggaussian.sources._common import (
     EmptySceneError,
     SourceError,

@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.cameras import Camera, intrinsics, invert_rigid
-from seggaussian.constants import IGNORE_LABEL, read_class_names
-from seggaussian.rotations import quats_to_rotmats, rotmats_to_quats
-from seggaussian.scene import Scene, View
+from seggaussian.core.cameras import Camera, intrinsics, invert_rigid
+from seggaussian.core.constants import IGNORE_LABEL, read_class_names
+from seggaussian.core.rotations import quats_to_rotmats, rotmats_to_quats
+from seggaussian.core.scene import Scene, View
 from seggaussian.sources._common import (
     EmptySceneError,
     SourceError,
@@ -115,13 +115,13 @@ def undo_toolkit_transform(transform_matrix: np.ndarray) -> np.ndarray:
 
 def quaternion_to_rotation(qw: float, qx: float, qy: float, qz: float) -> np.ndarray:
     """``[3, 3]`` rotation of a Hamilton quaternion in COLMAP order w, x, y, z (not necessarily unit on disk:
-    normalized here); the formula is ``seggaussian.rotations``'."""
+    normalized here); the formula is ``seggaussian.core.rotations``'."""
     q = np.array([qw, qx, qy, qz], dtype=np.float64)
     return quats_to_rotmats((q / np.linalg.norm(q))[None])[0]
 
 
 def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """``[4]`` unit (w, x, y, z) with w >= 0 (COLMAP's sign) of a ``[3, 3]`` rotation (``seggaussian.rotations``)."""
+    """``[4]`` unit (w, x, y, z) with w >= 0 (COLMAP's sign) of a ``[3, 3]`` rotation (``seggaussian.core.rotations``)."""
     q = rotmats_to_quats(np.asarray(rotation, dtype=np.float64)[None])[0]
     return q if q[0] >= 0 else -q
 

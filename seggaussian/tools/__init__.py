@@ -6,9 +6,9 @@
   front), one module per stage (``sweep_fit``, ``sweep_transfer``, ``sweep_render``, ``sweep_build``) and
   ``sweep_report`` (Markdown tables, verdicts, plot).
 - ``stress``: the numerical-stability suite of the dataset package (CLI ``seggaussian stress``); the model
-  package adds its loss cases (``ovgaussian.stress_losses``) through the CLI.
+  package adds its loss cases (``ovgaussian.train.stress_losses``) through the CLI.
 - ``fuzz``: seeded file fuzzing of the readers (mutants classified as accepted, clean error, non-finite, crash or
   hang); ``fuzz_splat`` adds the non-PLY splat formats as targets.
 
-Nothing in the pipeline (``seggaussian.build`` and the stages it runs) imports this package.
+Nothing in the pipeline (``seggaussian.build.dataset`` and the stages it runs) imports this package.
 """

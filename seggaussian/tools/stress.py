@@ -1,7 +1,7 @@
 """Numerical-stability stress suite: seeded generators of malformed and extreme inputs, run through the
 real stages (PLY reading and validation, rasterization forward and backward, blend weights and label maps,
 label transfer), with every outcome classified. The model package adds its own families through the same
-``StressFamily`` type (``ovgaussian.stress_losses``: training losses); ``seggaussian stress`` runs both, this
+``StressFamily`` type (``ovgaussian.train.stress_losses``: training losses); ``seggaussian stress`` runs both, this
 package never imports the model package.
 
 An outcome is one of:
@@ -25,12 +25,12 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from seggaussian.cameras import Camera, intrinsics, look_at
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import PlyFormatError, read_gaussians_ply, write_gaussians_ply
+from seggaussian.core.cameras import Camera, intrinsics, look_at
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import PlyFormatError, read_gaussians_ply, write_gaussians_ply
 from seggaussian.render import compute_blend_weights, rasterize, render_features, render_gaussians, render_label_maps
 from seggaussian.tools.own_code import raised_by_own_code
-from seggaussian.transfer import transfer_labels
+from seggaussian.labels.transfer import transfer_labels
 
 #: Image size used for stress renders (small: the suite checks values, not speed).
 STRESS_IMAGE_SIZE = (48, 36)

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import write_gaussians_ply
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import write_gaussians_ply
 
 
 def make_cli_inputs(root: Path) -> dict:
@@ -16,7 +16,7 @@ def make_cli_inputs(root: Path) -> dict:
     from test_bench import _write_tiny_dataset
     from test_predict import _tiny_run
 
-    from seggaussian.sources.synthetic import SynthConfig, synthesize
+    from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
     rng = np.random.default_rng(0)
     n = 50

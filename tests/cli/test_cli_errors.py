@@ -162,7 +162,7 @@ def test_unexpected_error_is_one_line_and_debug_shows_traceback(monkeypatch, tmp
     def boom(path):
         raise TypeError("a bug")
 
-    monkeypatch.setattr("seggaussian.io.ply_inspect.inspect_scene", boom)  # what `inspect` calls for a file
+    monkeypatch.setattr("seggaussian.io.inspection.inspect_scene", boom)  # what `inspect` calls for a file
     ply = tmp_path / "x.ply"
     ply.write_bytes(b"ply\n")
     result = CliRunner().invoke(seg_inspect.command, [str(ply)])

@@ -11,7 +11,7 @@ import pytest
 
 from cli import ovgaussian_cli, seggaussian_cli
 from cli._config_options import ConfigOption, config_option
-from seggaussian.field_docs import field_docs
+from seggaussian.util.field_docs import field_docs
 
 COMMAND_TARGETS = {**{f"seggaussian {k}": v for k, v in seggaussian_cli.COMMANDS.items()},
                    **{f"ovgaussian {k}": v for k, v in ovgaussian_cli.COMMANDS.items()}}
@@ -62,7 +62,8 @@ def test_field_docs_reads_docstrings_and_comment_lines():
 
 
 def test_comment_documented_config_fields_are_read():
-    from seggaussian.build_config import BuildConfig, TransferConfig
+    from seggaussian.build.config import BuildConfig
+    from seggaussian.labels.config import TransferConfig
 
     docs = field_docs(BuildConfig)
     assert docs["root"] == "Raw tree (read only)."

@@ -11,7 +11,7 @@ import torch
 from click.testing import CliRunner
 
 from cli.seg_render import command
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.render import rasterize
 from seggaussian.render.quicklook import QuicklookConfig, orbit_camera
 from test_render_common import GEOMETRY, random_scene
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 @pytest.fixture()
 def scene_ply(tmp_path) -> Path:
-    from seggaussian.io.ply import write_gaussians_ply
+    from seggaussian.io.ply.reader import write_gaussians_ply
 
     scene = random_scene(200, 41, sh_degree=1)
     scene["log_scales"] += 1.0
@@ -76,7 +76,7 @@ def test_render_camera_json_and_errors(scene_ply, tmp_path):
 @pytest.mark.skipif(not (REALDATA / "v3dg_donut_fused_sh0.ply").exists(), reason="shared real data not available")
 def test_fast_matches_reference_on_real_gaussians():
     """3,000 Gaussians of a trained scene (real scale, rotation and opacity distributions)."""
-    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.io.ply.reader import read_gaussians_ply
 
     gaussians, _ = read_gaussians_ply(REALDATA / "v3dg_donut_fused_sh0.ply")
     rng = np.random.default_rng(0)

@@ -12,9 +12,9 @@ from click.testing import CliRunner
 
 from cli.seggaussian_cli import main
 from seggaussian.frames.similarity import Similarity, transform_gaussians
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians_raw
-from seggaussian.io.ply import write_gaussians_ply
+from seggaussian.io.ply.reader import write_gaussians_ply
 
 
 @pytest.fixture()

@@ -6,12 +6,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ovgaussian import baseline
-from ovgaussian.bench import evaluate, result_to_dict, table1_header, table1_row
-from ovgaussian.view_labels import BlendFunctions
-from ovgaussian.vocabulary import make_vocabulary, to_vocabulary_labels
-from seggaussian.constants import IGNORE_LABEL, SH_C0, read_class_names
-from seggaussian.gaussians import Gaussians
+from ovgaussian.bench import baselines as baseline
+from ovgaussian.bench.evaluate import evaluate, result_to_dict, table1_header, table1_row
+from ovgaussian.predict.view_labels import BlendFunctions
+from ovgaussian.text.vocabulary import make_vocabulary, to_vocabulary_labels
+from seggaussian.core.constants import IGNORE_LABEL, SH_C0, read_class_names
+from seggaussian.core.gaussians import Gaussians
 
 I = IGNORE_LABEL
 NAMES = read_class_names()
@@ -270,9 +270,9 @@ def test_baselines_fit_on_train_split_only():
 
 
 def test_default_thresholds_match_the_renderer():
-    from ovgaussian.bench_config import DEFAULT_MIN_ALPHA
+    from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
     from seggaussian.render import DEFAULT_TOP_K, LABEL_MIN_ALPHA
-    from ovgaussian.bench_config import BenchConfig
+    from ovgaussian.bench.config import BenchConfig
 
     assert DEFAULT_MIN_ALPHA == LABEL_MIN_ALPHA
     assert BenchConfig().blend_top_k == DEFAULT_TOP_K
@@ -282,9 +282,9 @@ def test_real_renderer_oracle_matches_rendered_label_maps():
     """With the real blend weights, an oracle's 2D labels equal render_label_maps of the same Gaussians."""
     import torch
 
-    from ovgaussian.bench import predict_view_labels
-    from ovgaussian.view_labels import default_blend_functions
-    from seggaussian.cameras import Camera, intrinsics, look_at
+    from ovgaussian.bench.evaluate import predict_view_labels
+    from ovgaussian.predict.view_labels import default_blend_functions
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
     from seggaussian.render import render_label_maps
 
     rng = np.random.default_rng(3)
@@ -315,11 +315,11 @@ def _write_tiny_dataset(root):
     import torch
 
     from seggaussian import shards
-    from seggaussian.build_config import ShardConfig
-    from seggaussian.cameras import Camera, intrinsics, look_at
+    from seggaussian.shards.config import ShardConfig
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
     from seggaussian.render import render_label_maps
 
-    funcs = __import__("ovgaussian.bench", fromlist=["x"]).default_blend_functions()
+    funcs = __import__("ovgaussian.bench.evaluate", fromlist=["x"]).default_blend_functions()
     config = ShardConfig(row_group_bytes=4096)
     plan = {"tr0": ("train", ["wall", "floor", "chair", "toilet"]), "va0": ("val", ["wall", "chair", "sofa", "bed"]),
             "xv0": ("xval", ["wall", "chair"])}
@@ -361,8 +361,8 @@ def tiny_dataset(tmp_path_factory):
 
 
 def test_run_bench_oracle_on_real_shards(tiny_dataset):
-    from ovgaussian.bench import run_bench
-    from ovgaussian.bench_config import BenchConfig
+    from ovgaussian.bench.evaluate import run_bench
+    from ovgaussian.bench.config import BenchConfig
 
     report = run_bench(BenchConfig(dataset=tiny_dataset, num_classes=20, progress=False), predictor=Oracle())
     row = report.payload["row"]
@@ -397,9 +397,9 @@ def test_bench_cli_baseline_writes_json(tiny_dataset, tmp_path):
 
 
 def test_views_are_streamed_in_bands_and_nothing_is_cached(tiny_dataset, tmp_path):
-    from ovgaussian.bench import run_bench
-    from ovgaussian.view_labels import default_blend_functions
-    from ovgaussian.bench_config import BenchConfig
+    from ovgaussian.bench.evaluate import run_bench
+    from ovgaussian.predict.view_labels import default_blend_functions
+    from ovgaussian.bench.config import BenchConfig
 
     real = default_blend_functions()
     bands = []

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ovgaussian import bench_suite as S
-from ovgaussian.suite_config import ABLATION_ROWS, RUNS, TABLE1_ROWS, SuiteConfig, Table1Row
+from ovgaussian.suite import profile as S
+from ovgaussian.suite.config import ABLATION_ROWS, RUNS, TABLE1_ROWS, SuiteConfig, Table1Row
 
 NAMES = ["wall", "chair", "sofa"]
 
@@ -167,7 +167,7 @@ def test_a_task_starts_only_after_the_tasks_it_comes_after():
 
 
 def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
-    from ovgaussian.bench_suite import SETTINGS_NAME, check_settings
+    from ovgaussian.suite.profile import SETTINGS_NAME, check_settings
 
     config = SuiteConfig(out=tmp_path, progress=False)
     check_settings(config)                                     # first run: recorded

@@ -5,15 +5,15 @@ import pytest
 
 from types import SimpleNamespace
 
-from ovgaussian import baseline
-from ovgaussian.bench import evaluate, metric_interval, result_to_dict
-from ovgaussian.bootstrap import (
+from ovgaussian.bench import baselines as baseline
+from ovgaussian.bench.evaluate import evaluate, metric_interval, result_to_dict
+from ovgaussian.bench.bootstrap import (
     bootstrap_miou, bootstrap_miou_reference, draw_scene_counts, miou_of_stack, overlaps,
 )
 from ovgaussian.metrics import scores_from_confusion
-from ovgaussian.vocabulary import make_vocabulary
-from seggaussian.constants import read_class_names
-from seggaussian.gaussians import Gaussians
+from ovgaussian.text.vocabulary import make_vocabulary
+from seggaussian.core.constants import read_class_names
+from seggaussian.core.gaussians import Gaussians
 
 NAMES = read_class_names()
 ID = {n: NAMES.index(n) for n in NAMES}
@@ -88,7 +88,7 @@ def test_interval_narrows_with_more_scenes_and_covers_the_truth():
 
 
 def test_overlap():
-    from ovgaussian.bootstrap import Interval
+    from ovgaussian.bench.bootstrap import Interval
 
     a, b, c = Interval(0.5, 0.4, 0.6, 10, 5), Interval(0.7, 0.61, 0.8, 10, 5), Interval(0.55, 0.5, 0.65, 10, 5)
     assert overlaps(a, b) is False and overlaps(a, c) is True and overlaps(a, Interval(0.1, None, None, 0, 1)) is None

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from ovgaussian.cache_budget import CACHE_BUDGET_FRACTION, folder_bytes, run_cache_usage
+from ovgaussian.data.cache_budget import CACHE_BUDGET_FRACTION, folder_bytes, run_cache_usage
 
-synthetic = pytest.importorskip("seggaussian.sources.synthetic")
+synthetic = pytest.importorskip("seggaussian.sources.synthetic.generate")
 
 
 def test_folder_bytes_counts_files_and_skips_internal_folders(tmp_path):
@@ -40,11 +40,12 @@ def test_run_folder_after_a_demo_like_training_stays_within_the_cache_budget(tmp
     blend weights are written anywhere."""
     from tiny_clip import random_clip
 
-    from ovgaussian.teacher import DenseTeacher
-    from ovgaussian.train import train
-    from ovgaussian.train_config import DataConfig, TeacherConfig, TrainConfig
-    from seggaussian import build as build_mod
-    from seggaussian.build_config import BuildConfig, OracleConfig
+    from ovgaussian.text.teacher import DenseTeacher
+    from ovgaussian.train.loop import train
+    from ovgaussian.run.config import DataConfig, TeacherConfig, TrainConfig
+    from seggaussian.build import dataset as build_mod
+    from seggaussian.build.config import BuildConfig
+    from seggaussian.labels.config import OracleConfig
     from test_train import tiny_model_config
 
     raw = tmp_path / "raw"
@@ -76,11 +77,11 @@ def test_teacher_cache_stops_at_the_budget_and_features_stay_exact(tmp_path):
     import numpy as np
     from tiny_clip import random_clip
 
-    from ovgaussian.data import TrainingData
-    from ovgaussian.scene_source import InMemorySource
-    from ovgaussian.teacher import DenseTeacher
-    from ovgaussian.train_config import DataConfig, TeacherConfig
-    from ovgaussian.vocabulary import training_vocabulary
+    from ovgaussian.data.training_data import TrainingData
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.text.teacher import DenseTeacher
+    from ovgaussian.run.config import DataConfig, TeacherConfig
+    from ovgaussian.text.vocabulary import training_vocabulary
     from test_train import make_scene
 
     clip = random_clip()

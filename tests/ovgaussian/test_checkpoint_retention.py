@@ -11,13 +11,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from ovgaussian.checkpoint import (
+from ovgaussian.run.checkpoint import (
     BEST_NAME, CHECKPOINTS_DIR, LATEST_NAME, checkpoint_folders, latest_checkpoint, retain_checkpoints,
 )
-from ovgaussian.scene_source import InMemorySource
-from ovgaussian.train_config import TrainConfig
-from seggaussian import atomic
-from seggaussian.atomic import is_temp_name, remove_dir_atomic, sweep_temps
+from ovgaussian.data.scene_source import InMemorySource
+from ovgaussian.run.config import TrainConfig
+from seggaussian.util import atomic
+from seggaussian.util.atomic import is_temp_name, remove_dir_atomic, sweep_temps
 from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
 
@@ -123,8 +123,8 @@ def scenes():
 def test_training_keeps_n_plus_best_and_resume_gives_the_same_run(scenes, tmp_path):
     from safetensors.torch import load_file
 
-    from ovgaussian.run_folder import read_metrics
-    from ovgaussian.train import train
+    from ovgaussian.run.folder import read_metrics
+    from ovgaussian.train.loop import train
 
     common = dict(source=InMemorySource(scenes), model_config=tiny_model_config(12), text_embeddings=text_stub())
     kept = train(tiny_config(tmp_path / "kept", 4, keep_checkpoints=1), **common)

@@ -9,7 +9,7 @@ import torch
 from click.testing import CliRunner
 
 from cli.ovgaussian_cli import main
-from ovgaussian.devices import resolve_device
+from ovgaussian.run.devices import resolve_device
 
 
 def test_cpu_resolves_and_unknown_names_are_refused():

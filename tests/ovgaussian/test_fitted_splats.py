@@ -19,10 +19,11 @@ ABOVE_MAJORITY = 1.5
 
 @pytest.fixture(scope="module")
 def datasets(tmp_path_factory):
-    from seggaussian.build import build_dataset
-    from seggaussian.build_config import BuildConfig, OracleConfig, SplitConfig
-    from seggaussian.fit_config import FitConfig
-    from seggaussian.sources.synthetic import SynthConfig, synthesize
+    from seggaussian.build.dataset import build_dataset
+    from seggaussian.build.config import BuildConfig, SplitConfig
+    from seggaussian.labels.config import OracleConfig
+    from seggaussian.fit.config import FitConfig
+    from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("fitted")
     raw = root / "raw"
@@ -38,8 +39,8 @@ def datasets(tmp_path_factory):
 
 
 def val_csa(dataset, run=None, predictor="model") -> float:
-    from ovgaussian.bench import run_bench
-    from ovgaussian.bench_config import BenchConfig
+    from ovgaussian.bench.evaluate import run_bench
+    from ovgaussian.bench.config import BenchConfig
 
     report = run_bench(BenchConfig(dataset=dataset, run=run, predictor=predictor, metrics=("CSA",), dims=("3d",),
                                    progress=False))
@@ -47,8 +48,8 @@ def val_csa(dataset, run=None, predictor="model") -> float:
 
 
 def test_a_run_trained_on_fitted_splats_scores_a_room_alike_as_splat_and_as_oracle(datasets, tmp_path):
-    from ovgaussian.train import train
-    from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TrainConfig
+    from ovgaussian.train.loop import train
+    from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConfig
 
     fitted, oracle = datasets
     from seggaussian import shards

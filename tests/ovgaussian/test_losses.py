@@ -7,11 +7,11 @@ import math
 import pytest
 import torch
 
-from ovgaussian.losses import (
+from ovgaussian.train.losses import (
     combine_losses, compute_text_logits, masked_cosine_loss, masked_cross_entropy, partial_label_nll,
     reference_cosine_loss, reference_cross_entropy, reference_text_cross_entropy, text_cross_entropy,
 )
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 
 
 def test_cross_entropy_hand_computed():

@@ -15,7 +15,7 @@ from ovgaussian.metrics import (
     miou_reference,
     scores_from_confusion,
 )
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 
 I = IGNORE_LABEL
 

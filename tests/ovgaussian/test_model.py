@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from ovgaussian.model import OVGaussianNet, gaussian_attributes, normalized_coordinates
-from ovgaussian.model_config import MINKUNET34C_BLOCKS, MINKUNET34C_WIDTHS, OVGaussianNetConfig
-from seggaussian.constants import SH_C0
-from seggaussian.gaussians import Gaussians
+from ovgaussian.model.network import OVGaussianNet, gaussian_attributes, normalized_coordinates
+from ovgaussian.model.config import MINKUNET34C_BLOCKS, MINKUNET34C_WIDTHS, OVGaussianNetConfig
+from seggaussian.core.constants import SH_C0
+from seggaussian.core.gaussians import Gaussians
 
 #: Tiny widths so the tests stay fast; same layout as MinkUNet34C.
 TINY = dict(widths=(4, 4, 8, 8, 8, 8, 4, 4), blocks=(1, 1, 1, 1, 1, 1, 1, 1), stem_width=4, stem_kernel_size=3,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from ovgaussian.calibration import StackedPredictor, calibrate, choose_gamma, stack_scores
-from ovgaussian.vocabulary import benchmark_vocabulary, training_vocabulary
-from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+from ovgaussian.openvocab.calibration import StackedPredictor, calibrate, choose_gamma, stack_scores
+from ovgaussian.text.vocabulary import benchmark_vocabulary, training_vocabulary
+from seggaussian.core.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
 
 NAMES = read_class_names()
 
@@ -108,9 +108,9 @@ def test_holdout_classes_leave_the_training_vocabulary():
 
 
 def test_prompt_ensemble_is_the_renormalized_mean_of_cached_templates(tmp_path, monkeypatch):
-    from ovgaussian import text
-    from ovgaussian.prompt_ensemble import ensemble_text_embeddings
-    from ovgaussian.train_config import TextConfig
+    from ovgaussian.text import encoders as text
+    from ovgaussian.text.prompt_ensemble import ensemble_text_embeddings
+    from ovgaussian.run.config import TextConfig
 
     calls = []
 
@@ -138,8 +138,8 @@ def test_generator_synthesizes_unseen_features_with_the_right_statistics(one_tor
     """Toy ZS3Net case: class c's features ~ N(A t_c, S S^T) with text embedding t_c. Trained on 20 seen classes,
     the generator's features of 4 held-back classes (their text only) have the right mean and covariance:
     mean within 0.2 x the spread of the class means, covariance within 25% (Frobenius; measured: <= 0.10, <= 0.10)."""
-    from ovgaussian.bench_config import SynthesisConfig
-    from ovgaussian.feature_synthesis import synthesize, train_classifier, train_generator
+    from ovgaussian.openvocab.config import SynthesisConfig
+    from ovgaussian.openvocab.feature_synthesis import synthesize, train_classifier, train_generator
 
     g = torch.Generator().manual_seed(0)
     text_width, width, seen, unseen, per_class = 6, 4, 20, 4, 400
@@ -171,9 +171,9 @@ def test_generator_synthesizes_unseen_features_with_the_right_statistics(one_tor
 
 
 def test_predict_stacking_gamma_lowers_the_trained_names_only():
-    from ovgaussian.predict import label_gaussians
-    from ovgaussian.predict_config import PredictConfig
-    from seggaussian.gaussians import Gaussians
+    from ovgaussian.predict.query import label_gaussians
+    from ovgaussian.predict.config import PredictConfig
+    from seggaussian.core.gaussians import Gaussians
 
     class Stub:
         trained_names = frozenset({"chair", "table"})
@@ -198,8 +198,9 @@ def test_bench_scores_each_method_and_records_the_calibration(tmp_path):
     from click.testing import CliRunner
 
     from cli.ovgaussian_cli import main
-    from ovgaussian.bench import run_bench
-    from ovgaussian.bench_config import BenchConfig, SynthesisConfig
+    from ovgaussian.bench.evaluate import run_bench
+    from ovgaussian.bench.config import BenchConfig
+    from ovgaussian.openvocab.config import SynthesisConfig
     from test_train import _write_shards, make_scene
 
     data = tmp_path / "data"

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ovgaussian.predict import class_colours, paint_gaussians, parse_vocabulary, read_cameras
-from seggaussian.constants import IGNORE_LABEL, SH_C0
+from ovgaussian.predict.query import class_colours, paint_gaussians, parse_vocabulary, read_cameras
+from seggaussian.core.constants import IGNORE_LABEL, SH_C0
 from shared_data import REALDATA
 
 VOCAB = "chair, table, sofa,  wooden floor"
@@ -18,10 +18,10 @@ def _tiny_run(run_dir: Path) -> Path:
     """A run folder in the trainer's layout holding a randomly-initialized slim network."""
     import torch
 
-    from ovgaussian.checkpoint import CONFIG_NAME, build_network, save_checkpoint
-    from ovgaussian.model_config import OVGaussianNetConfig
-    from ovgaussian.train_config import TextConfig, config_to_dict
-    from seggaussian.atomic import write_json_atomic
+    from ovgaussian.run.checkpoint import CONFIG_NAME, build_network, save_checkpoint
+    from ovgaussian.model.config import OVGaussianNetConfig
+    from ovgaussian.run.config import TextConfig, config_to_dict
+    from seggaussian.util.atomic import write_json_atomic
 
     model_config = OVGaussianNetConfig.slim(embedding_width=384, blocks=(1,) * 8, voxel_size=0.2)
     net = build_network(model_config)
@@ -40,7 +40,7 @@ def run_dir(tmp_path_factory):
 
 
 def _camera_file(path: Path, gaussians) -> Path:
-    from seggaussian.cameras import look_at
+    from seggaussian.core.cameras import look_at
 
     centre = np.median(gaussians.means, axis=0)
     extent = float(np.percentile(np.linalg.norm(gaussians.means - centre, axis=1), 90))
@@ -55,7 +55,7 @@ def _camera_file(path: Path, gaussians) -> Path:
 @pytest.mark.parametrize("name", ["loadersgl_train-1000.ply", "v3dg_donut_fused_sh0.ply"])
 def test_predict_real_file_cli(name, run_dir, tmp_path):
     from cli.ov_predict import command
-    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.io.ply.reader import read_gaussians_ply
 
     scene = REALDATA / name
     if not scene.is_file():
@@ -70,7 +70,7 @@ def test_predict_real_file_cli(name, run_dir, tmp_path):
     summary = json.loads(result.stdout)  # stderr may carry the text model's loading progress
     labelled, _ = read_gaussians_ply(out)
     assert len(labelled) == len(original) == summary["num_gaussians"]
-    from seggaussian.io.ply import read_ply_header
+    from seggaussian.io.ply.reader import read_ply_header
 
     assert "ovgaussian semantic 3 = wooden floor" in read_ply_header(out).comments
     labels = labelled.extras["semantic"]
@@ -94,9 +94,9 @@ def test_predict_real_file_cli(name, run_dir, tmp_path):
 
 
 def test_predict_is_deterministic_and_consistent_with_bench_predictor(run_dir, tmp_path):
-    from ovgaussian.predict_config import PredictConfig
-    from ovgaussian.predict import label_gaussians, load_model_predictor
-    from seggaussian.io.ply import read_gaussians_ply
+    from ovgaussian.predict.config import PredictConfig
+    from ovgaussian.predict.query import label_gaussians, load_model_predictor
+    from seggaussian.io.ply.reader import read_gaussians_ply
 
     scene = REALDATA / "loadersgl_train-1000.ply"
     if not scene.is_file():
@@ -127,7 +127,7 @@ def test_vocabulary_parsing():
 
 
 def test_paint_modes():
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.core.gaussians import Gaussians
 
     rng = np.random.default_rng(0)
     g = Gaussians.from_arrays(rng.normal(size=(5, 3)), rng.normal(size=(5, 4)), rng.normal(size=(5, 3)),
@@ -159,8 +159,8 @@ def test_camera_file_errors_name_the_field(tmp_path):
 
 
 def test_refuses_to_overwrite_input(run_dir, tmp_path):
-    from ovgaussian.predict_config import PredictConfig
-    from ovgaussian.predict import run_predict
+    from ovgaussian.predict.config import PredictConfig
+    from ovgaussian.predict.query import run_predict
 
     p = tmp_path / "x.ply"
     p.write_bytes(b"")
@@ -171,7 +171,7 @@ def test_refuses_to_overwrite_input(run_dir, tmp_path):
 def test_predict_reads_and_writes_other_formats_with_legend(run_dir, tmp_path):
     from cli.ov_predict import command
     from seggaussian.io.formats import read_gaussians, write_gaussians
-    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.io.ply.reader import read_gaussians_ply
 
     scene = REALDATA / "loadersgl_train-1000.ply"
     if not scene.is_file():

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ovgaussian.data import TrainingData
-from ovgaussian.model import canonical_quat_sign, gaussian_attributes
-from ovgaussian.scene_source import InMemorySource
-from ovgaussian.train_config import DataConfig
-from ovgaussian.vocabulary import training_vocabulary
-from seggaussian.gaussians import Gaussians
+from ovgaussian.data.training_data import TrainingData
+from ovgaussian.model.network import canonical_quat_sign, gaussian_attributes
+from ovgaussian.data.scene_source import InMemorySource
+from ovgaussian.run.config import DataConfig
+from ovgaussian.text.vocabulary import training_vocabulary
+from seggaussian.core.gaussians import Gaussians
 from test_train import make_scene, text_stub, tiny_config, tiny_model_config
 
 
@@ -44,8 +44,8 @@ def test_canonical_sign_is_deterministic_including_zero_leading_components():
 
 def test_inference_predictions_are_invariant_under_quaternion_sign():
     """``gaussian_attributes`` (used by predict and bench) and the network's per-Gaussian outputs."""
-    from ovgaussian.checkpoint import build_network
-    from ovgaussian.predict import ModelPredictor
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.predict.query import ModelPredictor
 
     g = make_scene(3).gaussians
     h = flipped(g, random_subset(len(g), 0))
@@ -59,8 +59,8 @@ def test_inference_predictions_are_invariant_under_quaternion_sign():
 def test_training_path_outputs_are_invariant_under_quaternion_sign(tmp_path):
     """Train-mode network (batch statistics) on samples drawn from scenes with flipped signs: the same
     per-Gaussian semantic vectors and the same losses, with and without augmentation."""
-    from ovgaussian.checkpoint import build_network
-    from ovgaussian.train_losses import batch_losses, network_inputs
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.step_losses import batch_losses, network_inputs
 
     scenes = [make_scene(s) for s in (0, 1)]
     other = [r._replace(gaussians=flipped(r.gaussians, random_subset(len(r.gaussians), 7 + i)))

@@ -7,14 +7,14 @@ import json
 import pytest
 import torch
 
-from ovgaussian.checkpoint import saved_model_config
-from ovgaussian.model import (
+from ovgaussian.run.checkpoint import saved_model_config
+from ovgaussian.model.network import (
     ROBUST_COORD_CLIP, ROBUST_LOG_SCALE_RANGE, OVGaussianNet, encode_attributes, normalized_coordinates,
     robust_coordinates,
 )
-from ovgaussian.model_config import OVGaussianNetConfig
+from ovgaussian.model.config import OVGaussianNetConfig
 from ovgaussian.sparse import voxelize_points
-from ovgaussian.train_config import config_to_dict
+from ovgaussian.run.config import config_to_dict
 
 TINY = dict(widths=(4, 4, 8, 8, 8, 8, 4, 4), blocks=(1, 1, 1, 1, 1, 1, 1, 1), stem_width=4, stem_kernel_size=3,
             embedding_width=12, voxel_size=0.1)

@@ -7,9 +7,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ovgaussian import teacher as TT
-from ovgaussian.text import TextEncoderError
-from ovgaussian.train_config import TeacherConfig
+from ovgaussian.text import teacher as TT
+from ovgaussian.text.encoders import TextEncoderError
+from ovgaussian.run.config import TeacherConfig
 
 
 @pytest.fixture(scope="module")

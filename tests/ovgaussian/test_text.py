@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ovgaussian import text as T
-from ovgaussian.train_config import TextConfig
+from ovgaussian.text import encoders as T
+from ovgaussian.run.config import TextConfig
 
 NAMES = ["chair", "table", "sofa"]
 

@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 import torch
 
-from ovgaussian.augmentation import Augmentation, augment_gaussians
-from ovgaussian.data import TrainingData, default_pixel_blend_function, prepare_scene
-from ovgaussian.scene_source import InMemorySource, ShardSource, class_weights, scan_scenes
-from ovgaussian.schedule import epoch_batches, rank_slice
-from ovgaussian.train_config import DataConfig, LossConfig, OptimConfig, TeacherConfig, TrainConfig
-from ovgaussian.vocabulary import benchmark_class_ids, map_labels, training_vocabulary
-from seggaussian.cameras import Camera, intrinsics, look_at
-from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
-from seggaussian.gaussians import Gaussians
-from seggaussian.rotations import rotmats_to_quats
+from ovgaussian.data.augmentation import Augmentation, augment_gaussians
+from ovgaussian.data.training_data import TrainingData, default_pixel_blend_function, prepare_scene
+from ovgaussian.data.scene_source import InMemorySource, ShardSource, class_weights, scan_scenes
+from ovgaussian.train.schedule import epoch_batches, rank_slice
+from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherConfig, TrainConfig
+from ovgaussian.text.vocabulary import benchmark_class_ids, map_labels, training_vocabulary
+from seggaussian.core.cameras import Camera, intrinsics, look_at
+from seggaussian.core.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.core.rotations import rotmats_to_quats
 from seggaussian.shards import SceneRecord, ViewRecord
 
 REPO = Path(__file__).resolve().parents[2]
@@ -94,7 +94,7 @@ def test_vocabulary_excludes_unseen_and_maps_labels():
     mapped = map_labels(labels, voc)
     assert mapped[0] == 0 and mapped[2] == list(voc.class_ids).index(2)
     assert (mapped[[1, 3, 4, 5, 6]] == IGNORE_LABEL).all()  # unseen, ignore, out of vocabulary, invalid
-    # fallback rule gives the same ids as seggaussian.classes
+    # fallback rule gives the same ids as seggaussian.core.classes
     others = [i for i in range(100) if i not in unseen][:16]
     assert sorted(unseen + others) == benchmark_class_ids(20)
 
@@ -117,7 +117,7 @@ def test_augmentation_maps_covariances_consistently(flip):
 
 
 def test_rotmats_to_quats_roundtrip_including_half_turns():
-    from seggaussian.rotations import quats_to_rotmats
+    from seggaussian.core.rotations import quats_to_rotmats
 
     rng = np.random.default_rng(1)
     q = rng.normal(size=(200, 4))
@@ -129,7 +129,7 @@ def test_rotmats_to_quats_roundtrip_including_half_turns():
 
 
 def test_similarity_of_scene_and_camera_leaves_the_image_unchanged():
-    """The premise of caching W on the un-augmented geometry (see ovgaussian.data)."""
+    """The premise of caching W on the un-augmented geometry (see ovgaussian.data.training_data)."""
     from seggaussian.render import compute_blend_weights, render_features
 
     rng = np.random.default_rng(3)
@@ -231,7 +231,7 @@ def test_training_data_computes_pixel_weights_on_the_fly_and_stores_none(scenes,
 
 
 def test_render_pixels_matches_reference(scenes):
-    from ovgaussian.train_losses import render_pixels, render_pixels_reference
+    from ovgaussian.train.step_losses import render_pixels, render_pixels_reference
 
     voc = training_vocabulary(20)
     data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8), voc)
@@ -260,7 +260,7 @@ def test_epoch_batches_and_rank_slices():
 
 
 def tiny_model_config(width: int):
-    from ovgaussian.model_config import OVGaussianNetConfig
+    from ovgaussian.model.config import OVGaussianNetConfig
 
     return OVGaussianNetConfig(widths=(8, 8, 8, 8, 8, 8, 8, 8), blocks=(1, 1, 1, 1, 1, 1, 1, 1), stem_width=8,
                                stem_kernel_size=3, voxel_size=0.25, embedding_width=width, seed=0)
@@ -281,8 +281,8 @@ def tiny_config(out: Path, epochs: int, **kw) -> TrainConfig:
 
 
 def test_every_parameter_gets_a_finite_gradient(scenes, tmp_path):
-    from ovgaussian.checkpoint import build_network
-    from ovgaussian.train_losses import batch_losses
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.step_losses import batch_losses
 
     voc = training_vocabulary(20)
     data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=300), voc)
@@ -299,8 +299,8 @@ def test_every_parameter_gets_a_finite_gradient(scenes, tmp_path):
 
 
 def test_training_decreases_loss_and_resume_continues_the_same_curve(scenes, tmp_path):
-    from ovgaussian.run_folder import read_metrics
-    from ovgaussian.train import train
+    from ovgaussian.run.folder import read_metrics
+    from ovgaussian.train.loop import train
 
     source = InMemorySource(scenes)
     common = dict(source=source, model_config=tiny_model_config(12), text_embeddings=text_stub())
@@ -334,7 +334,7 @@ def test_training_decreases_loss_and_resume_continues_the_same_curve(scenes, tmp
 
 def _write_shards(dataset: Path, records) -> None:
     from seggaussian import shards
-    from seggaussian.build_config import ShardConfig
+    from seggaussian.shards.config import ShardConfig
 
     config = ShardConfig()
     fragments = {}
@@ -379,8 +379,8 @@ def test_torchrun_two_processes_match_one(shard_dataset, tmp_path):
         "torch.set_num_threads(1)\n"
         "from pathlib import Path\n"
         "from test_train import tiny_config, tiny_model_config, text_stub\n"
-        "from ovgaussian.train import train\n"
-        "from ovgaussian.train_config import DataConfig\n"
+        "from ovgaussian.train.loop import train\n"
+        "from ovgaussian.run.config import DataConfig\n"
         "out, dataset = Path(sys.argv[1]), Path(sys.argv[2])\n"
         "cfg = tiny_config(out, 2, data=DataConfig(dataset=dataset, blend_top_k=8, pixels_per_view=256))\n"
         "train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())\n"
@@ -426,7 +426,7 @@ def test_cli_trains_on_shards_and_reports_json(shard_dataset, tmp_path):
 
 
 def test_learning_rate_schedules():
-    from ovgaussian.schedule import learning_rate
+    from ovgaussian.train.schedule import learning_rate
 
     assert learning_rate(0, 100, 0.02, "cosine") == pytest.approx(0.02)
     assert learning_rate(50, 100, 0.02, "cosine") == pytest.approx(0.01)
@@ -440,8 +440,8 @@ def test_learning_rate_schedules():
 def test_every_config_field_has_a_docstring_and_round_trips():
     import dataclasses
 
-    from ovgaussian.train_config import TeacherConfig, TextConfig, config_from_dict, config_to_dict
-    from seggaussian.field_docs import field_docs
+    from ovgaussian.run.config import TeacherConfig, TextConfig, config_from_dict, config_to_dict
+    from seggaussian.util.field_docs import field_docs
 
     for cls in (TrainConfig, DataConfig, TextConfig, TeacherConfig, LossConfig, OptimConfig):
         helps = field_docs(cls)
@@ -459,7 +459,7 @@ def test_synchronized_batch_norm_matches_local_batch_norm_in_one_process(tmp_pat
     """With one process the synchronized statistics are the local ones: same output, gradients, buffers."""
     import torch.distributed as dist
 
-    from ovgaussian.process_group import synchronize_batch_norms
+    from ovgaussian.train.process_group import synchronize_batch_norms
     from ovgaussian.sparse import SparseBatchNorm
     from ovgaussian.sparse.voxelize import SparseVoxels
 
@@ -491,10 +491,10 @@ def test_synchronized_batch_norm_matches_local_batch_norm_in_one_process(tmp_pat
 def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
     from tiny_clip import random_clip
 
-    from ovgaussian.checkpoint import load_trained_model
-    from ovgaussian.run_folder import read_metrics
-    from ovgaussian.teacher import DenseTeacher
-    from ovgaussian.train import train
+    from ovgaussian.run.checkpoint import load_trained_model
+    from ovgaussian.run.folder import read_metrics
+    from ovgaussian.text.teacher import DenseTeacher
+    from ovgaussian.train.loop import train
 
     clip = random_clip(vision_layers=2)
     teacher = DenseTeacher(clip, TeacherConfig(short_side=16))
@@ -512,9 +512,9 @@ def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
 def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkeypatch):
     """Adapter and 3D text loss in row chunks under activation checkpointing (the paper-scale memory
     bound) give the values and gradients of the one-piece computation."""
-    from ovgaussian.checkpoint import build_network
-    import ovgaussian.model as model_module
-    from ovgaussian.train_losses import batch_losses
+    from ovgaussian.run.checkpoint import build_network
+    import ovgaussian.model.network as model_module
+    from ovgaussian.train.step_losses import batch_losses
 
     voc = training_vocabulary(20)
     data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
@@ -548,9 +548,9 @@ def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkey
 
 def test_decoded_text_logits_equal_the_direct_expression_forward_and_backward():
     """The Gram-matrix form of cos(phi(s), t) / T equals compute_text_logits(phi(s)) (the reference)."""
-    from ovgaussian.losses import compute_text_logits
-    from ovgaussian.model import OVGaussianNet, OVGaussianNetConfig
-    from ovgaussian.train_losses import decoded_text_logits
+    from ovgaussian.train.losses import compute_text_logits
+    from ovgaussian.model.network import OVGaussianNet, OVGaussianNetConfig
+    from ovgaussian.train.step_losses import decoded_text_logits
 
     torch.manual_seed(0)
     phi = OVGaussianNet(OVGaussianNetConfig(embedding_width=384, **{k: v for k, v in vars(
@@ -579,8 +579,8 @@ def test_teacher_with_another_text_space_is_refused_before_any_work(scenes, tmp_
     from click.testing import CliRunner
 
     from cli.ovgaussian_cli import main
-    from ovgaussian.train import check_text_space, train
-    from ovgaussian.train_config import TextConfig
+    from ovgaussian.train.loop import check_text_space, train
+    from ovgaussian.run.config import TextConfig
 
     clip = tmp_path / "clip"
     mismatch = tiny_config(tmp_path / "run", 1, teacher=TeacherConfig(clip_model=clip))
@@ -625,7 +625,7 @@ def test_training_bench_and_build_blend_weights_use_float64_cameras(scenes, monk
 def test_two_trainings_with_one_seed_hash_equal(scenes, tmp_path):
     """Same seed, same machine and thread count: checkpoint tensors (weights, momentum, buffers) and the
     metrics hash bitwise equal (issue 16). Resumed vs uninterrupted: see the resume test above."""
-    from ovgaussian.train import train
+    from ovgaussian.train.loop import train
 
     digests = []
     for name in ("a", "b"):
@@ -644,7 +644,7 @@ def _metrics(out: Path) -> list[dict]:
 def test_training_on_cuda_follows_the_cpu_run(shard_dataset, tmp_path):
     """Same seed, same data, every tensor on the GPU (kernel maps may be built on the CPU): the per-step
     losses follow the CPU run within float tolerance, and the checkpoint loads back on the CPU."""
-    from ovgaussian.train import train
+    from ovgaussian.train.loop import train
 
     runs = {}
     for device in ("cpu", "cuda"):
@@ -670,8 +670,8 @@ def test_torchrun_nccl_two_gpus_match_one(shard_dataset, tmp_path):
         f"sys.path.insert(0, {str(REPO)!r}); sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
         "from pathlib import Path\n"
         "from test_train import tiny_config, tiny_model_config, text_stub\n"
-        "from ovgaussian.train import train\n"
-        "from ovgaussian.train_config import DataConfig\n"
+        "from ovgaussian.train.loop import train\n"
+        "from ovgaussian.run.config import DataConfig\n"
         "out, dataset = Path(sys.argv[1]), Path(sys.argv[2])\n"
         "cfg = tiny_config(out, 2, device='cuda', data=DataConfig(dataset=dataset, blend_top_k=8, pixels_per_view=256))\n"
         "train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())\n"
@@ -711,7 +711,7 @@ def _run_digest(result, out: Path) -> str:
 
     from safetensors.torch import load_file
 
-    from ovgaussian.run_folder import read_metrics
+    from ovgaussian.run.folder import read_metrics
 
     h = hashlib.sha256()
     for path in sorted(result.checkpoint.glob("*.safetensors")):
@@ -730,7 +730,7 @@ def test_transductive_training_never_reads_which_unseen_class(scenes, tmp_path):
     """The unlabelled parts only count as 'one of the unseen classes': the sofa Gaussians and pixels relabelled
     as bed (another unseen class), as blanket (outside the K = 20 vocabulary) or as IGNORE train bitwise the
     same run."""
-    from ovgaussian.train import train
+    from ovgaussian.train.loop import train
 
     variants = {"sofa": scenes, "bed": _relabelled(scenes, "sofa", NAMES.index("bed")),
                 "blanket": _relabelled(scenes, "sofa", NAMES.index("blanket")),
@@ -752,8 +752,8 @@ def test_transductive_training_never_reads_which_unseen_class(scenes, tmp_path):
 
 
 def test_transductive_losses_count_every_gaussian_and_covered_pixel(scenes, tmp_path):
-    from ovgaussian.checkpoint import build_network
-    from ovgaussian.train_losses import COVERAGE_MIN, batch_losses
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.step_losses import COVERAGE_MIN, batch_losses
 
     voc = training_vocabulary(20)
     data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=300), voc)
@@ -773,7 +773,7 @@ def test_transductive_losses_count_every_gaussian_and_covered_pixel(scenes, tmp_
 
 
 def test_transductive_run_needs_a_text_row_per_scored_class(scenes, tmp_path):
-    from ovgaussian.train import train
+    from ovgaussian.train.loop import train
 
     with pytest.raises(ValueError, match="16 rows, the run scores 20 classes"):
         train(transductive_config(tmp_path / "r"), source=InMemorySource(scenes),
@@ -782,7 +782,7 @@ def test_transductive_run_needs_a_text_row_per_scored_class(scenes, tmp_path):
 
 def test_a_run_saved_before_a_config_field_existed_resumes(scenes, tmp_path):
     """config.json written before LossConfig grew its transductive fields: --resume compares at the defaults."""
-    from ovgaussian.train import train
+    from ovgaussian.train.loop import train
 
     common = dict(source=InMemorySource(scenes), model_config=tiny_model_config(12), text_embeddings=text_stub())
     train(tiny_config(tmp_path, 2, stop_after_epochs=1), **common)
@@ -797,9 +797,9 @@ def test_a_run_saved_before_a_config_field_existed_resumes(scenes, tmp_path):
 def test_splat_augment_gives_fitted_statistics_and_keeps_the_views_blend(scenes):
     """``--splat-augment``: opacity spread as a fit's, floaters appended as ignored rows, the stored Gaussians' pixel
     weights unchanged (they index the first rows), and a training step on it has finite gradients."""
-    from ovgaussian.augmentation import SPLAT_FLOATER_SHARE
-    from ovgaussian.checkpoint import build_network
-    from ovgaussian.train_losses import batch_losses
+    from ovgaussian.data.augmentation import SPLAT_FLOATER_SHARE
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.step_losses import batch_losses
 
     voc = training_vocabulary(20)
     plain = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)

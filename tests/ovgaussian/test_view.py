@@ -14,9 +14,9 @@ from ovgaussian.view.relevancy import (CANONICAL_NEGATIVES, HIGHLIGHT_HIGH_RGB, 
                                        parse_queries, query_colours, query_hits, relevancy, relevancy_reference,
                                        top_k)
 from ovgaussian.view.scene import ViewScene, pick_gaussian
-from seggaussian.constants import SH_C0, read_class_names
-from seggaussian.gaussians import Gaussians
-from seggaussian.palette import palette
+from seggaussian.core.constants import SH_C0, read_class_names
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.labels.palette import palette
 
 NAMES = read_class_names()
 #: The synthetic room's classes (top-100 names), in vocabulary order.
@@ -70,10 +70,10 @@ def synthetic_room(spacing: float = 0.1) -> Gaussians:
 class TextOracle:
     """A stand-in run with a perfect language field: the semantic vector of a Gaussian is the one-hot of its true
     class among ``names`` and ``decode`` maps it to that class's text embedding, from the real local text encoder
-    (MiniLM, ``ovgaussian.text``) the trained runs use. Same interface as ``ModelPredictor``."""
+    (MiniLM, ``ovgaussian.text.encoders``) the trained runs use. Same interface as ``ModelPredictor``."""
 
     def __init__(self, names) -> None:
-        from ovgaussian.train_config import TextConfig
+        from ovgaussian.run.config import TextConfig
 
         self.names = tuple(names)
         self.text_config = TextConfig()
@@ -81,7 +81,7 @@ class TextOracle:
         self.table = self.text_embeddings(self.names).numpy()  # [C, D]
 
     def text_embeddings(self, names):
-        from ovgaussian.text import load_or_encode_texts
+        from ovgaussian.text.encoders import load_or_encode_texts
 
         return load_or_encode_texts(list(names), self.text_config, None)
 
@@ -176,7 +176,7 @@ def test_field_scores_equal_the_predictors_scores(tmp_path):
     needs_text_encoder()
     from test_predict import _tiny_run
 
-    from ovgaussian.predict import load_model_predictor
+    from ovgaussian.predict.query import load_model_predictor
     from ovgaussian.view.field import QueryField
 
     predictor = load_model_predictor(_tiny_run(tmp_path / "run"))
@@ -331,7 +331,7 @@ def test_cli_export_with_a_run_and_a_dataset(tmp_path):
 
 def test_cli_reads_a_splat_file_with_a_transform(tmp_path):
     pytest.importorskip("viser")
-    from seggaussian.io.ply import write_gaussians_ply
+    from seggaussian.io.ply.reader import write_gaussians_ply
 
     from cli.ovgaussian_cli import main
 
@@ -352,7 +352,7 @@ def test_cli_errors_are_one_line_naming_the_path(case, tmp_path):
     pytest.importorskip("viser")
     from test_bench import _write_tiny_dataset
 
-    from seggaussian.io.ply import write_gaussians_ply
+    from seggaussian.io.ply.reader import write_gaussians_ply
 
     from cli.ovgaussian_cli import main
 
@@ -418,7 +418,7 @@ def test_cli_serves_prints_the_url_and_stops_on_ctrl_c(tmp_path):
     import sys
     import urllib.request
 
-    from seggaussian.io.ply import write_gaussians_ply
+    from seggaussian.io.ply.reader import write_gaussians_ply
 
     ply = tmp_path / "room.ply"
     write_gaussians_ply(ply, synthetic_room(spacing=0.5))

@@ -152,8 +152,8 @@ def _set_camera(client) -> None:
 def _reference_camera(client):
     """Our ``Camera`` of the browser's view: the pose and vertical fov the client reports, square pixels, the
     principal point at the canvas centre (three.js's perspective camera)."""
-    from seggaussian.cameras import Camera
-    from seggaussian.rotations import quats_to_rotmats
+    from seggaussian.core.cameras import Camera
+    from seggaussian.core.rotations import quats_to_rotmats
 
     camera = client.camera
     width, height = int(camera.image_width), int(camera.image_height)
@@ -168,7 +168,7 @@ def _reference_camera(client):
 def _reference_labels(gaussians, camera) -> np.ndarray:
     import torch
 
-    from ovgaussian.view_labels import default_blend_functions
+    from ovgaussian.predict.view_labels import default_blend_functions
     from seggaussian.render import render_label_maps
 
     blend = default_blend_functions().blend(gaussians, camera, REFERENCE_TOP_K).rows(0, camera.height)

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ovgaussian import vocabulary as V
-from seggaussian.classes import benchmark_vocabulary as class_ids_for
-from seggaussian.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
+from ovgaussian.text import vocabulary as V
+from seggaussian.core.classes import benchmark_vocabulary as class_ids_for
+from seggaussian.core.constants import IGNORE_LABEL, UNSEEN_CLASSES, read_class_names
 
 
 def test_one_type_everywhere():
-    """The vocabulary type and rules are defined, and bound, in ovgaussian.vocabulary only: no other module of the
+    """The vocabulary type and rules are defined, and bound, in ovgaussian.text.vocabulary only: no other module of the
     package defines them or re-exports them under a second import path."""
     names = {"Vocabulary", "make_vocabulary", "benchmark_vocabulary", "training_vocabulary", "map_labels",
              "to_vocabulary_labels"}
@@ -30,7 +30,7 @@ def test_one_type_everywhere():
         exported = set(getattr(module, "__all__", ())) & names
         assert not exported, (path, exported)
         for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.module == "ovgaussian.vocabulary":
+            if isinstance(node, ast.ImportFrom) and node.module == "ovgaussian.text.vocabulary":
                 unused = {a.name for a in node.names} - {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
                 assert not unused, f"{path.name} imports {sorted(unused)} without using them (a re-export)"
 

@@ -12,14 +12,14 @@ import pytest
 from click.testing import CliRunner
 
 from cli.seg_align import command
-from seggaussian.align import (AlignError, _axis_turns, _cube_rotations, align_gaussians, load_target,
+from seggaussian.align.registration import (AlignError, _axis_turns, _cube_rotations, align_gaussians, load_target,
                                similarity_parts)
-from seggaussian.build_config import OracleConfig, TransferConfig
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import write_gaussians_ply
-from seggaussian.oracle import sample_oracle_gaussians
+from seggaussian.labels.config import OracleConfig, TransferConfig
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.labels.oracle import sample_oracle_gaussians
 from seggaussian.sources.layout import find_scene_layout, reader
-from seggaussian.sources.synthetic import SynthConfig, synthesize
+from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 from frames_common import axis_rotation
 
 #: Oracle Gaussians of the test room (enough to fix the pose to millimetres, few enough for a fast test).

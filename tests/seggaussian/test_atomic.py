@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from seggaussian.atomic import atomic_path, write_bytes_atomic, write_json_atomic
+from seggaussian.util.atomic import atomic_path, write_bytes_atomic, write_json_atomic
 
 
 def test_failed_write_leaves_old_file_and_no_temp(tmp_path):
@@ -29,8 +29,8 @@ def test_json_nan_becomes_null_and_png_suffix_kept(tmp_path):
 def test_json_nan_policy_error_refuses_before_writing(tmp_path):
     import torch
 
-    from ovgaussian.checkpoint import CHECKPOINTS_DIR, save_checkpoint
-    from seggaussian.jsonsafe import NAN_AS_NULL, NAN_IS_ERROR
+    from ovgaussian.run.checkpoint import CHECKPOINTS_DIR, save_checkpoint
+    from seggaussian.util.jsonsafe import NAN_AS_NULL, NAN_IS_ERROR
 
     target = tmp_path / "state.json"
     with pytest.raises(ValueError, match=r"payload\['groups'\]\[1\] holds nan"):

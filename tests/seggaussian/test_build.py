@@ -11,15 +11,19 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from seggaussian import build as build_mod
-from seggaussian import build_cache, export, oracle, shards
-from seggaussian.build_config import BuildConfig, OracleConfig, SplitConfig, TransferConfig
-from seggaussian.constants import IGNORE_LABEL, read_class_names
-from seggaussian.split import SceneSplitInfo, assign_splits, target_val_count
-from seggaussian.stages import transfer as transfer_stage
-from seggaussian.stages import views as views_stage
+from seggaussian.build import dataset as build_mod
+from seggaussian import shards
+from seggaussian.build import cache as build_cache
+from seggaussian.build import export
+from seggaussian.labels import oracle
+from seggaussian.build.config import BuildConfig, SplitConfig
+from seggaussian.labels.config import OracleConfig, TransferConfig
+from seggaussian.core.constants import IGNORE_LABEL, read_class_names
+from seggaussian.build.split import SceneSplitInfo, assign_splits, target_val_count
+from seggaussian.build.stages import transfer as transfer_stage
+from seggaussian.build.stages import views as views_stage
 
-synthetic = pytest.importorskip("seggaussian.sources.synthetic")
+synthetic = pytest.importorskip("seggaussian.sources.synthetic.generate")
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -212,7 +216,7 @@ def test_cli_build_split_export(built, raw, tmp_path):
     from click.testing import CliRunner
 
     from cli.seggaussian_cli import main
-    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.io.ply.reader import read_gaussians_ply
 
     ds, _ = built
     runner = CliRunner()
@@ -319,7 +323,7 @@ def test_split_rules():
 
 
 def test_quats_from_z_axis_rotates_z_onto_the_normal():
-    from seggaussian.rotations import quats_to_rotmats
+    from seggaussian.core.rotations import quats_to_rotmats
 
     rng = np.random.default_rng(0)
     normals = np.concatenate([rng.normal(size=(50, 3)), [[0, 0, 1.0], [0, 0, -1.0], [1e-12, 0, -1.0]]])
@@ -332,8 +336,8 @@ def test_quats_from_z_axis_rotates_z_onto_the_normal():
 
 def test_oracle_samples_lie_on_the_mesh_with_their_surface_label():
     pytest.importorskip("open3d")
-    from seggaussian.cameras import Camera, intrinsics, look_at
-    from seggaussian.transfer_scoring import surface_labels
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
+    from seggaussian.labels.scoring import surface_labels
 
     # two labelled squares: floor (class 1) and a wall (class 2), seen by one camera
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 1, 0], [1, 1, 0], [1, 1, 1], [0, 1, 1.0]])
@@ -382,8 +386,8 @@ def test_export_ply_color_by_writes_palette_colours_and_legend(built, tmp_path):
     from click.testing import CliRunner
 
     from cli.seggaussian_cli import main
-    from seggaussian.io.ply import read_gaussians_ply
-    from seggaussian.palette import IGNORE_RGB, label_colours
+    from seggaussian.io.ply.reader import read_gaussians_ply
+    from seggaussian.labels.palette import IGNORE_RGB, label_colours
 
     ds, _ = built
     scene_id = shards.list_scenes(ds, "train")[0]

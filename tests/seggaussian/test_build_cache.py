@@ -11,13 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from seggaussian import build_cache
-from seggaussian.build import build_dataset
-from seggaussian.build_config import BuildConfig, OracleConfig
-from seggaussian.build_scene import GAUSSIANS_MODES, STAGE_MODULES
-from seggaussian.module_closure import module_file
+from seggaussian.build import cache as build_cache
+from seggaussian.build.dataset import build_dataset
+from seggaussian.build.config import BuildConfig
+from seggaussian.labels.config import OracleConfig
+from seggaussian.build.scene import GAUSSIANS_MODES, STAGE_MODULES
+from seggaussian.util.module_closure import module_file
 
-synthetic = pytest.importorskip("seggaussian.sources.synthetic")
+synthetic = pytest.importorskip("seggaussian.sources.synthetic.generate")
 
 
 def _short(closure) -> set[str]:
@@ -35,7 +36,7 @@ def test_closures_hold_what_each_stage_runs_and_nothing_else():
     assert not any(m.startswith("render") for m in transfer | oracle) and "fit" not in oracle
     # a lazy import inside a function is code the stage runs: replica's raycast renders views into the cache
     assert "sources.raycast" in _short(build_cache.module_closure("seggaussian.sources.replica"))
-    for entry in ("seggaussian.stages.views", "seggaussian.stages.gaussians_fit"):
+    for entry in ("seggaussian.build.stages.views", "seggaussian.build.stages.gaussians_fit"):
         assert all(module_file(m, build_cache.PACKAGE_DIR.parent) is not None for m in build_cache.module_closure(entry))
     with pytest.raises(ModuleNotFoundError, match="no module"):
         build_cache.module_closure("seggaussian.sources.replica_classes")

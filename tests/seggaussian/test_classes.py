@@ -1,4 +1,4 @@
-"""Class lists, benchmark vocabularies and the Replica mapping (seggaussian.classes, data_specs/)."""
+"""Class lists, benchmark vocabularies and the Replica mapping (seggaussian.core.classes, data_specs/)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from seggaussian.classes import (
+from seggaussian.core.classes import (
     benchmark_vocabulary,
     benchmark_vocabulary_names,
     class_id,
@@ -19,7 +19,7 @@ from seggaussian.classes import (
     replica_common_class_ids,
     unseen_class_ids,
 )
-from seggaussian.constants import DATA_SPECS_DIR, UNSEEN_CLASSES
+from seggaussian.core.constants import DATA_SPECS_DIR, UNSEEN_CLASSES
 from shared_data import SHARED
 
 REPLICA_CLASSES = SHARED / "reference" / "replica_classes_1_to_101.json"

@@ -1,4 +1,4 @@
-"""Tests of CPU 3DGS fitting (seggaussian.fit, seggaussian.losses, cli/seg_fit.py)."""
+"""Tests of CPU 3DGS fitting (seggaussian.fit.optimize, seggaussian.fit.losses, cli/seg_fit.py)."""
 
 from __future__ import annotations
 
@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.cameras import Camera, intrinsics, look_at
-from seggaussian.constants import SH_C0
-from seggaussian.fit import fit_scene, needs_fit
-from seggaussian.fit_densify import densify_and_prune, reset_opacity
-from seggaussian.fit_init import initialize_gaussians, voxel_downsample
-from seggaussian.fit_params import GaussianParameters
-from seggaussian.fit_views import FitInputError
-from seggaussian.fit_config import FitConfig
-from seggaussian.gaussians import Gaussians
-from seggaussian.losses import fitting_loss, l1_loss, psnr, ssim, ssim_reference
-from seggaussian.scene import Scene, View
+from seggaussian.core.cameras import Camera, intrinsics, look_at
+from seggaussian.core.constants import SH_C0
+from seggaussian.fit.optimize import fit_scene, needs_fit
+from seggaussian.fit.densify import densify_and_prune, reset_opacity
+from seggaussian.fit.initialize import initialize_gaussians, voxel_downsample
+from seggaussian.fit.params import GaussianParameters
+from seggaussian.fit.views import FitInputError
+from seggaussian.fit.config import FitConfig
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.fit.losses import fitting_loss, l1_loss, psnr, ssim, ssim_reference
+from seggaussian.core.scene import Scene, View
 
 WIDTH, HEIGHT = 32, 24
 
@@ -137,8 +137,8 @@ def test_ssim_and_psnr_values():
 def test_view_space_gradient_matches_projected_centre_gradient():
     """Recovered from the 3D means' gradient, the NDC gradient equals the true gradient w.r.t. the
     projected centres (rasterizer projection) when the loss depends on the centres only."""
-    from seggaussian.fit_densify import view_space_stats
-    from seggaussian.fit_views import ViewData
+    from seggaussian.fit.densify import view_space_stats
+    from seggaussian.fit.views import ViewData
     from seggaussian.render import project_gaussians
 
     cam = _cameras(3)[1]
@@ -326,7 +326,7 @@ def test_fit_loss_falls_and_psnr_rises(tiny_scene):
 
 
 def test_same_seed_same_ply_bytes(tiny_scene, tmp_path):
-    from seggaussian.io.ply import write_gaussians_ply
+    from seggaussian.io.ply.reader import write_gaussians_ply
 
     config = small_config(iterations=15, eval_every=0)  # densification at 10 included
     paths = []
@@ -424,9 +424,8 @@ def test_cli_fit_writes_ply_and_metrics(tmp_path):
     from click.testing import CliRunner
 
     from cli.seggaussian_cli import main
-    from seggaussian.io.ply import read_gaussians_ply
-    from seggaussian.sources import synthetic
-
+    from seggaussian.io.ply.reader import read_gaussians_ply
+    from seggaussian.sources.synthetic import generate as synthetic
     raw = tmp_path / "raw"
     (scene_id,) = synthetic.synthesize(raw / "scannetpp", 1, 0, "scannetpp",
                                        synthetic.SynthConfig(width=48, num_views=9, max_edge=0.25))
@@ -533,7 +532,7 @@ def _depth_loss_loop(depth, target, mask):
 
 
 def test_depth_loss_matches_loop_reference_and_gradient():
-    from seggaussian.losses import depth_loss
+    from seggaussian.fit.losses import depth_loss
 
     g = torch.Generator().manual_seed(0)
     target = torch.rand(7, 9, generator=g) * 3.0 + 0.5
@@ -553,7 +552,7 @@ def test_depth_loss_matches_loop_reference_and_gradient():
 
 def test_mesh_depth_of_views_matches_reference_raycaster(tiny_scene):
     """The fit's depth targets are the mesh's camera z per pixel centre (the slow reference caster agrees)."""
-    from seggaussian.fit_views import load_views, with_mesh_depth
+    from seggaussian.fit.views import load_views, with_mesh_depth
     from seggaussian.sources.raycast import cast_rays_reference
 
     points = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0],

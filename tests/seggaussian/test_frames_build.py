@@ -12,18 +12,19 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from seggaussian import build as build_mod
+from seggaussian.build import dataset as build_mod
 from seggaussian import shards
-from seggaussian.build_config import BuildConfig, OracleConfig
+from seggaussian.build.config import BuildConfig
+from seggaussian.labels.config import OracleConfig
 from seggaussian.frames.axes import axes_to_rdf
 from seggaussian.frames.colmap_model import read_colmap_model
 from seggaussian.frames.gsplat_normalization import gsplat_normalization
 from seggaussian.frames.similarity import Similarity, transform_gaussians
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import write_gaussians_ply
-from seggaussian.oracle import sample_oracle_gaussians
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.labels.oracle import sample_oracle_gaussians
 from seggaussian.sources import scannetpp
-from seggaussian.sources.synthetic import SynthConfig, synthesize
+from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 from frames_common import axis_rotation
 
 #: Label agreement the issue asks of a splat brought home by its transform (against the aligned splat's labels).

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from seggaussian.cameras import Camera, intrinsics, look_at
-from seggaussian.constants import SH_C0
-from seggaussian.gaussians import Gaussians, sh_degree_from_coeffs
-from seggaussian.rotations import quats_to_rotmats
+from seggaussian.core.cameras import Camera, intrinsics, look_at
+from seggaussian.core.constants import SH_C0
+from seggaussian.core.gaussians import Gaussians, sh_degree_from_coeffs
+from seggaussian.core.rotations import quats_to_rotmats
 
 
 def random_gaussians(n, degree=1, seed=0):

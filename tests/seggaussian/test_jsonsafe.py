@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.jsonsafe import json_safe
+from seggaussian.util.jsonsafe import json_safe
 
 
 def test_json_safe_converts_numpy_paths_and_non_finite_values():

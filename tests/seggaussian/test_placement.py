@@ -1,4 +1,4 @@
-"""seggaussian.placement: the similarity fit, the local registration and both shares against brute-force references,
+"""seggaussian.labels.placement: the similarity fit, the local registration and both shares against brute-force references,
 degenerate inputs (no NaN, no crash) and the refusal's one line."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seggaussian.placement import (Placement, PlacementError, check_placement, fit_similarity, local_offset,
+from seggaussian.labels.placement import (Placement, PlacementError, check_placement, fit_similarity, local_offset,
                                    measure_placement, placement_failure, sample_surface)
-from seggaussian.seeds import scene_seed
+from seggaussian.util.seeds import scene_seed
 
 
 def _box_room() -> tuple[np.ndarray, np.ndarray]:

@@ -8,9 +8,11 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from seggaussian import fit, gaussians
+from seggaussian.fit import optimize as fit
+
+from seggaussian.core import gaussians
 from seggaussian.render import projection
-from seggaussian.rotations import quats_to_rotmats, quats_to_rotmats_torch
+from seggaussian.core.rotations import quats_to_rotmats, quats_to_rotmats_torch
 
 
 def unit_quats(n: int, seed: int) -> np.ndarray:  # [n, 4] (w, x, y, z), with the axis-aligned cases

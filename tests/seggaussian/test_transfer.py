@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seggaussian.build_config import TransferConfig
-from seggaussian.constants import IGNORE_LABEL
-from seggaussian.transfer import (
+from seggaussian.labels.config import TransferConfig
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.labels.transfer import (
     DISTANCE_NOT_MEASURED,
     densify_labelled_mesh,
     first_occurrences,
     transfer_labels,
     transfer_labels_reference,
 )
-from seggaussian.transfer_scoring import label_accuracy, surface_labels
+from seggaussian.labels.scoring import label_accuracy, surface_labels
 
 
 def _random_inputs(rng, n=400, p=300, ignore_share=0.2, spread=1.0):

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.cameras import look_at
-from seggaussian.gaussians import Gaussians
-from seggaussian.rotations import rotmats_to_quats
+from seggaussian.core.cameras import look_at
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.core.rotations import rotmats_to_quats
 
 
 def axis_rotation(axis, degrees: float) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 import torch
 from frames_common import random_gaussians, random_rotation
 
-from seggaussian.cameras import Camera, intrinsics, look_at
+from seggaussian.core.cameras import Camera, intrinsics, look_at
 from seggaussian.frames.similarity import Similarity, transform_gaussians
 from seggaussian.render.projection import project_gaussians
 from seggaussian.render.rasterize import camera_tensors, render_gaussians

@@ -8,7 +8,7 @@ import pytest
 import torch
 from frames_common import random_rotation
 
-from seggaussian.constants import SH_C1
+from seggaussian.core.constants import SH_C1
 from seggaussian.frames.sh_rotation import (
     band_rotation,
     band_rotation_reference,

@@ -8,7 +8,7 @@ import torch
 from frames_common import random_gaussians, random_rotation
 
 from seggaussian.frames.similarity import Similarity, transform_gaussians, transform_gaussians_reference
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.render.sh import evaluate_sh
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from frames_common import random_rotation, room_scene, write_colmap_binary, write_colmap_text
 
-from seggaussian.cameras import look_at
+from seggaussian.core.cameras import look_at
 from seggaussian.frames.axes import axes_to_rdf
 from seggaussian.frames.colmap_model import ColmapModelError, read_colmap_model
 from seggaussian.frames.similarity import Similarity

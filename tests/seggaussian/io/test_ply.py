@@ -1,4 +1,4 @@
-"""3DGS PLY reader/writer and import validation (seggaussian.io.ply, seggaussian.io.validate)."""
+"""3DGS PLY reader/writer and import validation (seggaussian.io.ply.reader, seggaussian.io.validate)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from seggaussian.constants import LOG_SCALE_FLOAT32_MAX, OPACITY_LOGIT_SATURATION
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import (
+from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX, OPACITY_LOGIT_SATURATION
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import (
     PlyFormatError,
     read_gaussians_ply,
     read_ply_header,
@@ -474,7 +474,7 @@ def reference_vertex_values(g: Gaussians) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_fast_table_layout_matches_reference(degree):
-    from seggaussian.io.ply import gaussians_to_vertex_table, vertex_table_to_gaussians
+    from seggaussian.io.ply.reader import gaussians_to_vertex_table, vertex_table_to_gaussians
 
     g = random_gaussians(9, degree, seed=degree, extras={"semantic": np.arange(9, dtype=np.int64)})
     table = gaussians_to_vertex_table(g, normals=True)

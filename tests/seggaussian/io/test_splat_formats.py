@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from seggaussian.constants import IGNORE_LABEL, SH_C0
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.constants import IGNORE_LABEL, SH_C0
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import (FORMATS, detect_format, format_for_output, read_gaussians, read_gaussians_raw,
                                     scene_stem, write_gaussians)
 from seggaussian.io.splat_common import SplatFormatError
@@ -110,7 +110,7 @@ def test_spz_v4_layout_and_sh_degree_4_refused(tmp_path):
 
 
 def test_compressed_ply_layout(tmp_path):
-    from seggaussian.io.ply import read_ply_header
+    from seggaussian.io.ply.reader import read_ply_header
 
     g = _gaussians(n=600, degree=1)
     path = tmp_path / "a.compressed.ply"
@@ -208,7 +208,7 @@ def test_spz_frame_signs_follow_the_sh_basis_and_niantics_converter(frame):
     from seggaussian.frames.axes import axes_to_rdf
     from seggaussian.frames.sh_rotation import sh_basis
     from seggaussian.io.spz import frame_signs
-    from seggaussian.rotations import quats_to_rotmats
+    from seggaussian.core.rotations import quats_to_rotmats
 
     positions, quats, sh = frame_signs(frame)
     x, y, z = (1 if frame[0] == "R" else -1), (1 if frame[1] == "D" else -1), (1 if frame[2] == "F" else -1)
@@ -382,7 +382,7 @@ def test_output_format_from_name_and_stem():
 def test_palette_is_fixed_and_documented():
     import colorsys
 
-    from seggaussian.palette import IGNORE_RGB, label_colours, palette
+    from seggaussian.labels.palette import IGNORE_RGB, label_colours, palette
 
     colours = palette(100)
     assert len({tuple(c) for c in colours}) == 100                    # 100 distinct class colours
@@ -395,7 +395,7 @@ def test_palette_is_fixed_and_documented():
 
 
 def test_colour_by_labels_and_legend(tmp_path):
-    from seggaussian.palette import build_legend, colour_by_labels, label_colours, legend_paths, write_legend
+    from seggaussian.labels.palette import build_legend, colour_by_labels, label_colours, legend_paths, write_legend
 
     g = _gaussians(n=50, degree=3).with_extras(semantic=np.r_[np.zeros(20), np.ones(25), np.full(5, IGNORE_LABEL)]
                                                .astype(np.int32))
@@ -425,7 +425,7 @@ def test_colour_by_labels_and_legend(tmp_path):
 # ---------------------------------------------------------------------------------------------
 def test_cli_inspect_names_the_format_and_import_converts(tmp_path):
     from cli.seggaussian_cli import main
-    from seggaussian.io.ply import read_gaussians_ply
+    from seggaussian.io.ply.reader import read_gaussians_ply
 
     g = _gaussians(degree=1)
     runner = CliRunner()

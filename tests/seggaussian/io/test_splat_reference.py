@@ -41,12 +41,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seggaussian.constants import SH_C0
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.constants import SH_C0
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import detect_format, read_gaussians, read_gaussians_raw, write_gaussians
 from seggaussian.io.compressed_ply import morton_order
 from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, bucket_layout, write_ksplat
-from seggaussian.io.ply import read_vertex_table, vertex_table_to_gaussians, write_gaussians_ply
+from seggaussian.io.ply.reader import read_vertex_table, vertex_table_to_gaussians, write_gaussians_ply
 from shared_data import REALDATA, WEB_SPLATS
 
 ROOT = Path(__file__).resolve().parents[3]

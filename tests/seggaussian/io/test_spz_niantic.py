@@ -36,7 +36,7 @@ import pytest
 from test_splat_reference import (DECODE_ATOL, QUAT_DECODE_ATOL, _sign_free_quat_error, _skip_without_web_data,
                                   _web_splats, apply_p, make_gaussians)
 
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians_raw
 from seggaussian.io.spz import (COORDINATE_SYSTEM_EXTENSION, COORDINATE_SYSTEMS, V4_HEADER, decode_spz, encode_spz)
 from seggaussian.io.splat_common import SplatFormatError

@@ -28,7 +28,7 @@ down -z).
 Scenes: an "F" of coloured bars with a cube in front of its foot (no mirror or turn maps it to itself; the cube's
 depth tells front from back), seen obliquely; once in natural colours (per-part colours with a gradient, SH degree
 1 for the formats that keep it), once coloured by label (palette colours as the DC colour, higher bands zeroed, as
-``seggaussian.palette.colour_by_labels`` writes them).
+``seggaussian.labels.palette.colour_by_labels`` writes them).
 
 Spark is given the constants of our rasterizer (the 3DGS reference's): 0.3 px^2 added to the 2D covariance without
 opacity compensation, a 3-sigma cut-off, alpha below 1/255 skipped, splats sorted by view depth (not radially).
@@ -57,11 +57,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seggaussian.cameras import Camera, intrinsics, look_at
-from seggaussian.constants import ALPHA_MIN, COV2D_DILATION, IGNORE_LABEL, RADIUS_SIGMAS, SH_C0
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.cameras import Camera, intrinsics, look_at
+from seggaussian.core.constants import ALPHA_MIN, COV2D_DILATION, IGNORE_LABEL, RADIUS_SIGMAS, SH_C0
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import write_gaussians
-from seggaussian.palette import colour_by_labels
+from seggaussian.labels.palette import colour_by_labels
 
 ROOT = Path(__file__).resolve().parents[3]
 PAGE = Path(__file__).resolve().with_name("spark_viewer.html")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.cameras import Camera, intrinsics, look_at
+from seggaussian.core.cameras import Camera, intrinsics, look_at
 from seggaussian.render import compute_blend_weights
 from seggaussian.render.pixel_blend import (
     PixelBlendWeights, compute_pixel_blend_weights, pixel_blend_weights_reference,
@@ -99,7 +99,7 @@ def test_semantic_map_forward_and_backward_equal_the_cached_w_definition(tmp_pat
     trainer used to (int32 ids, float32 weights in safetensors), forward and gradient bit for bit."""
     from safetensors.torch import load_file, save_file
 
-    from ovgaussian.train_losses import render_pixels
+    from ovgaussian.train.step_losses import render_pixels
 
     width, height, top_k = 70, 52, 16
     geometry, (viewmat, K) = make_scene(5, 2500, width, height)
@@ -144,7 +144,7 @@ def test_compiled_evaluation_render_equals_render_features():
 def test_cuda_inputs_give_the_cpu_weights_and_the_same_semantic_map():
     """Geometry and semantic vectors on the GPU: W (computed on the CPU) is identical, and M = W S on the
     GPU matches the CPU within float tolerance, forward and backward."""
-    from ovgaussian.train_losses import render_pixels
+    from ovgaussian.train.step_losses import render_pixels
 
     width, height = 60, 44
     geometry, (viewmat, K) = make_scene(8, 1500, width, height)

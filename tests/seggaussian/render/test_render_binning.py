@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.constants import TILE_SIZE
+from seggaussian.core.constants import TILE_SIZE
 from seggaussian.render.binning_numba import bin_sorted, depth_order
 from seggaussian.render.projection import Projection
 from seggaussian.render.projection_numba import project_gaussians_fast

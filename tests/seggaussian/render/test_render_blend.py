@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.render import BlendWeights, compute_blend_weights, rasterize, render_features, render_label_maps
 from test_render_common import GEOMETRY, HEIGHT, WIDTH, camera, random_scene
 

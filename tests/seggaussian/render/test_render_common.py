@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from seggaussian.cameras import intrinsics, look_at
+from seggaussian.core.cameras import intrinsics, look_at
 
 WIDTH, HEIGHT = 32, 24
 

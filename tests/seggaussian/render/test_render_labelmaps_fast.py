@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.render import render_label_maps
 from seggaussian.render.results import BlendWeights
 from seggaussian.render.labelmaps import render_label_maps_reference

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.cameras import intrinsics, invert_rigid, look_at
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.cameras import intrinsics, invert_rigid, look_at
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.render import compute_blend_weights, render_label_maps
 
 o3d = pytest.importorskip("open3d", reason="open3d gives the raycast ground truth")

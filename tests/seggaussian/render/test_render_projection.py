@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from seggaussian.constants import SH_C0
+from seggaussian.core.constants import SH_C0
 from seggaussian.render.projection_numba import project_gaussians_fast
 from seggaussian.render.projection import project_gaussians
 from seggaussian.render.sh import sh_to_colors
@@ -88,7 +88,7 @@ def test_sh_matches_direct_basis_formula():
 def test_tile_lists_match_a_naive_binning():
     import numpy as np
 
-    from seggaussian.constants import TILE_SIZE
+    from seggaussian.core.constants import TILE_SIZE
     from seggaussian.render.tiles import bin_gaussians
 
     scene = random_scene(400, 13, dtype=torch.float64, spread=1.0)

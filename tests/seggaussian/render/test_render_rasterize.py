@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.constants import ALPHA_MIN
+from seggaussian.core.constants import ALPHA_MIN
 from seggaussian.render import rasterize, render_gaussians
 from seggaussian.render.projection import project_gaussians
 from seggaussian.render.reference import blend_reference
@@ -191,8 +191,8 @@ def test_bad_inputs_raise_clear_errors():
 
 
 def test_render_gaussians_numpy_types():
-    from seggaussian.cameras import Camera
-    from seggaussian.gaussians import Gaussians
+    from seggaussian.core.cameras import Camera
+    from seggaussian.core.gaussians import Gaussians
 
     scene = random_scene(30, 9)
     gaussians = Gaussians.from_arrays(*(scene[k] for k in (*GEOMETRY, "sh")))

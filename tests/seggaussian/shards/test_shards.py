@@ -11,10 +11,10 @@ import pyarrow.parquet as pq
 import pytest
 
 from seggaussian import shards
-from seggaussian.build_config import ShardConfig
-from seggaussian.cameras import Camera, intrinsics, look_at
-from seggaussian.constants import IGNORE_LABEL, read_class_names
-from seggaussian.gaussians import Gaussians
+from seggaussian.shards.config import ShardConfig
+from seggaussian.core.cameras import Camera, intrinsics, look_at
+from seggaussian.core.constants import IGNORE_LABEL, read_class_names
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.shards import read as shard_read
 from seggaussian.shards.schema import SCHEMA_VERSION
 
@@ -94,7 +94,7 @@ def test_round_trip_and_footer(tmp_path):
     assert footer["seggaussian.schema_version"] == SCHEMA_VERSION
     assert footer["seggaussian.class_names"] == list(names)
     assert footer["seggaussian.config_hash"] == "cfg123"
-    assert footer["seggaussian.split"] == "train" and footer["seggaussian.table"] == "gaussians"
+    assert footer["seggaussian.build.split"] == "train" and footer["seggaussian.table"] == "gaussians"
     # manifest: rows, bytes, sha256 per file
     for rel, f in manifest["files"].items():
         assert (ds / rel).stat().st_size == f["bytes"]

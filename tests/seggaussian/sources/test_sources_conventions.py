@@ -8,8 +8,9 @@ import shutil
 import numpy as np
 import pytest
 
-from seggaussian.cameras import Camera, intrinsics, invert_rigid, look_at
-from seggaussian.sources import scannetpp, synthetic
+from seggaussian.core.cameras import Camera, intrinsics, invert_rigid, look_at
+from seggaussian.sources import scannetpp
+from seggaussian.sources.synthetic import generate as synthetic
 from seggaussian.sources.raycast import MeshRaycaster, cast_rays_reference
 
 

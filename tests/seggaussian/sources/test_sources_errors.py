@@ -8,7 +8,9 @@ import shutil
 import numpy as np
 import pytest
 
-from seggaussian.sources import replica, scannetpp, synthetic
+from seggaussian.sources import replica, scannetpp
+
+from seggaussian.sources.synthetic import generate as synthetic
 from seggaussian.sources._common import EmptySceneError, SourceError
 
 SMALL = synthetic.SynthConfig(width=48, num_views=3, max_edge=0.2)

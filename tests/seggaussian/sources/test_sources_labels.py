@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.sources._common import SourceError, triangulate_quads
 from seggaussian.sources.replica import compute_vertex_objects, compute_vertex_objects_reference
 from seggaussian.sources.scannetpp import compute_vertex_labels, compute_vertex_labels_reference

@@ -15,13 +15,16 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.build import build_dataset
+from seggaussian.build.dataset import build_dataset
 from seggaussian import shards
-from seggaussian.build_config import BuildConfig, OracleConfig
-from seggaussian.constants import IGNORE_LABEL
-from seggaussian.fit_views import load_views, masked_render
-from seggaussian.losses import fitting_loss
-from seggaussian.sources import replica, scannetpp, synth_scannetpp, synthetic
+from seggaussian.build.config import BuildConfig
+from seggaussian.labels.config import OracleConfig
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.fit.views import load_views, masked_render
+from seggaussian.fit.losses import fitting_loss
+from seggaussian.sources import replica, scannetpp
+from seggaussian.sources.synthetic import scannetpp as synth_scannetpp
+from seggaussian.sources.synthetic import generate as synthetic
 from seggaussian.sources._common import SourceError, atomic_write_image, read_image, read_valid_mask
 
 SMALL = synthetic.SynthConfig(width=48, num_views=6, max_edge=0.2)

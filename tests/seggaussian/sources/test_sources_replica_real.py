@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seggaussian.constants import IGNORE_LABEL, read_class_names
+from seggaussian.core.constants import IGNORE_LABEL, read_class_names
 from seggaussian.sources.replica import ReplicaInfo
 from shared_data import REALDATA
 

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from seggaussian.cameras import Camera, intrinsics
-from seggaussian.classes import replica_class_names
-from seggaussian.constants import IGNORE_LABEL
-from seggaussian.sources import replica, synth_replica, synthetic
+from seggaussian.core.cameras import Camera, intrinsics
+from seggaussian.core.classes import replica_class_names
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.sources import replica
+from seggaussian.sources.synthetic import replica as synth_replica
+from seggaussian.sources.synthetic import generate as synthetic
 from seggaussian.sources._common import atomic_write_image, read_image, triangulate_quads
 from seggaussian.sources.raycast import render_labelled_views
-from seggaussian.sources.synth_room import CLASS_TABLE
+from seggaussian.sources.synthetic.room import CLASS_TABLE
 
 SMALL = synthetic.SynthConfig(width=64, num_views=9, max_edge=0.15)
 
@@ -47,7 +49,7 @@ def test_semantic_nerf_sequence(tmp_path):
         np.testing.assert_allclose(view.camera.K, K, atol=1e-12)
         np.testing.assert_allclose(view.camera.viewmat, cam.viewmat, atol=1e-9)
     # class images -> top-100, the same labels as the generator's own ground truth
-    from seggaussian.classes import replica_class_to_top100
+    from seggaussian.core.classes import replica_class_to_top100
 
     for i in (0, 4):
         mapped = read_image(scene.views[i].semantic_path, "mapped", unchanged=True)

@@ -7,8 +7,11 @@ import hashlib
 import numpy as np
 import pytest
 
-from seggaussian.constants import IGNORE_LABEL, read_class_names
-from seggaussian.sources import replica, scannetpp, synth_replica, synth_scannetpp, synthetic
+from seggaussian.core.constants import IGNORE_LABEL, read_class_names
+from seggaussian.sources import replica, scannetpp
+from seggaussian.sources.synthetic import replica as synth_replica
+from seggaussian.sources.synthetic import scannetpp as synth_scannetpp
+from seggaussian.sources.synthetic import generate as synthetic
 from seggaussian.sources._common import read_image
 from seggaussian.sources.raycast import MeshRaycaster
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seggaussian.constants import read_class_names
-from seggaussian.sources import synthetic
-from seggaussian.sources.synth_room import CLASS_TABLE, RAW_LABEL_MAP, RoomConfig, build_room
+from seggaussian.core.constants import read_class_names
+from seggaussian.sources.synthetic import generate as synthetic
+from seggaussian.sources.synthetic.room import CLASS_TABLE, RAW_LABEL_MAP, RoomConfig, build_room
 
 
 @pytest.mark.parametrize("style", ["scannetpp", "replica"])

@@ -1,4 +1,4 @@
-"""Seeded fuzzing of the splat readers (seggaussian.tools.fuzz) and the PLY strictness it enforces."""
+"""Seeded fuzzing of the splat readers (seggaussian.tools.fuzz.engine) and the PLY strictness it enforces."""
 
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seggaussian.tools import fuzz, fuzz_ply
-from seggaussian.gaussians import Gaussians
-from seggaussian.io.ply import (
+from seggaussian.tools.fuzz import engine as fuzz
+
+from seggaussian.tools.fuzz import ply as fuzz_ply
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.io.ply.reader import (
     PlyFormatError, read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile, write_gaussians_ply,
 )
 from shared_data import REALDATA

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seggaussian.gaussians import Gaussians
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians, write_gaussians
-from seggaussian.io.ply import PlyFormatError
+from seggaussian.io.ply.reader import PlyFormatError
 from seggaussian.io.spz import encode_spz
 
 #: Mutants per format.
@@ -164,7 +164,7 @@ def test_fuzz_gives_clear_errors_only(name, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# the same formats through the shared harness (seggaussian.tools.fuzz: own-code, one-line and hang checks)
+# the same formats through the shared harness (seggaussian.tools.fuzz.engine: own-code, one-line and hang checks)
 # ---------------------------------------------------------------------------------------------
 #: Mutants per format through the harness.
 HARNESS_MUTANTS = 400
@@ -172,8 +172,8 @@ HARNESS_MUTANTS = 400
 
 @pytest.mark.parametrize("index", range(8))
 def test_splat_formats_in_the_shared_fuzz_harness(index, tmp_path):
-    from seggaussian.tools import fuzz
-    from seggaussian.tools.fuzz_splat import splat_targets
+    from seggaussian.tools.fuzz import engine as fuzz
+    from seggaussian.tools.fuzz.splat import splat_targets
 
     target = splat_targets(seed=0)[index]
     report = fuzz.run_fuzz(target, HARNESS_MUTANTS, seed=15, workdir=tmp_path)

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.build_config import TransferConfig
-from seggaussian.constants import IGNORE_LABEL
+from seggaussian.labels.config import TransferConfig
+from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.render import render_label_maps
 from seggaussian.render.results import BlendWeights
-from seggaussian.tools.pareto import (
+from seggaussian.tools.sweep.pareto import (
     PARETO_TIME_TOLERANCE,
     QUALITY_TOLERANCE,
     StageSweepResult,
@@ -25,13 +25,13 @@ from seggaussian.tools.pareto import (
     one_at_a_time,
     pareto_mask,
 )
-from seggaussian.tools.stage_sweep import run_stage_sweep
-from seggaussian.tools.sweep_config import StageSweepConfig, quick_config, with_params
-from seggaussian.tools.sweep_data import SweepDataError, prepare_data
-from seggaussian.tools.sweep_render import labelled_only_blend
-from seggaussian.tools.sweep_report import default_verdict, format_table, write_markdown
-from seggaussian.transfer import transfer_labels
-from seggaussian.transfer_vote import transfer_labels_vote, transfer_labels_vote_reference, vote
+from seggaussian.tools.sweep.run import run_stage_sweep
+from seggaussian.tools.sweep.config import StageSweepConfig, quick_config, with_params
+from seggaussian.tools.sweep.data import SweepDataError, prepare_data
+from seggaussian.tools.sweep.render import labelled_only_blend
+from seggaussian.tools.sweep.report import default_verdict, format_table, write_markdown
+from seggaussian.labels.transfer import transfer_labels
+from seggaussian.labels.vote import transfer_labels_vote, transfer_labels_vote_reference, vote
 
 I = IGNORE_LABEL
 
@@ -223,7 +223,7 @@ def test_quick_build(work):
     assert fresh.metrics["stages_run"] == 3 and fresh.metrics["stages_cached"] == 0
     assert rerun.metrics["stages_run"] == 0 and rerun.metrics["stages_cached"] == 3
     assert rerun.quality == 1.0 and rerun.is_default and rerun.pareto
-    from seggaussian.tools.sweep_report import format_build_scenes
+    from seggaussian.tools.sweep.report import format_build_scenes
 
     per_scene = format_build_scenes(result).splitlines()
     assert len(per_scene) == 2 + 2 * len(result.scenes)
@@ -239,7 +239,7 @@ def test_markdown_and_plot(work, tmp_path):
     text = md.read_text()
     assert "seggaussian bench --stage transfer" in text and "measured under load" in text and "| PD |" in text
     pytest.importorskip("matplotlib")
-    from seggaussian.tools.sweep_report import plot_trials
+    from seggaussian.tools.sweep.report import plot_trials
 
     png = plot_trials([result], tmp_path / "plot.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

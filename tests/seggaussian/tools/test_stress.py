@@ -4,7 +4,7 @@ or a counted repair."""
 import numpy as np
 import pytest
 
-from ovgaussian.stress_losses import LOSS_FAMILY
+from ovgaussian.train.stress_losses import LOSS_FAMILY
 from seggaussian.tools import stress
 
 
@@ -44,7 +44,7 @@ def test_classify_separates_own_errors_from_dependency_errors():
     assert stress.classify("x", "dep", dependency).outcome == "crash"
 
     def package_error():
-        from seggaussian.gaussians import sh_degree_from_coeffs
+        from seggaussian.core.gaussians import sh_degree_from_coeffs
 
         sh_degree_from_coeffs(7)
 

@@ -1,0 +1,95 @@
+"""Configuration of the OVGaussian network (backbone, adapter, decoders). Data only, no torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+#: MinkUNet34C (MinkowskiEngine / Pointcept): encoder widths 32, 64, 128, 256, decoder 256, 128, 96, 96.
+MINKUNET34C_WIDTHS = (32, 64, 128, 256, 256, 128, 96, 96)
+#: MinkUNet34C BasicBlocks per stage: encoder 2, 3, 4, 6, decoder 2, 2, 2, 2.
+MINKUNET34C_BLOCKS = (2, 3, 4, 6, 2, 2, 2, 2)
+#: A quarter of the MinkUNet34C widths, for tests and CPU training.
+SLIM_WIDTHS = tuple(w // 4 for w in MINKUNET34C_WIDTHS)
+#: Number of per-Gaussian attributes from ``gaussian_attributes``: colour 3, opacity 1, scales 3, quats 4.
+NUM_GAUSSIAN_ATTRIBUTES = 11
+
+
+@dataclass(frozen=True)
+class OVGaussianNetConfig:
+    """Shape and switches of :class:`ovgaussian.model.network.OVGaussianNet`."""
+
+    widths: tuple[int, ...] = MINKUNET34C_WIDTHS
+    """Output channels of the 8 U-Net stages (4 encoder, 4 decoder); default MinkUNet34C."""
+    blocks: tuple[int, ...] = MINKUNET34C_BLOCKS
+    """Residual BasicBlocks per stage (4 encoder, 4 decoder); default MinkUNet34C."""
+    stem_width: int = 32
+    """Channels of the stem convolution (MinkUNet34C INIT_DIM = 32)."""
+    stem_kernel_size: int = 5
+    """Kernel of the stem submanifold convolution (MinkUNet34C: 5; 3 is cheaper)."""
+    voxel_size: float = 0.05
+    """Voxel edge in metres at the finest level (ScanNet-style 5 cm)."""
+    max_grid_extent: int = 4096
+    """Adaptive cap: a scene wider than this many voxels on some axis gets a larger voxel
+    (extent / (max_grid_extent - 1)) instead of overflowing the key range; 4096 x 5 cm = 205 m."""
+    use_coordinates: bool = False
+    """Append 3 normalized coordinates (position minus scene centre, divided by the scene's
+    half-extent, so in [-1, 1]) to the 11 attributes: backbone and adapter see 14 inputs."""
+    input_encoding: Literal["raw", "robust"] = "robust"
+    """How the 11 physical attributes (and the coordinates) are fed to the network. ``raw``: as
+    ``gaussian_attributes`` returns them (scales in metres, colour unclamped, coordinates over the bounding box), the
+    encoding of runs trained before fitted splats were supported. ``robust``: what a fitted splat's heavy tails
+    cannot throw off: colour clamped to [0, 1], log-scales relative to the voxel edge and clipped, coordinates over
+    the 1 %..99 % quantile box of the scene and clipped to [-1.5, 1.5] (floaters far outside the room move nothing)."""
+    pool_weighting: Literal["mean", "opacity"] = "opacity"
+    """How a voxel's input features are pooled from its Gaussians: ``mean`` (each Gaussian counts once) or
+    ``opacity`` (weighted by opacity, so the faint Gaussians a fit leaves everywhere count little)."""
+    semantic_width: int = 16
+    """Width of the per-Gaussian semantic vector s (paper: 16); also the backbone's output width."""
+    use_adapter: bool = True
+    """Voxel-to-point adapter (paper section 3); False: s = linear(voxel feature of the Gaussian)."""
+    adapter_attention_width: int = 16
+    """Width of the adapter's query/key/value projections."""
+    adapter_heads: int = 4
+    """Attention heads of the adapter (adapter_attention_width must be divisible by it)."""
+    adapter_hidden: tuple[int, ...] = (96, 96)
+    """Hidden widths of the adapter MLP (paper: 27 -> 96 -> 96 -> 16)."""
+    decoder_hidden: int = 128
+    """Hidden width of the decoders phi and psi (paper: 16 -> 128 -> D)."""
+    embedding_width: int = 512
+    """D: width of the text / teacher embeddings that phi and psi map into (paper: 512, CLIP)."""
+    seed: int = 0
+    """Seed of the parameter initialization (the same seed gives the same network)."""
+
+    def __post_init__(self) -> None:
+        if len(self.widths) != 8 or len(self.blocks) != 8:
+            raise ValueError(f"widths and blocks need 8 stages, got {len(self.widths)} and {len(self.blocks)}")
+        if min(self.widths) < 1 or min(self.blocks) < 0 or self.stem_width < 1:
+            raise ValueError("widths and stem_width must be positive, blocks non-negative")
+        if self.stem_kernel_size not in (1, 3, 5, 7):
+            raise ValueError(f"stem_kernel_size must be 1, 3, 5 or 7, got {self.stem_kernel_size}")
+        if not self.voxel_size > 0:
+            raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
+        if self.input_encoding not in ("raw", "robust"):
+            raise ValueError(f"input_encoding must be 'raw' or 'robust', got {self.input_encoding!r}")
+        if self.pool_weighting not in ("mean", "opacity"):
+            raise ValueError(f"pool_weighting must be 'mean' or 'opacity', got {self.pool_weighting!r}")
+        if self.adapter_attention_width % self.adapter_heads:
+            raise ValueError("adapter_attention_width must be divisible by adapter_heads")
+
+    @property
+    def num_attributes(self) -> int:
+        """Per-Gaussian input width: 11, or 14 with coordinates."""
+        return NUM_GAUSSIAN_ATTRIBUTES + (3 if self.use_coordinates else 0)
+
+    @classmethod
+    def slim(cls, **overrides) -> "OVGaussianNetConfig":
+        """A quarter of the MinkUNet34C widths with a 3^3 stem (tests, CPU training)."""
+        fields = dict(widths=SLIM_WIDTHS, stem_width=8, stem_kernel_size=3)
+        fields.update(overrides)
+        return cls(**fields)
+
+
+#: Values of the fields added after runs were first saved, for a run folder whose config lacks them: such a run
+#: was trained with these behaviours (``ovgaussian.run.checkpoint`` loads it with them, not with today's defaults).
+LEGACY_FIELD_VALUES = {"input_encoding": "raw", "pool_weighting": "mean"}

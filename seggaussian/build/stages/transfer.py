@@ -1,0 +1,83 @@
+"""transfer stage: labels of the Gaussians from the scene's labelled points -> ``gaussians.parquet``, ``labels.npz``.
+
+The algorithm (KD-tree, distance gate, statistics) is ``seggaussian.labels.transfer``; this module feeds it the
+scene's points, densified along the mesh faces, scores the result against the oracle truth (or the surface
+labels) and writes the per-scene ``gaussians`` table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from seggaussian.build.config import BuildConfig
+
+from seggaussian.shards.config import ShardConfig
+from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.core.gaussians import Gaussians
+from seggaussian.labels.placement import check_placement, measure_placement
+from seggaussian.core.scene import Scene
+from seggaussian.shards.files import write_parquet_atomic
+from seggaussian.shards.tables import gaussians_table
+from seggaussian.build.stages.gaussians import save_npz
+from seggaussian.labels.transfer import densify_labelled_mesh, distance_gate, transfer_labels
+from seggaussian.labels.scoring import label_accuracy, surface_labels
+
+#: Files the stage writes into the scene's cache folder.
+OUTPUTS = ("gaussians.parquet", "labels.npz")
+
+
+def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, config: BuildConfig,
+                 refuse_misplaced: bool = False) -> tuple[Gaussians, dict]:
+    """Labels of the Gaussians (transfer + per-scene statistics, placement and accuracy).
+
+    ``refuse_misplaced``: raise ``PlacementError`` when the Gaussians do not sit on the mesh (imported splats;
+    fitted and oracle Gaussians are made in the scene's frame, so theirs is only measured and reported)."""
+    points, semantic, instance = scene.points, scene.semantic, scene.instance
+    multilabel = scene.multilabel
+    extra = 0
+    if scene.faces is not None and len(scene.faces) and config.transfer.mesh_sample_spacing > 0:
+        if multilabel is None:
+            multilabel = np.full((len(points), 3), IGNORE_LABEL, np.int32)
+            multilabel[:, 0] = semantic
+        samples, (s_sem, s_inst, s_multi) = densify_labelled_mesh(
+            points, scene.faces, config.transfer.mesh_sample_spacing, semantic, instance, multilabel)
+        extra = len(samples)
+        points = np.concatenate([points, samples])
+        semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
+        multilabel = np.concatenate([multilabel, s_multi])
+    result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer)
+    # the placement is judged at the spacing-derived gate, whatever gate the user chose for the labels
+    placement_gate = distance_gate(result.stats.spacing, replace(config.transfer, max_distance=None))
+    placement = measure_placement(gaussians.means, gaussians.opacities(), result.distances, placement_gate,
+                                  scene.points, scene.faces, scene.scene_id, config.transfer.seed)
+    if refuse_misplaced:
+        check_placement(placement, config.transfer.min_on_mesh_share, config.transfer.min_surface_covered_share,
+                        config.transfer.max_local_offset, scene.scene_id)
+    if truth is None and len(gaussians):
+        truth = surface_labels(gaussians.means, scene.points, scene.faces, scene.semantic)
+    accuracy = label_accuracy(result.semantic, truth) if truth is not None else {"scored": 0, "correct": 0,
+                                                                                   "accuracy": None}
+    inst = result.instance
+    if len(inst) and int(inst[inst != IGNORE_LABEL].max(initial=0)) >= IGNORE_LABEL:
+        raise ValueError(f"scene {scene.scene_id}: instance ids >= {IGNORE_LABEL} do not fit a 16-bit label map")
+    labelled = gaussians.with_extras(semantic=result.semantic, instance=result.instance,
+                                     multilabel=result.multilabel, transfer_distance=result.distances)
+    stats = result.stats.to_dict()
+    stats["mesh_samples"] = extra
+    stats["placement"] = placement.to_dict()
+    return labelled, {"transfer": stats, "label_accuracy": accuracy}
+
+
+def write_transfer(scene_dir: Path, scene_id: str, labelled: Gaussians, shards: ShardConfig) -> None:
+    """The per-scene ``gaussians`` table and ``labels.npz`` (the labels the views stage renders)."""
+    write_parquet_atomic(Path(scene_dir) / OUTPUTS[0], "gaussians", [gaussians_table(scene_id, labelled)], shards)
+    save_npz(Path(scene_dir) / OUTPUTS[1], semantic=labelled.extras["semantic"], instance=labelled.extras["instance"])
+
+
+def load_labelled(scene_dir: Path, gaussians: Gaussians) -> Gaussians:
+    """``gaussians`` with the semantic and instance labels of ``labels.npz``."""
+    with np.load(Path(scene_dir) / OUTPUTS[1]) as z:
+        return gaussians.with_extras(semantic=z["semantic"], instance=z["instance"])
