@@ -45,7 +45,7 @@ def main() -> None:
 
     from seggaussian.labels.config import OracleConfig
     from seggaussian.core.gaussians import Gaussians
-    from seggaussian.io.ply.reader import write_gaussians_ply
+    from seggaussian.io.ply.writer import write_gaussians_ply
     from seggaussian.labels.oracle import sample_oracle_gaussians
     from seggaussian.sources.layout import find_scene_layout, reader
     from seggaussian.sources.synthetic.generate import SynthConfig, synthesize

@@ -31,8 +31,9 @@ def _median_seconds(fn, repeats: int) -> tuple[float, float]:
 
 def main() -> None:
     from seggaussian.core.gaussians import Gaussians
-    from seggaussian.io.ply.reader import (read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile,
-                                    vertex_table_to_gaussians, write_gaussians_ply)
+    from seggaussian.io.ply.reader import read_gaussians_ply, read_vertex_table, vertex_table_to_gaussians
+    from seggaussian.io.ply.reference import read_vertex_table_plyfile
+    from seggaussian.io.ply.writer import write_gaussians_ply
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--num", type=int, default=1_000_000)

@@ -25,7 +25,8 @@ Cases: 20,000 Gaussians at 320x240 and 1,000,000 at 876x584, the scene of benchm
 (``make_scene``: N Gaussians in a 2 m cube seen from 3 m, SH degree 0); forward, and forward+backward of
 ``loss = sum(image * W)`` (W a fixed random [H, W, 3] weight) with gradients to means, scales, quaternions,
 opacities and colours (SH) on both sides. Both sides run in this one process, alternated (ours, peer, ours,
-peer, ...), each call on fresh leaf tensors; the table gives the medians of the wall times. Thread counts:
+peer, ...), each call on fresh leaf tensors; the table gives the medians of the wall times (and of the process
+CPU times, summed over threads: under load, when the wall times mostly measure waiting for a core). Thread counts:
 ours ``numba.set_num_threads(T)`` + ``torch.set_num_threads(T)``, the peer ``ti.init(cpu_max_num_threads=T)``
 + the same torch threads (its cumsum, sort and tensor glue run in torch).
 
@@ -35,9 +36,9 @@ function), except its two GPU-only pieces, ported here to the CPU:
 
 - ``cuda_lib`` (CUB exclusive scan and CUB ``DeviceRadixSort::SortPairs`` on 48-bit keys
   ``tile_id << 32 | float32 depth bits``; the real module compiles CUDA sources when imported): a CPU stand-in
-  module with ``torch.cumsum`` and ``torch.sort(keys, stable=True)`` (stable, as CUB's radix sort; torch's
-  multi-threaded CPU radix sort for 1-D integer keys) plus a gather of the values. Its wall time is reported
-  separately ("peer sort").
+  module with ``torch.cumsum`` and ``torch.sort(keys, stable=True)`` (stable, as CUB's radix sort; torch's CPU
+  builds with FBGEMM and OpenMP sort 1-D integer keys of >= 32k elements with a parallel LSD radix sort) plus a
+  gather of the values. Its wall time is reported separately ("peer sort", part of the peer's forward time).
 - the shared-memory tile kernels (forward: 256 threads a tile, batches of Gaussians loaded into shared memory;
   backward: 2x2 pixels a thread, warp and block reductions, one atomic add per Gaussian and tile): written
   anew in taichi on the CPU arch (this file, ``_port_forward_kernel`` / ``_port_backward_kernel``). Forward:
@@ -505,20 +506,23 @@ def gradient_agreement(peer: types.SimpleNamespace, case: Case, config: Any) -> 
 
 
 def alternate(fns: dict[str, Callable[[], None]], repeats: int, after: Callable[[str], None] | None = None
-              ) -> dict[str, list[float]]:
-    """Wall times of ``repeats`` calls of each function, interleaved (A B A B ...), after one warm-up call each."""
+              ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """(wall times, process CPU times) of ``repeats`` calls of each function, interleaved (A B A B ...), after one
+    warm-up call each. The CPU time sums every thread of the process (insensitive to waiting for a core)."""
     for fn in fns.values():
         fn()
-    times: dict[str, list[float]] = {k: [] for k in fns}
+    walls: dict[str, list[float]] = {k: [] for k in fns}
+    cpus: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(repeats):
         for name, fn in fns.items():
             SORT_CLOCK.reset()
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             fn()
-            times[name].append(time.perf_counter() - t0)
+            walls[name].append(time.perf_counter() - t0)
+            cpus[name].append(time.process_time() - c0)
             if after is not None:
                 after(name)
-    return times
+    return walls, cpus
 
 
 def run_case(peer: types.SimpleNamespace, num: int, width: int, height: int, repeats: int, peer_semantics: bool
@@ -570,15 +574,19 @@ def run_case(peer: types.SimpleNamespace, num: int, width: int, height: int, rep
         if name == "peer":
             sort_s.append(SORT_CLOCK.total())
 
-    fwd = alternate({"ours": forward("ours"), "peer": forward("peer")}, repeats, record_sort)
+    fwd, fwd_cpu = alternate({"ours": forward("ours"), "peer": forward("peer")}, repeats, record_sort)
     sort_fwd = list(sort_s)
-    fwdbwd = alternate({"ours": forward_backward("ours"), "peer": forward_backward("peer")}, repeats)
+    fwdbwd, fwdbwd_cpu = alternate({"ours": forward_backward("ours"), "peer": forward_backward("peer")}, repeats)
     med = {k: statistics.median(v) for k, v in fwd.items()}
     med_b = {k: statistics.median(v) for k, v in fwdbwd.items()}
     return {
         "num_gaussians": num, "width": width, "height": height,
         "forward_ours_s": med["ours"], "forward_peer_s": med["peer"],
         "forward_backward_ours_s": med_b["ours"], "forward_backward_peer_s": med_b["peer"],
+        "forward_ours_cpu_s": statistics.median(fwd_cpu["ours"]),
+        "forward_peer_cpu_s": statistics.median(fwd_cpu["peer"]),
+        "forward_backward_ours_cpu_s": statistics.median(fwdbwd_cpu["ours"]),
+        "forward_backward_peer_cpu_s": statistics.median(fwdbwd_cpu["peer"]),
         "forward_ours_all_s": fwd["ours"], "forward_peer_all_s": fwd["peer"],
         "forward_backward_ours_all_s": fwdbwd["ours"], "forward_backward_peer_all_s": fwdbwd["peer"],
         "peer_sort_s": statistics.median(sort_fwd),
@@ -595,14 +603,15 @@ def run_case(peer: types.SimpleNamespace, num: int, width: int, height: int, rep
 
 def markdown(results: dict) -> str:
     lines = [
-        "| case | ours ms | peer ms | ratio (peer / ours) | PSNR dB |",
-        "|---|---|---|---|---|",
+        "| case | ours ms | peer ms | ratio (peer / ours) | PSNR dB | ours CPU ms | peer CPU ms |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in results["cases"]:
         name = f"{r['num_gaussians']:,} Gaussians at {r['width']}x{r['height']}"
-        for label, a, b in (("forward", r["forward_ours_s"], r["forward_peer_s"]),
-                            ("forward+backward", r["forward_backward_ours_s"], r["forward_backward_peer_s"])):
-            lines.append(f"| {name}, {label} | {a * 1e3:.1f} | {b * 1e3:.1f} | {b / a:.2f} | {r['psnr_db']:.1f} |")
+        for label, key in (("forward", "forward"), ("forward+backward", "forward_backward")):
+            a, b = r[f"{key}_ours_s"], r[f"{key}_peer_s"]
+            lines.append(f"| {name}, {label} | {a * 1e3:.1f} | {b * 1e3:.1f} | {b / a:.2f} | {r['psnr_db']:.1f} "
+                         f"| {r[f'{key}_ours_cpu_s'] * 1e3:.1f} | {r[f'{key}_peer_cpu_s'] * 1e3:.1f} |")
     lines.append("")
     for r in results["cases"]:
         grads = ", ".join(f"{k} {v:.1e}" for k, v in r["gradient_relative_l2"].items())
@@ -638,6 +647,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="also write the markdown to this file")
     args = parser.parse_args(argv)
 
+    # our package first, as every seggaussian command does: before torch starts its OpenMP pool it sets
+    # OMP_WAIT_POLICY=PASSIVE, numba's threading layer and numba's kernel cache folder (seggaussian/__init__.py);
+    # the peer's torch calls share that pool
+    importlib.import_module("seggaussian")
     peer = load_peer(args.threads)
     import numba
     import torch
@@ -652,7 +665,8 @@ def main(argv: list[str] | None = None) -> int:
     cases = [(args.num, args.width, args.height)] if args.num else [SMALL_CASE] + ([] if args.skip_large else
                                                                                    [LARGE_CASE])
     results: dict = {"cases": [run_case(peer, n, w, h, args.repeats, args.peer_semantics) for n, w, h in cases]}
-    results.update(command=" ".join([Path(sys.executable).name, "benchmarks/bench_render_peer.py", *sys.argv[1:]]),
+    python = os.path.relpath(sys.executable, REPO) if Path(sys.executable).is_absolute() else sys.executable
+    results.update(command=" ".join([python, "benchmarks/bench_render_peer.py", *sys.argv[1:]]),
                    threads=args.threads, load_average=list(os.getloadavg()), cpu_count=os.cpu_count(),
                    repeats=args.repeats, taichi=peer.ti.__version__, torch=torch.__version__)
     text = markdown(results)

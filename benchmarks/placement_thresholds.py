@@ -30,7 +30,7 @@ from seggaussian.fit.optimize import fit_scene
 from seggaussian.fit.config import FitConfig
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians_raw
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.labels.oracle import sample_oracle_gaussians
 from seggaussian.labels.placement import measure_placement, placement_failure
 from seggaussian.util.seeds import scene_seed

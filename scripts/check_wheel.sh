@@ -30,7 +30,7 @@ if [ ! -f "$ply" ]; then
   "$work/venv/bin/python" - "$ply" <<'PY'
 import sys, numpy as np
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 rng = np.random.default_rng(0)
 n = 100
 f = lambda *s: rng.normal(size=s).astype(np.float32)

@@ -1,5 +1,5 @@
-"""The internal import graph of seggaussian, ovgaussian and cli has no cycle, and our own modules are imported
-at module top.
+"""Our own modules are imported at module top (import cycles and layers are import-linter's contracts in
+pyproject.toml, tests/test_import_contracts.py; this is what import-linter cannot express).
 
 The graph is built from the source with ``ast``: every ``import`` and ``from ... import`` statement, at module
 top, inside ``if``/``try`` and inside functions and methods, resolved to the module it loads
@@ -72,62 +72,6 @@ def import_graph(modules: dict[str, Path]) -> tuple[dict[str, set[str]], list[tu
     return edges, in_functions
 
 
-def find_cycles(edges: dict[str, set[str]]) -> list[list[str]]:
-    """One cycle ``[a, b, ..., a]`` per strongly connected component of more than one module (Tarjan)."""
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on_stack: set[str] = set()
-    components: list[list[str]] = []
-
-    def connect(v: str) -> None:  # recursion depth <= number of modules (~150)
-        index[v] = low[v] = len(index)
-        stack.append(v)
-        on_stack.add(v)
-        for w in sorted(edges.get(v, ())):
-            if w not in index:
-                connect(w)
-                low[v] = min(low[v], low[w])
-            elif w in on_stack:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            component = []
-            while True:
-                w = stack.pop()
-                on_stack.discard(w)
-                component.append(w)
-                if w == v:
-                    break
-            if len(component) > 1:
-                components.append(sorted(component))
-
-    for v in sorted(edges):
-        if v not in index:
-            connect(v)
-    return [_cycle_in(component, edges) for component in components]
-
-
-def _cycle_in(component: list[str], edges: dict[str, set[str]]) -> list[str]:
-    """A shortest cycle through the component's first module, by breadth-first search inside the component."""
-    members, start = set(component), component[0]
-    parent: dict[str, str | None] = {start: None}
-    frontier = [start]
-    while frontier:
-        following = []
-        for v in frontier:
-            for w in sorted(edges[v] & members):
-                if w == start:
-                    path = [v]
-                    while parent[path[-1]] is not None:
-                        path.append(parent[path[-1]])
-                    return [start] + path[::-1][1:] + [start] if len(path) > 1 else [start, v, start]
-                if w not in parent:
-                    parent[w] = v
-                    following.append(w)
-        frontier = following
-    raise AssertionError(f"no cycle found in component {component}")  # a component of > 1 module has one
-
-
 def test_finder_sees_every_form_of_import(tmp_path):
     pkg = tmp_path / "pkg"
     (pkg / "sub").mkdir(parents=True)
@@ -142,9 +86,6 @@ def test_finder_sees_every_form_of_import(tmp_path):
     assert edges["pkg.a"] == {"pkg.b"} and edges["pkg.b"] == {"pkg.sub.c"} and edges["pkg.sub.c"] == {"pkg.a"}
     assert edges["pkg.d"] == {"pkg.a"}
     assert in_functions == [("pkg.b", 2, "pkg.sub.c")]
-    assert find_cycles(edges) == [["pkg.a", "pkg.b", "pkg.sub.c", "pkg.a"]]
-    (pkg / "b.py").write_text("import os\n")
-    assert find_cycles(import_graph(module_files(tmp_path, ("pkg",)))[0]) == []
 
 
 @pytest.fixture(scope="module")
@@ -152,12 +93,6 @@ def graph():
     modules = module_files()
     assert {"seggaussian.render.rasterize", "ovgaussian.bench.evaluate", "cli.seg_build"} <= set(modules)
     return import_graph(modules)
-
-
-def test_no_import_cycle(graph):
-    edges, _ = graph
-    cycles = find_cycles(edges)
-    assert cycles == [], "import cycles:\n" + "\n".join(" -> ".join(cycle) for cycle in cycles)
 
 
 def test_own_modules_are_imported_at_module_top(graph):

@@ -8,7 +8,7 @@ import numpy as np
 
 from seggaussian.core.constants import IGNORE_LABEL, read_class_names
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.labels.palette import build_legend, colour_by_labels, write_legend
 from seggaussian.shards.read import find_split, read_scene
 

@@ -43,7 +43,7 @@ from seggaussian.fit.params import GaussianParameters, render_view
 from seggaussian.fit.views import (ViewData, evenly_spaced, load_views, masked_render, validate_scene,
                                    with_mesh_depth)
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.fit.losses import depth_loss, fitting_loss, l1_loss, psnr, ssim
 from seggaussian.core.scene import Scene
 from seggaussian.sources.layout import find_scene_layout, reader

@@ -40,7 +40,8 @@ import numpy as np
 
 from seggaussian.core.constants import SH_C0
 from seggaussian.core.gaussians import Gaussians, sh_degree_from_coeffs
-from seggaussian.io.ply.reader import PlyElement, PlyHeader, read_ply_header, write_atomic
+from seggaussian.io.ply.header import PlyElement, PlyHeader, read_ply_header
+from seggaussian.io.ply.writer import write_atomic
 from seggaussian.io.splat_common import SplatFormatError, dc_from_rgb, logit_from_unit, unit_from_logit
 
 __all__ = ["CHUNK_SIZE", "is_compressed_ply_header", "read_compressed_ply", "encode_compressed_ply",

@@ -30,8 +30,9 @@ from typing import Literal, NamedTuple
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.compressed_ply import is_compressed_ply_header, read_compressed_ply, write_compressed_ply
 from seggaussian.io.ksplat import looks_like_ksplat, read_ksplat, write_ksplat
-from seggaussian.io.ply.reader import (gaussians_to_vertex_table, read_gaussians_ply, read_ply_header, read_vertex_table,
-                                vertex_table_to_gaussians, write_vertex_table)
+from seggaussian.io.ply.header import read_ply_header
+from seggaussian.io.ply.reader import read_gaussians_ply, read_vertex_table, vertex_table_to_gaussians
+from seggaussian.io.ply.writer import gaussians_to_vertex_table, write_vertex_table
 from seggaussian.io.splat import looks_like_splat, read_splat, write_splat
 from seggaussian.io.splat_common import FORMAT_TITLES, SplatFormatError
 from seggaussian.io.spz import DEFAULT_WRITE_VERSION, GZIP_MAGIC, SPZ_MAGIC_BYTES, read_spz, spz_payload_head, write_spz

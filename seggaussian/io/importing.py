@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 from seggaussian.frames.frame_config import FrameConfig, frame_record, to_scene_frame
 from seggaussian.io.formats import read_gaussians, scene_stem
-from seggaussian.io.ply.reader import write_atomic, write_gaussians_ply
+from seggaussian.io.ply.writer import write_atomic, write_gaussians_ply
 from seggaussian.io.validate import ValidationReport
 
 

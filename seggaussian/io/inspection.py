@@ -9,7 +9,8 @@ import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import detect_format, read_gaussians_raw
-from seggaussian.io.ply.reader import read_ply_header, read_vertex_table, vertex_table_to_gaussians
+from seggaussian.io.ply.header import read_ply_header
+from seggaussian.io.ply.reader import read_vertex_table, vertex_table_to_gaussians
 from seggaussian.io.splat_common import FORMAT_TITLES
 from seggaussian.io.validate import validate_gaussians
 

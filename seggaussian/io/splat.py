@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import write_atomic
+from seggaussian.io.ply.writer import write_atomic
 from seggaussian.io.splat_common import (
     SplatFormatError,
     dc_from_rgb,

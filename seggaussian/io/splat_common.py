@@ -1,7 +1,7 @@
 """What every splat-format reader and writer shares: the error type, file reading, quantisation helpers.
 
 A malformed file raises :class:`SplatFormatError`, whose message names the file, the format and what is
-wrong. It subclasses :class:`~seggaussian.io.ply.reader.PlyFormatError`, so every entry point that already turns
+wrong. It subclasses :class:`~seggaussian.io.ply.header.PlyFormatError`, so every entry point that already turns
 a bad PLY into a one-line message does the same for every other format.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from seggaussian.core.constants import SH_C0
-from seggaussian.io.ply.reader import PlyFormatError
+from seggaussian.io.ply.header import PlyFormatError
 
 __all__ = [
     "SplatFormatError",

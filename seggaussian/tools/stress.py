@@ -27,7 +27,9 @@ import numpy as np
 
 from seggaussian.core.cameras import Camera, intrinsics, look_at
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import PlyFormatError, read_gaussians_ply, write_gaussians_ply
+from seggaussian.io.ply.header import PlyFormatError
+from seggaussian.io.ply.reader import read_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.render import compute_blend_weights, rasterize, render_features, render_gaussians, render_label_maps
 from seggaussian.tools.own_code import raised_by_own_code
 from seggaussian.labels.transfer import transfer_labels

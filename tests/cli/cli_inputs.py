@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 
 
 def make_cli_inputs(root: Path) -> dict:

@@ -24,7 +24,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 @pytest.fixture()
 def scene_ply(tmp_path) -> Path:
-    from seggaussian.io.ply.reader import write_gaussians_ply
+    from seggaussian.io.ply.writer import write_gaussians_ply
 
     scene = random_scene(200, 41, sh_degree=1)
     scene["log_scales"] += 1.0

@@ -14,7 +14,7 @@ from cli.seggaussian_cli import main
 from seggaussian.frames.similarity import Similarity, transform_gaussians
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians_raw
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 
 
 @pytest.fixture()

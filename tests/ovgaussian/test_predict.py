@@ -70,7 +70,7 @@ def test_predict_real_file_cli(name, run_dir, tmp_path):
     summary = json.loads(result.stdout)  # stderr may carry the text model's loading progress
     labelled, _ = read_gaussians_ply(out)
     assert len(labelled) == len(original) == summary["num_gaussians"]
-    from seggaussian.io.ply.reader import read_ply_header
+    from seggaussian.io.ply.header import read_ply_header
 
     assert "ovgaussian semantic 3 = wooden floor" in read_ply_header(out).comments
     labels = labelled.extras["semantic"]

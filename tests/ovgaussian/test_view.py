@@ -331,7 +331,7 @@ def test_cli_export_with_a_run_and_a_dataset(tmp_path):
 
 def test_cli_reads_a_splat_file_with_a_transform(tmp_path):
     pytest.importorskip("viser")
-    from seggaussian.io.ply.reader import write_gaussians_ply
+    from seggaussian.io.ply.writer import write_gaussians_ply
 
     from cli.ovgaussian_cli import main
 
@@ -352,7 +352,7 @@ def test_cli_errors_are_one_line_naming_the_path(case, tmp_path):
     pytest.importorskip("viser")
     from test_bench import _write_tiny_dataset
 
-    from seggaussian.io.ply.reader import write_gaussians_ply
+    from seggaussian.io.ply.writer import write_gaussians_ply
 
     from cli.ovgaussian_cli import main
 
@@ -418,7 +418,7 @@ def test_cli_serves_prints_the_url_and_stops_on_ctrl_c(tmp_path):
     import sys
     import urllib.request
 
-    from seggaussian.io.ply.reader import write_gaussians_ply
+    from seggaussian.io.ply.writer import write_gaussians_ply
 
     ply = tmp_path / "room.ply"
     write_gaussians_ply(ply, synthetic_room(spacing=0.5))

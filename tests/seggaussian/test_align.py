@@ -12,11 +12,11 @@ import pytest
 from click.testing import CliRunner
 
 from cli.seg_align import command
-from seggaussian.align.registration import (AlignError, _axis_turns, _cube_rotations, align_gaussians, load_target,
-                               similarity_parts)
+from seggaussian.align.registration import _axis_turns, _cube_rotations, align_gaussians, similarity_parts
+from seggaussian.align.target import AlignError, load_target
 from seggaussian.labels.config import OracleConfig, TransferConfig
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.labels.oracle import sample_oracle_gaussians
 from seggaussian.sources.layout import find_scene_layout, reader
 from seggaussian.sources.synthetic.generate import SynthConfig, synthesize

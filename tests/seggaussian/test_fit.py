@@ -326,7 +326,7 @@ def test_fit_loss_falls_and_psnr_rises(tiny_scene):
 
 
 def test_same_seed_same_ply_bytes(tiny_scene, tmp_path):
-    from seggaussian.io.ply.reader import write_gaussians_ply
+    from seggaussian.io.ply.writer import write_gaussians_ply
 
     config = small_config(iterations=15, eval_every=0)  # densification at 10 included
     paths = []

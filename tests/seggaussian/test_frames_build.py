@@ -21,7 +21,7 @@ from seggaussian.frames.colmap_model import read_colmap_model
 from seggaussian.frames.gsplat_normalization import gsplat_normalization
 from seggaussian.frames.similarity import Similarity, transform_gaussians
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.labels.oracle import sample_oracle_gaussians
 from seggaussian.sources import scannetpp
 from seggaussian.sources.synthetic.generate import SynthConfig, synthesize

@@ -1,5 +1,6 @@
-"""3DGS PLY files: ``reader`` (header, vertex table, Gaussians), ``writer`` (Gaussians to a vertex table and a
-file) and ``reference`` (the plyfile-based reader the fast one is tested against).
+"""3DGS PLY files: ``header`` (the PLY container: header, element extents), ``reader`` (vertex table, Gaussians),
+``writer`` (Gaussians to a vertex table and a file) and ``reference`` (the plyfile-based reader the fast one is
+tested against).
 """
 
-__all__ = ["reader", "reference", "writer"]
+__all__ = ["header", "reader", "reference", "writer"]

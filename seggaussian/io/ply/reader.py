@@ -1,4 +1,4 @@
-"""3D Gaussian Splatting PLY files (the Inria ``save_ply`` layout): read, validate, write.
+"""3D Gaussian Splatting PLY files (the Inria ``save_ply`` layout): the layout, and reading it with validation.
 
 Layout of the ``vertex`` element, in this order when we write it::
 
@@ -18,58 +18,31 @@ Layout of the ``vertex`` element, in this order when we write it::
 * Binary little/big endian and ASCII are read and written. Our own files re-written with the same
   options are byte-identical; foreign files are value-identical (same properties, same values).
 
-Binary bodies are decoded with one ``np.fromfile`` into a structured dtype (no per-row Python);
-``read_vertex_table_plyfile`` is the slow, obviously-correct reference built on ``plyfile``.
+
+Binary bodies are decoded with one ``np.fromfile`` into a structured dtype (no per-row Python); the header is
+parsed by ``header``, the writer is ``writer`` and ``reference.read_vertex_table_plyfile`` is the slow,
+obviously-correct reference built on ``plyfile``.
 """
 
 from __future__ import annotations
 
-import errno
 import os
 import re
-from pathlib import Path
-from typing import Literal, NamedTuple
 
 import numpy as np
 
-from seggaussian.util.atomic import atomic_path
 from seggaussian.core.gaussians import Gaussians, sh_degree_from_coeffs
+from seggaussian.io.ply.header import (PLY_TYPE_NAMES, PlyElement, PlyFormatError, PlyHeader, _record_dtype,
+                                       element_extents, read_ply_header)
 from seggaussian.io.validate import InvalidGaussiansError, validate_gaussians
 
 __all__ = [
-    "PlyFormatError",
-    "PlyProperty",
-    "PlyElement",
-    "PlyHeader",
-    "read_ply_header",
     "read_vertex_table",
-    "read_vertex_table_plyfile",
     "vertex_table_to_gaussians",
-    "gaussians_to_vertex_table",
     "read_gaussians_ply",
-    "write_gaussians_ply",
-    "write_vertex_table",
     "ply_property_names",
 ]
 
-PlyFormat = Literal["ascii", "binary_little_endian", "binary_big_endian"]
-
-#: PLY scalar type names (both spellings of the spec) -> numpy type code without byte order.
-PLY_TYPES: dict[str, str] = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-#: numpy type code -> the PLY type name we write (the names of the Inria files and of plyfile).
-PLY_TYPE_NAMES: dict[str, str] = {
-    "i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort",
-    "i4": "int", "u4": "uint", "f4": "float", "f8": "double",
-}
-_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
-_BYTE_ORDER = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": "="}
-#: A header longer than this is not a 3DGS header (protects against reading a huge non-PLY file).
-MAX_HEADER_BYTES = 1 << 20
 #: Extras always written as int32 PLY ``int`` properties so that viewers and our tools read them back.
 LABEL_EXTRAS = ("semantic", "instance")
 _NORMALS = ("nx", "ny", "nz")
@@ -79,224 +52,9 @@ _F_REST = re.compile(r"f_rest_(0|[1-9][0-9]*)$")
 _INDEXED = re.compile(r"(.+)_(\d+)$")
 
 
-class PlyFormatError(ValueError):
-    """A PLY file that cannot be read as 3DGS Gaussians; the message names the file and the problem."""
-
-
-class PlyProperty(NamedTuple):
-    """One property of a PLY element."""
-
-    name: str
-    #: numpy type code without byte order (``f4``, ``u1``, ...).
-    dtype: str
-    #: True for ``property list ...`` (unsupported in the vertex element of a 3DGS file).
-    is_list: bool = False
-    #: numpy type code of a list's length prefix (``u1``, ...); empty for a scalar property.
-    count_dtype: str = ""
-
-
-class PlyElement(NamedTuple):
-    """One element declared in a PLY header."""
-
-    name: str
-    count: int
-    properties: tuple[PlyProperty, ...]
-
-
-class PlyHeader(NamedTuple):
-    """A parsed PLY header."""
-
-    path: Path
-    #: ``ascii``, ``binary_little_endian`` or ``binary_big_endian``.
-    format: str
-    elements: tuple[PlyElement, ...]
-    comments: tuple[str, ...]
-    #: Byte offset of the first body byte (just after ``end_header`` and its newline).
-    body_offset: int
-    #: Size of the whole file in bytes.
-    file_size: int
-
-    def element(self, name: str) -> PlyElement:
-        for element in self.elements:
-            if element.name == name:
-                return element
-        raise PlyFormatError(f"{self.path}: no '{name}' element in the header")
-
-    @property
-    def byte_order(self) -> str:
-        """``<``, ``>`` or ``=`` (ASCII)."""
-        return _BYTE_ORDER[self.format]
-
-
-# --------------------------------------------------------------------------------------------
-# header
-# --------------------------------------------------------------------------------------------
-def read_ply_header(path: str | os.PathLike) -> PlyHeader:
-    """Parse the header of a PLY file; ``PlyFormatError`` naming the file and the problem otherwise."""
-    path = Path(path)
-    try:
-        file_size = path.stat().st_size
-        with open(path, "rb") as f:
-            head = f.read(MAX_HEADER_BYTES)
-    except OSError as exc:
-        raise PlyFormatError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
-    if file_size == 0:
-        raise PlyFormatError(f"{path}: empty file (0 bytes), not a PLY file")
-    if not (head.startswith(b"ply\n") or head.startswith(b"ply\r\n")):
-        first = head[:16].split(b"\n")[0]
-        raise PlyFormatError(f"{path}: not a PLY file (it starts with {first!r}, expected 'ply')")
-    match = re.search(rb"(?:^|\n)end_header[ \t]*\r?\n", head)
-    if match is None:
-        if len(head) >= MAX_HEADER_BYTES:
-            raise PlyFormatError(f"{path}: no 'end_header' line in the first {MAX_HEADER_BYTES} bytes")
-        raise PlyFormatError(f"{path}: truncated header (no 'end_header' line)")
-    try:
-        text = head[: match.start()].decode("ascii")
-    except UnicodeDecodeError:
-        raise PlyFormatError(f"{path}: the header is not ASCII text") from None
-
-    if text.endswith("\n"):
-        raise PlyFormatError(f"{path}: blank line before 'end_header'")
-    fmt = None
-    comments: list[str] = []
-    elements: list[list] = []  # [name, count, [properties]]
-    for lineno, raw in enumerate(text.splitlines()[1:], start=2):
-        words = raw.split()
-        where = f"{path}: header line {lineno} ({raw.strip()!r})"
-        if not words:
-            raise PlyFormatError(f"{where}: blank line in the header")
-        keyword = words[0]
-        if keyword in ("format", "obj_info") and elements:
-            raise PlyFormatError(f"{where}: '{keyword}' after the first element (it belongs before the elements)")
-        if keyword in ("comment", "obj_info"):
-            comments.append(raw.strip()[len(keyword):].strip())
-        elif keyword == "format":
-            if fmt is not None:
-                raise PlyFormatError(f"{where}: a second 'format' line")
-            if len(words) != 3 or words[1] not in _FORMATS:
-                raise PlyFormatError(f"{where}: unknown format, expected one of {', '.join(_FORMATS)}")
-            fmt = words[1]
-        elif keyword == "element":
-            if len(words) != 3 or not words[2].isdigit():
-                raise PlyFormatError(f"{where}: expected 'element NAME COUNT' with a non-negative count")
-            elements.append([words[1], int(words[2]), []])
-        elif keyword == "property":
-            if not elements:
-                raise PlyFormatError(f"{where}: property before any element")
-            if len(words) == 5 and words[1] == "list":
-                for t in words[2:4]:
-                    if t not in PLY_TYPES:
-                        raise PlyFormatError(f"{where}: unknown PLY type {t!r}")
-                if PLY_TYPES[words[2]][0] not in "iu":
-                    raise PlyFormatError(f"{where}: the length of a list must have an integer type, not {words[2]!r}")
-                elements[-1][2].append(PlyProperty(words[4], PLY_TYPES[words[3]], True, PLY_TYPES[words[2]]))
-            elif len(words) == 3:
-                if words[1] not in PLY_TYPES:
-                    raise PlyFormatError(f"{where}: unknown PLY type {words[1]!r}")
-                elements[-1][2].append(PlyProperty(words[2], PLY_TYPES[words[1]]))
-            else:
-                raise PlyFormatError(f"{where}: expected 'property TYPE NAME' or 'property list T T NAME'")
-        else:
-            raise PlyFormatError(f"{where}: unknown header keyword {keyword!r}")
-    if fmt is None:
-        raise PlyFormatError(f"{path}: no 'format' line in the header")
-    parsed = tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements)
-    for element in parsed:
-        names = [p.name for p in element.properties]
-        duplicates = sorted({n for n in names if names.count(n) > 1})
-        if duplicates:
-            raise PlyFormatError(f"{path}: element '{element.name}' declares {duplicates} more than once")
-    return PlyHeader(path, fmt, parsed, tuple(comments), match.end(), file_size)
-
-
-def _record_dtype(element: PlyElement, byte_order: str) -> np.dtype:
-    return np.dtype([(p.name, byte_order + p.dtype) for p in element.properties])
-
-
 # --------------------------------------------------------------------------------------------
 # body -> structured table
 # --------------------------------------------------------------------------------------------
-def _list_element_bytes(header: PlyHeader, element: PlyElement, offset: int, data: memoryview) -> int:
-    """Bytes taken by ``element`` (which has list properties) in a binary body starting at ``offset``.
-
-    Walks the records (list counts are in the data); stops with a clear error as soon as a record would
-    run past the end of the file, so a huge declared count costs at most one pass over the file.
-    """
-    order = header.byte_order
-    position = offset
-    end = len(data)
-    for row in range(element.count):
-        for prop in element.properties:
-            if not prop.is_list:
-                position += np.dtype(prop.dtype).itemsize
-                continue
-            count_type, item_type = prop.count_dtype, prop.dtype
-            width = np.dtype(count_type).itemsize
-            if position + width > end:
-                position = end + 1
-                break
-            count = int(np.frombuffer(data, dtype=order + count_type, count=1, offset=position)[0])
-            if count < 0:
-                raise PlyFormatError(f"{header.path}: element '{element.name}' record {row}: list property "
-                                     f"'{prop.name}' has a negative length {count}")
-            position += width + count * np.dtype(item_type).itemsize
-        if position > end:
-            raise PlyFormatError(
-                f"{header.path}: truncated body: element '{element.name}' declares {element.count} records "
-                f"but the file ends inside record {row}"
-            )
-    return position - offset
-
-
-def element_extents(header: PlyHeader) -> list[tuple[PlyElement, int, int]]:
-    """``(element, first body byte, bytes)`` of every element of a binary PLY, in file order.
-
-    The body must be exactly as long as the header declares: missing records (a truncated file, a count
-    larger than the data, an element with no data at all) and bytes after the last element (trailing
-    garbage, a count smaller than the data, an ASCII body under a binary header) are both errors that
-    state the declared and the actual size.
-    """
-    path = header.path
-    extents = []
-    offset = header.body_offset
-    data = None
-    for element in header.elements:
-        if any(p.is_list for p in element.properties):
-            if data is None:
-                with open(path, "rb") as f:
-                    data = memoryview(f.read())
-            size = _list_element_bytes(header, element, offset, data)
-        else:
-            size = element.count * _record_dtype(element, header.byte_order).itemsize
-        extents.append((element, offset, size))
-        offset += size
-    declared = offset - header.body_offset
-    available = header.file_size - header.body_offset
-    if declared != available:
-        what = ", ".join(
-            f"{e.count} {'vertices' if e.name == 'vertex' else repr(e.name) + ' records'}"
-            + ("" if any(p.is_list for p in e.properties)
-               else f" of {_record_dtype(e, header.byte_order).itemsize} bytes")
-            for e in header.elements)
-        if declared > available:
-            vertex = [x for x in extents if x[0].name == "vertex"]
-            complete = ""
-            if vertex:
-                v, start, _ = vertex[0]
-                itemsize = _record_dtype(v, header.byte_order).itemsize
-                complete = f" ({max(0, header.file_size - start) // max(itemsize, 1)} complete vertices)"
-            raise PlyFormatError(
-                f"{path}: truncated body: the header declares {what} ({declared} bytes) but only {available} "
-                f"bytes follow the header{complete}"
-            )
-        raise PlyFormatError(
-            f"{path}: body size mismatch: the header declares {what} ({declared} bytes) but {available} bytes "
-            f"follow the header ({available - declared} bytes more than declared: trailing data, a wrong "
-            f"element count, or a body in another format than the header's {header.format!r})"
-        )
-    return extents
-
-
 def read_vertex_table(path: str | os.PathLike, header: PlyHeader | None = None) -> np.ndarray:
     """The ``vertex`` element as a structured array ``[N]`` with native byte order.
 
@@ -415,16 +173,8 @@ def _read_ascii_vertices(header: PlyHeader, vertex: PlyElement) -> np.ndarray:
     return table
 
 
-def read_vertex_table_plyfile(path: str | os.PathLike) -> np.ndarray:
-    """Slow reference reader: the ``vertex`` element through ``plyfile``, native byte order."""
-    from plyfile import PlyData
-
-    data = PlyData.read(str(path))["vertex"].data
-    return np.asarray(data).astype(data.dtype.newbyteorder("="))
-
-
 # --------------------------------------------------------------------------------------------
-# structured table <-> Gaussians
+# structured table -> Gaussians
 # --------------------------------------------------------------------------------------------
 def ply_property_names(sh_degree: int, normals: bool = False) -> list[str]:
     """Standard 3DGS vertex properties in the order we write them."""
@@ -554,170 +304,6 @@ def _group_extras(table: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
         extras[names[i]] = np.ascontiguousarray(table[names[i]])
         i += 1
     return extras
-
-
-def _extra_columns(name: str, column: np.ndarray) -> list[tuple[str, np.ndarray]]:
-    """An extra as PLY-typed 1D columns (``name`` or ``name_0..name_{k-1}``)."""
-    column = np.asarray(column)
-    if column.dtype == np.bool_:
-        column = column.astype(np.uint8)
-    if name in LABEL_EXTRAS and column.dtype.kind in "iu":
-        info = np.iinfo(np.int32)
-        if column.size and (column.min() < info.min or column.max() > info.max):
-            raise ValueError(f"extras[{name!r}] holds labels outside the int32 range")
-        column = column.astype(np.int32)
-    if column.dtype.kind in "iu" and column.dtype.itemsize == 8:
-        target = np.dtype(np.int32 if column.dtype.kind == "i" else np.uint32)
-        info = np.iinfo(target)
-        if column.size and (column.min() < info.min or column.max() > info.max):
-            raise ValueError(f"extras[{name!r}] ({column.dtype}) holds values outside the PLY {target} range")
-        column = column.astype(target)
-    code = column.dtype.str[1:]
-    if code not in PLY_TYPE_NAMES:
-        raise TypeError(f"extras[{name!r}] has dtype {column.dtype}, which has no PLY type")
-    if column.ndim == 1:
-        return [(name, column)]
-    if column.ndim == 2:
-        return [(f"{name}_{j}", column[:, j]) for j in range(column.shape[1])]
-    raise ValueError(f"extras[{name!r}] has shape {column.shape}; PLY extras must be [N] or [N, k]")
-
-
-def gaussians_to_vertex_table(gaussians: Gaussians, *, normals: bool = True, byte_order: str = "<") -> np.ndarray:
-    """``Gaussians`` -> structured vertex table in the standard property order (extras last)."""
-    n = len(gaussians)
-    k = gaussians.num_sh_coeffs
-    extras = dict(gaussians.extras)
-    stored_normals = all(name in extras for name in _NORMALS)
-    columns: list[tuple[str, np.ndarray]] = []
-    standard = ply_property_names(gaussians.sh_degree, normals=normals or stored_normals)
-    for name in extras:
-        if name in standard or any(c[0] in standard for c in _extra_columns(name, extras[name][:0])):
-            if not (stored_normals and name in _NORMALS):
-                raise ValueError(f"extras[{name!r}] collides with a standard 3DGS property name")
-    for name, column in extras.items():
-        if not (stored_normals and name in _NORMALS):
-            columns += _extra_columns(name, column)
-    fields = [(name, byte_order + "f4") for name in standard]
-    if stored_normals:
-        normal_types = {name: np.asarray(extras[name]).dtype.str[1:] for name in _NORMALS}
-        fields = [(f[0], byte_order + normal_types[f[0]]) if f[0] in _NORMALS else f for f in fields]
-    fields += [(name, byte_order + column.dtype.str[1:]) for name, column in columns]
-    names = [f[0] for f in fields]
-    if len(set(names)) != len(names):
-        raise ValueError(f"duplicate PLY property names among the extras: {names}")
-    table = np.empty(n, dtype=np.dtype(fields))
-
-    # f_rest is channel-major on disk: [N, num_sh_coeffs-1, 3] -> [N, 3, num_sh_coeffs-1] -> [N, 3(num_sh_coeffs-1)]
-    f_rest = gaussians.sh[:, 1:, :].transpose(0, 2, 1)
-    blocks = [("x", gaussians.means), ("f_dc_0", gaussians.sh[:, 0, :]), ("f_rest_0", f_rest),
-              ("opacity", gaussians.opacity_logits[:, None]), ("scale_0", gaussians.log_scales),
-              ("rot_0", gaussians.quats)]
-    if not stored_normals and "nx" in names:
-        blocks.append(("nx", np.zeros((n, 3), np.float32)))
-    position = {name: i for i, name in enumerate(names)}
-    for first, block in blocks:
-        width = block.shape[1] * (block.shape[2] if block.ndim == 3 else 1)
-        if width == 0:
-            continue
-        block_names = names[position[first]: position[first] + width]
-        view = _float32_view(table, block_names)
-        if view is not None:  # one row-wise pass per block
-            target = view.reshape(block.shape)  # splits the contiguous last axis: stays a view
-            if n and not np.may_share_memory(target, table):
-                raise AssertionError("internal: reshaped PLY column view is a copy")
-            target[...] = block
-        else:
-            flat = block.reshape(n, width)
-            for j, name in enumerate(block_names):
-                table[name] = flat[:, j]
-    if stored_normals:
-        for name in _NORMALS:
-            table[name] = extras[name]
-    for name, column in columns:
-        table[name] = column
-    return table
-
-
-# --------------------------------------------------------------------------------------------
-# writing
-# --------------------------------------------------------------------------------------------
-def _header_bytes(fmt: str, table: np.ndarray, comments: tuple[str, ...] = ()) -> bytes:
-    lines = ["ply", f"format {fmt} 1.0"] + [f"comment {c}" for c in comments]
-    lines.append(f"element vertex {table.shape[0]}")
-    for name in table.dtype.names:
-        lines.append(f"property {PLY_TYPE_NAMES[table.dtype.fields[name][0].str[1:]]} {name}")
-    lines.append("end_header")
-    return ("\n".join(lines) + "\n").encode("ascii")
-
-
-def _ascii_body(table: np.ndarray) -> bytes:
-    """One line per vertex; float32 with 9 and float64 with 17 significant digits (exact round trip)."""
-    import io
-
-    n = table.shape[0]
-    names = table.dtype.names
-    if n == 0:
-        return b""
-    formats = []
-    for name in names:
-        code = table.dtype.fields[name][0].str[1:]
-        formats.append("%.9g" if code == "f4" else "%.17g" if code == "f8" else "%d")
-    values = np.empty((n, len(names)), dtype=np.float64)  # exact for every PLY type
-    for j, name in enumerate(names):
-        values[:, j] = table[name]
-    buffer = io.BytesIO()
-    np.savetxt(buffer, values, fmt=formats, delimiter=" ", newline="\n")
-    return buffer.getvalue()
-
-
-def write_atomic(path: str | os.PathLike, chunks) -> None:
-    """Write ``chunks`` (bytes-like or arrays) to a temp file in the same folder, then ``os.replace``."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        expected = 0
-        for chunk in chunks:
-            if isinstance(chunk, np.ndarray):  # bytes of the array without a copy; f.write raises on a short write
-                chunk = np.ascontiguousarray(chunk).reshape(-1).view(np.uint8)
-            expected += len(chunk)
-            f.write(chunk)
-        f.flush()
-        os.fsync(f.fileno())
-        written = os.fstat(f.fileno()).st_size
-        if written != expected:  # ndarray.tofile and some file systems do not report a short write
-            raise OSError(errno.EFBIG, f"short write ({written} of {expected} bytes)", str(path))
-
-
-def write_vertex_table(path: str | os.PathLike, table: np.ndarray, *, fmt: PlyFormat = "binary_little_endian",
-                       comments: tuple[str, ...] = ()) -> None:
-    """Write a structured table as the ``vertex`` element of a PLY file, atomically."""
-    if fmt not in _FORMATS:
-        raise ValueError(f"unknown PLY format {fmt!r}, expected one of {_FORMATS}")
-    if fmt == "ascii":
-        body = _ascii_body(table)
-    else:
-        order = _BYTE_ORDER[fmt]
-        body = np.ascontiguousarray(table.astype(table.dtype.newbyteorder(order), copy=False))
-    write_atomic(path, [_header_bytes(fmt, table, comments), body])
-
-
-def write_gaussians_ply(
-    path: str | os.PathLike,
-    gaussians: Gaussians,
-    *,
-    binary: bool = True,
-    endian: Literal["<", ">"] = "<",
-    normals: bool = True,
-) -> None:
-    """Write ``gaussians`` in the Inria 3DGS layout (extras after the standard properties), atomically.
-
-    ``binary=False`` writes ASCII (``endian`` then ignored). ``normals`` writes zero ``nx, ny, nz`` as
-    the Inria files do; extras ``nx, ny, nz`` (non-zero normals read from a file) are always written
-    in that slot. ``semantic`` / ``instance`` extras are written as PLY ``int``.
-    """
-    if endian not in ("<", ">"):
-        raise ValueError(f"endian must be '<' or '>', got {endian!r}")
-    table = gaussians_to_vertex_table(gaussians, normals=normals, byte_order="=")
-    fmt = "ascii" if not binary else ("binary_little_endian" if endian == "<" else "binary_big_endian")
-    write_vertex_table(path, table, fmt=fmt)
 
 
 # --------------------------------------------------------------------------------------------

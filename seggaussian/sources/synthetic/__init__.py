@@ -1,5 +1,6 @@
 """Procedural rooms written in the real ScanNet++ and Replica on-disk layouts: ``generate.synthesize`` is the entry
-point; ``room`` the geometry, ``scannetpp`` and ``replica`` the layout writers.
+point; ``room`` assembles a furnished room from ``furniture`` pieces, ``mesh`` (its classes, mesh type and quad-grid
+builder) and ``textures``; ``scannetpp`` and ``replica`` are the layout writers.
 """
 
-__all__ = ["generate", "replica", "room", "scannetpp"]
+__all__ = ["furniture", "generate", "mesh", "replica", "room", "scannetpp", "textures"]

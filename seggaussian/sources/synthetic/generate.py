@@ -25,7 +25,8 @@ from seggaussian.sources.synthetic import scannetpp as synth_scannetpp
 from seggaussian.sources.camera_path import default_intrinsics, generate_camera_path
 from seggaussian.sources.replica import nice_slam_intrinsics
 from seggaussian.sources.synthetic.replica import replica_size
-from seggaussian.sources.synthetic.room import RoomConfig, RoomMesh, build_room
+from seggaussian.sources.synthetic.mesh import RoomConfig, RoomMesh
+from seggaussian.sources.synthetic.room import build_room
 
 LAYOUTS = ("scannetpp", "replica")
 

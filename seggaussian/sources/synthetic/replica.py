@@ -18,7 +18,7 @@ from seggaussian.sources import replica as layout
 from seggaussian.sources._common import atomic_write_bytes, encode_mesh_ply, atomic_write_image, atomic_write_json, atomic_write_text, triangulate_quads
 from seggaussian.sources.raycast import render_labelled_views
 from seggaussian.core.classes import replica_class_names, replica_class_to_top100
-from seggaussian.sources.synthetic.room import CLASS_TABLE, RoomMesh
+from seggaussian.sources.synthetic.mesh import CLASS_TABLE, RoomMesh
 
 #: Depth PNG values saturate here (uint16 max / NICE_SLAM_DEPTH_SCALE ~ 10 m).
 MAX_DEPTH_VALUE = 65535

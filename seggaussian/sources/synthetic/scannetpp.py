@@ -26,7 +26,7 @@ from seggaussian.sources._common import (
     triangulate_quads,
 )
 from seggaussian.sources.raycast import render_labelled_views
-from seggaussian.sources.synthetic.room import CLASS_TABLE, RAW_LABEL_MAP, RoomMesh
+from seggaussian.sources.synthetic.mesh import CLASS_TABLE, RAW_LABEL_MAP, RoomMesh
 
 #: Radius (metres) of the anonymization-like masked disc the generator cuts out of one wall.
 MASK_RADIUS = 0.25

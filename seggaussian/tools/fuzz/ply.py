@@ -13,7 +13,9 @@ from typing import Callable, Sequence
 import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import PlyFormatError, read_gaussians_ply, read_ply_header, write_gaussians_ply
+from seggaussian.io.ply.header import PlyFormatError, read_ply_header
+from seggaussian.io.ply.reader import read_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.tools.fuzz.engine import BYTE_MUTATORS, END_HEADER, FuzzTarget, Mutator
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians, write_gaussians
-from seggaussian.io.ply.reader import PlyFormatError
+from seggaussian.io.ply.header import PlyFormatError
 from seggaussian.io.spz import GZIP_MAGIC, encode_spz
 from seggaussian.tools.fuzz.engine import BYTE_MUTATORS, FuzzTarget, Mutator
 from seggaussian.tools.fuzz.ply import PLY_MUTATORS

@@ -36,7 +36,7 @@ from test_splat_reference import DECODE_ATOL, QUAT_DECODE_ATOL, _sign_free_quat_
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians_raw
 from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, write_ksplat
-from seggaussian.io.ply.reader import write_gaussians_ply
+from seggaussian.io.ply.writer import write_gaussians_ply
 from seggaussian.io.splat import write_splat
 from seggaussian.io.splat_common import logit_from_unit
 

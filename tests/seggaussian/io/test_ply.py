@@ -1,4 +1,4 @@
-"""3DGS PLY reader/writer and import validation (seggaussian.io.ply.reader, seggaussian.io.validate)."""
+"""3DGS PLY reader/writer and import validation (seggaussian.io.ply, seggaussian.io.validate)."""
 
 from __future__ import annotations
 
@@ -13,16 +13,10 @@ from hypothesis import strategies as st
 
 from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX, OPACITY_LOGIT_SATURATION
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import (
-    PlyFormatError,
-    read_gaussians_ply,
-    read_ply_header,
-    read_vertex_table,
-    read_vertex_table_plyfile,
-    write_atomic,
-    write_gaussians_ply,
-    write_vertex_table,
-)
+from seggaussian.io.ply.header import PlyFormatError, read_ply_header
+from seggaussian.io.ply.reader import read_gaussians_ply, read_vertex_table
+from seggaussian.io.ply.reference import read_vertex_table_plyfile
+from seggaussian.io.ply.writer import write_atomic, write_gaussians_ply, write_vertex_table
 from seggaussian.io.validate import validate_gaussians
 from shared_data import REALDATA
 
@@ -474,7 +468,8 @@ def reference_vertex_values(g: Gaussians) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_fast_table_layout_matches_reference(degree):
-    from seggaussian.io.ply.reader import gaussians_to_vertex_table, vertex_table_to_gaussians
+    from seggaussian.io.ply.reader import vertex_table_to_gaussians
+    from seggaussian.io.ply.writer import gaussians_to_vertex_table
 
     g = random_gaussians(9, degree, seed=degree, extras={"semantic": np.arange(9, dtype=np.int64)})
     table = gaussians_to_vertex_table(g, normals=True)

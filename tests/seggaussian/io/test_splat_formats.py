@@ -110,7 +110,7 @@ def test_spz_v4_layout_and_sh_degree_4_refused(tmp_path):
 
 
 def test_compressed_ply_layout(tmp_path):
-    from seggaussian.io.ply.reader import read_ply_header
+    from seggaussian.io.ply.header import read_ply_header
 
     g = _gaussians(n=600, degree=1)
     path = tmp_path / "a.compressed.ply"

@@ -46,7 +46,8 @@ from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import detect_format, read_gaussians, read_gaussians_raw, write_gaussians
 from seggaussian.io.compressed_ply import morton_order
 from seggaussian.io.ksplat import BLOCK_SIZE, DEFAULT_RANGE, bucket_layout, write_ksplat
-from seggaussian.io.ply.reader import read_vertex_table, vertex_table_to_gaussians, write_gaussians_ply
+from seggaussian.io.ply.reader import read_vertex_table, vertex_table_to_gaussians
+from seggaussian.io.ply.writer import write_gaussians_ply
 from shared_data import REALDATA, WEB_SPLATS
 
 ROOT = Path(__file__).resolve().parents[3]

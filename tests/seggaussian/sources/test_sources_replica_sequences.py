@@ -12,7 +12,7 @@ from seggaussian.sources.synthetic import replica as synth_replica
 from seggaussian.sources.synthetic import generate as synthetic
 from seggaussian.sources._common import atomic_write_image, read_image, triangulate_quads
 from seggaussian.sources.raycast import render_labelled_views
-from seggaussian.sources.synthetic.room import CLASS_TABLE
+from seggaussian.sources.synthetic.mesh import CLASS_TABLE
 
 SMALL = synthetic.SynthConfig(width=64, num_views=9, max_edge=0.15)
 

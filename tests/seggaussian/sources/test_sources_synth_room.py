@@ -7,7 +7,8 @@ import pytest
 
 from seggaussian.core.constants import read_class_names
 from seggaussian.sources.synthetic import generate as synthetic
-from seggaussian.sources.synthetic.room import CLASS_TABLE, RAW_LABEL_MAP, RoomConfig, build_room
+from seggaussian.sources.synthetic.mesh import CLASS_TABLE, RAW_LABEL_MAP, RoomConfig
+from seggaussian.sources.synthetic.room import build_room
 
 
 @pytest.mark.parametrize("style", ["scannetpp", "replica"])

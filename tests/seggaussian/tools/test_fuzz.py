@@ -12,9 +12,10 @@ from seggaussian.tools.fuzz import engine as fuzz
 
 from seggaussian.tools.fuzz import ply as fuzz_ply
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.io.ply.reader import (
-    PlyFormatError, read_gaussians_ply, read_vertex_table, read_vertex_table_plyfile, write_gaussians_ply,
-)
+from seggaussian.io.ply.header import PlyFormatError
+from seggaussian.io.ply.reader import read_gaussians_ply, read_vertex_table
+from seggaussian.io.ply.reference import read_vertex_table_plyfile
+from seggaussian.io.ply.writer import write_gaussians_ply
 from shared_data import REALDATA
 
 REAL_PLYS = sorted(REALDATA.glob("*.ply")) if REALDATA.is_dir() else []

@@ -22,7 +22,7 @@ import pytest
 
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians, write_gaussians
-from seggaussian.io.ply.reader import PlyFormatError
+from seggaussian.io.ply.header import PlyFormatError
 from seggaussian.io.spz import encode_spz
 
 #: Mutants per format.
