@@ -102,7 +102,10 @@ def main() -> None:
     collapse = collapse_check(rows, config.iterations)
 
     env = f"NUMBA_NUM_THREADS={os.environ['NUMBA_NUM_THREADS']} " if "NUMBA_NUM_THREADS" in os.environ else ""
-    command = f"{env}.venv/bin/python " + shlex.join([Path(sys.argv[0]).as_posix()] + sys.argv[1:])
+    script = Path(sys.argv[0]).resolve()
+    repo = Path(__file__).resolve().parents[1]
+    script_text = script.relative_to(repo).as_posix() if script.is_relative_to(repo) else script.name
+    command = f"{env}.venv/bin/python " + shlex.join([script_text] + sys.argv[1:])
     lines = [
         f"### CPU 3DGS fitting, profile room {scene.scene_id}, preset `{args.preset}` "
         f"({m['image_size'][0]}x{m['image_size'][1]}, {m['train_views']} train / {m['novel_views']} novel views, "
