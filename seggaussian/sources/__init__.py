@@ -3,7 +3,7 @@
 - ``scannetpp``: ScanNet++ DATA_ROOT reader (``list_scenes``, ``read_scene``).
 - ``replica``: Replica rooms (habitat mesh + info, NICE-SLAM / Semantic-NeRF / self-rendered views).
 - ``synthetic``: ``synthesize(out, num_scenes, seed, layout)`` writes procedural rooms in those layouts
-  (``synth_room`` geometry, ``camera_path``, ``synth_scannetpp`` / ``synth_replica`` writers).
+  (the ``synthetic/`` package: ``room`` geometry, ``scannetpp`` / ``replica`` writers; views from ``camera_path``).
 - ``raycast``: open3d mesh raycasting (RGB, labels, depth) with a slow reference.
 
 Layouts, field by field: ``data_specs/SOURCES.md``.

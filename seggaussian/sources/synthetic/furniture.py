@@ -16,7 +16,6 @@ from seggaussian.sources.synthetic.mesh import EMBED, _Builder
 from seggaussian.sources.synthetic.textures import Texture, checker, plain, stripes, wood
 
 
-
 class _Palette(NamedTuple):
     wall: tuple
     floor: tuple
@@ -174,4 +173,3 @@ def _build_trash(b, rng, pal):
 def _build_box(b, rng, pal, size):
     box = b.new_object("box")
     b.box(box, (0, 0, 0), size, plain((0.72, 0.55, 0.35), rng, 0.1), skip=("-z",))
-

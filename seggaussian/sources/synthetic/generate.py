@@ -1,8 +1,8 @@
 """Synthetic scenes written in the real ScanNet++ or Replica on-disk layouts (the default data).
 
-``synthesize(out, num_scenes, seed, layout)`` builds procedural furnished rooms (``synth_room``),
+``synthesize(out, num_scenes, seed, layout)`` builds procedural furnished rooms (``room``),
 a capture path (``camera_path``), renders RGB + ground-truth labels by raycasting and writes every
-file of the layout (``synth_scannetpp`` / ``synth_replica``). Output bytes depend only on
+file of the layout (``scannetpp`` / ``replica`` of this package). Output bytes depend only on
 (seed, scene index, layout, config). Each scene is written into a hidden temporary folder and
 renamed into place, so an interrupted run leaves no half-written scene behind.
 """

@@ -16,8 +16,8 @@ from typing import NamedTuple
 import numpy as np
 
 from seggaussian.sources.synthetic.furniture import (_build_bed, _build_bookshelf, _build_box, _build_cabinet,
-                                                     _build_chair, _build_plant, _build_table, _build_trash,
-                                                     _build_sofa, _build_tv, _palette)
+                                                     _build_chair, _build_plant, _build_sofa, _build_table,
+                                                     _build_trash, _build_tv, _palette)
 from seggaussian.sources.synthetic.mesh import EMBED, RoomConfig, RoomMesh, _Builder
 from seggaussian.sources.synthetic.textures import blobs, checker, plain, planks, stripes, wood
 
@@ -27,8 +27,6 @@ ITEM_GAP = 0.1
 PASSAGE = 0.6
 #: The room shell (floor, ceiling, walls) extends this far past its edges for the same reason as ``EMBED``.
 SHELL_OVERLAP = 0.03
-
-
 
 
 class _Wall(NamedTuple):

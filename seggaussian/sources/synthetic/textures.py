@@ -83,4 +83,3 @@ def blobs(rng) -> Texture:
         return w @ colors
 
     return tex
-
