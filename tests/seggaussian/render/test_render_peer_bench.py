@@ -61,6 +61,7 @@ def test_tiny_comparison_agrees():
     assert case["psnr_db"] > 40.0
     assert case["psnr_alpha_db"] > 40.0
     # the peer's own rules (no per-pixel 3-sigma cut-off) differ visibly, but not wildly
+    assert case["psnr_ours_rules_db"] == case["psnr_db"]  # the port ran with our rules
     assert 25.0 < case["psnr_peer_own_rules_db"] < case["psnr_db"]
     for name, err in case["gradient_relative_l2"].items():
         assert err < 1e-2, (name, err)
