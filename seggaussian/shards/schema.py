@@ -15,7 +15,7 @@ META_SCHEMA_VERSION = b"seggaussian.schema_version"
 META_TABLE = b"seggaussian.table"
 META_CLASS_NAMES = b"seggaussian.class_names"
 META_CONFIG_HASH = b"seggaussian.config_hash"
-META_SPLIT = b"seggaussian.build.split"
+META_SPLIT = b"seggaussian.split"
 
 GAUSSIANS_TABLE = "gaussians"
 VIEWS_TABLE = "views"

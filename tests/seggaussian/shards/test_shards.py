@@ -94,7 +94,7 @@ def test_round_trip_and_footer(tmp_path):
     assert footer["seggaussian.schema_version"] == SCHEMA_VERSION
     assert footer["seggaussian.class_names"] == list(names)
     assert footer["seggaussian.config_hash"] == "cfg123"
-    assert footer["seggaussian.build.split"] == "train" and footer["seggaussian.table"] == "gaussians"
+    assert footer["seggaussian.split"] == "train" and footer["seggaussian.table"] == "gaussians"
     # manifest: rows, bytes, sha256 per file
     for rel, f in manifest["files"].items():
         assert (ds / rel).stat().st_size == f["bytes"]
