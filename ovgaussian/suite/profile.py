@@ -28,9 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable, NamedTuple
 
-import numba
 import numpy as np
-import torch
 
 from ovgaussian.bench.evaluate import run_bench
 from ovgaussian.bench.config import BenchConfig, TABLE1_COLUMNS
@@ -42,6 +40,7 @@ from ovgaussian.train.loop import train
 from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConfig, config_to_dict
 from seggaussian import shards
 from seggaussian.util.atomic import write_json_atomic, write_text_atomic
+from seggaussian.util.threads import cap_threads
 from seggaussian.build.dataset import build_dataset
 from seggaussian.build.config import BuildConfig, SplitConfig
 from seggaussian.labels.config import OracleConfig
@@ -104,8 +103,7 @@ class Task(NamedTuple):
 def _timed(task: Task, threads: int | None) -> tuple[object, float, float]:
     """(value, wall s, CPU s of this process) of one task; with ``threads``, torch and numba use that many."""
     if threads is not None:
-        torch.set_num_threads(threads)
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        cap_threads(threads)
     own = resource.getrusage(resource.RUSAGE_SELF)
     t0, c0 = time.perf_counter(), own.ru_utime + own.ru_stime
     value = task.fn(*task.args)

@@ -7,23 +7,15 @@ import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-import numba
-import torch
-
 from seggaussian.build.config import BuildConfig
 from seggaussian.build.scene import build_scene
 from seggaussian.build.records import SceneOutcome, SceneTask, failed_outcome
+from seggaussian.util.threads import cap_threads
 
 
 def _worker(task: SceneTask, config: BuildConfig, cache_root: Path, threads: int) -> SceneOutcome:
-    """Process-pool / Ray entry point: cap torch's and numba's threads, then build one scene.
-
-    Both caps matter: the fit's rasterizer runs numba parallel kernels, and two workers with two numba threads
-    each on two cores wait at every kernel's barrier for a descheduled thread (the profile's fits took about
-    75 s wall each, two at a time, at 60 % CPU per worker).
-    """
-    torch.set_num_threads(max(1, threads))
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    """Process-pool / Ray entry point: cap torch's and numba's threads (``cap_threads``), then build one scene."""
+    cap_threads(threads)
     return build_scene(task, config, cache_root)
 
 
