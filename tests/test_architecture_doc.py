@@ -4,6 +4,7 @@ page's exceptions list it."""
 
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -105,3 +106,25 @@ def test_no_module_over_500_lines_unless_listed():
                             f"reason under '{EXCEPTIONS_HEADING}' in docs/ARCHITECTURE.md")
     stale = sorted(path for path in listed if path not in long)
     assert stale == [], f"listed as over {MAX_LINES} lines but not (any more): remove them from the exceptions"
+
+
+def _import_free_packages() -> list[Path]:
+    """Package folders whose ``__init__`` imports nothing: their ``__all__`` names their public modules."""
+    found = []
+    for init in sorted((ROOT / "seggaussian").rglob("__init__.py")) + sorted((ROOT / "ovgaussian").rglob("__init__.py")):
+        tree = ast.parse(init.read_text())
+        if not any(isinstance(n, (ast.Import, ast.ImportFrom)) for n in ast.walk(tree)):
+            found.append(init.parent)
+    return found
+
+
+def test_all_of_import_free_packages_names_their_public_modules():
+    packages = _import_free_packages()
+    assert len(packages) >= 15  # the subpackages of the restructure
+    for package in packages:
+        tree = ast.parse((package / "__init__.py").read_text())
+        declared = next((ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
+                         and any(getattr(t, "id", None) == "__all__" for t in n.targets)), None)
+        public = sorted([p.stem for p in package.glob("*.py") if not p.stem.startswith("_")]
+                        + [p.name for p in package.iterdir() if (p / "__init__.py").is_file()])
+        assert declared is not None and sorted(declared) == public, (str(package.relative_to(ROOT)), declared, public)

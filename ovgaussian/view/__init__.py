@@ -9,3 +9,5 @@ One concept per module:
 - ``app``: the viser server and GUI (imports viser, the ``view`` extra);
 - ``config`` and ``session``: ``ViewConfig`` and ``run_view``, the command as one library call.
 """
+
+__all__ = ["app", "config", "field", "relevancy", "scene", "session", "state"]

@@ -12,3 +12,5 @@
 
 Nothing in the pipeline (``seggaussian.build.dataset`` and the stages it runs) imports this package.
 """
+
+__all__ = ["fuzz", "own_code", "stress", "sweep"]

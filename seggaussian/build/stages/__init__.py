@@ -9,3 +9,5 @@ every seggaussian module that its module imports, transitively (``seggaussian.bu
 module imports what it runs, and nothing it does not run: the orchestration (mode choice, cache lookup,
 executors) lives in ``seggaussian.build.scene`` and ``seggaussian.build.dataset``.
 """
+
+__all__ = ["gaussians", "gaussians_fit", "gaussians_import", "gaussians_oracle", "transfer", "views"]
