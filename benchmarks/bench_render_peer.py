@@ -100,7 +100,7 @@ import time
 import types
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = Path(__file__).resolve()
@@ -232,6 +232,25 @@ def _port_config_class(raster_config: type) -> type:
 
 
 @functools.cache
+class _KernelConstants(NamedTuple):
+    """The compile-time constants both ported kernels read from the peer's config."""
+
+    size: int          # tile edge (pixels)
+    area: int          # pixels per tile
+    ours: bool         # our 3-sigma per-pixel cut-off and no-gradient rule at the alpha clamp
+    cut2: float        # squared Mahalanobis cut-off
+    a_min: float       # alpha below this is skipped
+    a_max: float       # alpha clamp
+    t_min: float       # transmittance at which a pixel saturates
+
+
+def _kernel_constants(config: Any) -> _KernelConstants:
+    size = int(config.tile_size)
+    return _KernelConstants(size, size * size, bool(getattr(config, "ours_rule", False)),
+                            float(config.gaussian_scale) ** 2, float(config.alpha_threshold),
+                            float(config.clamp_max_alpha), 1.0 - float(config.saturate_threshold))
+
+
 def _port_forward_kernel(config: Any, feature_size: int, dtype: Any = None) -> Callable[..., None]:
     """Same arguments as the peer's ``forward_kernel(config, feature_size, dtype)`` result:
     (points [M, 6] = (u, v, conic a, b, c, opacity), features [M, F], tile_ranges [T, 2], overlap_to_point [K],
@@ -239,12 +258,7 @@ def _port_forward_kernel(config: Any, feature_size: int, dtype: Any = None) -> C
     import taichi as ti
 
     dtype = dtype or ti.f32
-    size = int(config.tile_size)
-    area = size * size
-    cut = bool(getattr(config, "ours_rule", False))
-    cut2 = float(config.gaussian_scale) ** 2
-    a_min, a_max = float(config.alpha_threshold), float(config.clamp_max_alpha)
-    t_min = 1.0 - float(config.saturate_threshold)
+    size, area, ours, cut2, a_min, a_max, t_min = _kernel_constants(config)
     fvec = ti.types.vector(feature_size, dtype)
     pvec = ti.types.vector(6, dtype)
 
@@ -273,7 +287,7 @@ def _port_forward_kernel(config: Any, feature_size: int, dtype: Any = None) -> C
                     dx, dy = px - p[0], py - p[1]
                     s = p[2] * dx * dx + 2.0 * p[3] * dx * dy + p[4] * dy * dy
                     skip = False
-                    if ti.static(cut):
+                    if ti.static(ours):
                         skip = s > cut2
                     raw = p[5] * ti.exp(-0.5 * s)
                     if not skip and raw >= a_min:
@@ -303,11 +317,7 @@ def _port_backward_kernel(config: Any, points_requires_grad: bool, features_requ
     if compute_split_heuristics:
         raise NotImplementedError("the ported backward does not compute the peer's split heuristics")
     dtype = dtype or ti.f32
-    size = int(config.tile_size)
-    area = size * size
-    ours = bool(getattr(config, "ours_rule", False))
-    cut2 = float(config.gaussian_scale) ** 2
-    a_min, a_max = float(config.alpha_threshold), float(config.clamp_max_alpha)
+    size, area, ours, cut2, a_min, a_max, _ = _kernel_constants(config)
     fvec = ti.types.vector(feature_size, dtype)
     pvec = ti.types.vector(6, dtype)
     grad_points_on, grad_features_on = bool(points_requires_grad), bool(features_requires_grad)
