@@ -72,8 +72,10 @@ def checkpointed_rows(fn, *tensors: Tensor, chunk_rows: int | None = None) -> li
     chunk_rows = CHECKPOINT_ROWS if chunk_rows is None else int(chunk_rows)
     if rows <= chunk_rows or not torch.is_grad_enabled():
         return [fn(*tensors)]
-    return [checkpoint(fn, *(t[start:start + chunk_rows] for t in tensors), use_reentrant=False)
-            for start in range(0, rows, chunk_rows)]
+    # torch.split, not slicing: the gradient of each slice view would be a zero-filled copy of the whole
+    # tensor (SliceBackward), one per chunk; split's one backward concatenates the chunks' gradients.
+    chunks = zip(*(torch.split(t, chunk_rows) for t in tensors))
+    return [checkpoint(fn, *parts, use_reentrant=False) for parts in chunks]
 
 
 def canonical_quat_sign(quats: Tensor) -> Tensor:  # [N, 4] -> [N, 4]
