@@ -56,13 +56,14 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(DataConfig, "verify", "--verify", is_flag=True)
 @config_option(TrainConfig, "keep_checkpoints", "--keep-checkpoints", type=click.IntRange(min=0),
                default=TrainConfig.keep_checkpoints, show_default=True)
+@config_option(TrainConfig, "threads", "--threads", type=click.IntRange(min=1), default=None)
 @config_option(TrainConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
             use_coordinates, input_encoding, pool_weighting, class_balance, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
-            splat_augment, verify, keep_checkpoints, progress, as_json):
+            splat_augment, verify, keep_checkpoints, threads, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
@@ -73,7 +74,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
         voxel_size=voxel_size, use_coordinates=use_coordinates, input_encoding=input_encoding,
         pool_weighting=pool_weighting,
-        keep_checkpoints=keep_checkpoints,
+        keep_checkpoints=keep_checkpoints, threads=threads,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
                         holdout_classes=tuple(n.strip() for n in holdout_classes.split(",") if n.strip()),
                         splat_augment=splat_augment, verify=verify),

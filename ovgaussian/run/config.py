@@ -132,6 +132,10 @@ class TrainConfig:
     """Continue from the run folder's latest checkpoint (the same curve as an uninterrupted run)."""
     stop_after_epochs: Optional[int] = None
     """Stop after this many epochs (as if interrupted; the schedule still spans ``epochs``); resume later."""
+    threads: Optional[int] = None
+    """torch and numba threads of each training process; not given: one thread when a process's step holds fewer than
+    1,000,000 Gaussians (with passive OpenMP waits a small step runs about 2x faster on one thread than on two),
+    else all of them (``seggaussian.util.threads.threads_for_gaussians``)."""
     model_preset: Literal["default", "slim"] = "default"
     """Model width preset: ``default`` (paper widths) or ``slim`` (narrow backbone for CPU)."""
     use_adapter: bool = True

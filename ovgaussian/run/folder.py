@@ -12,14 +12,16 @@ from ovgaussian.run.config import TrainConfig, config_from_dict, config_to_dict
 from seggaussian.util.atomic import write_text_atomic
 
 #: Config fields that may change between an interrupted run and its ``--resume``.
-RESUMABLE_FIELDS = ("epochs", "resume", "stop_after_epochs", "progress", "device", "out", "keep_checkpoints")
+RESUMABLE_FIELDS = ("epochs", "resume", "stop_after_epochs", "progress", "device", "out", "keep_checkpoints",
+                    "threads")
 #: Per-step metric names (means over the scenes of the global batch).
 METRIC_NAMES = ("loss", "text_3d", "text_2d", "cosine")
 
 
 def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabulary, scan, group, text_width,
-                       scored_classes) -> dict:
-    """What config.json holds (``scored_classes``: the text cross-entropies' columns, seen then unseen names)."""
+                       scored_classes, threads: int) -> dict:
+    """What config.json holds (``scored_classes``: the text cross-entropies' columns, seen then unseen names;
+    ``threads``: each process's torch and numba threads)."""
     return {
         "train": config_to_dict(config),
         "model": config_to_dict(model_config),
@@ -31,6 +33,7 @@ def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabul
         "data": {"fingerprint": scan.fingerprint, "usable_scenes": len(scan.usable),
                  "scenes": len(scan.summaries), "skipped": scan.skipped},
         "world_size": group.world_size,
+        "threads": int(threads),
     }
 
 

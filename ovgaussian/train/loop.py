@@ -62,6 +62,7 @@ from ovgaussian.train.step_losses import batch_losses
 from ovgaussian.text.vocabulary import Vocabulary, benchmark_vocabulary, training_vocabulary
 from seggaussian.util.atomic import ensure_writable_dir, make_dirs, write_json_atomic
 from seggaussian.util.jsonsafe import NAN_IS_ERROR
+from seggaussian.util.threads import thread_cap, threads_for_gaussians
 
 LOG = logging.getLogger("ovgaussian.train.loop")
 
@@ -231,6 +232,14 @@ def global_batch_size(config: TrainConfig, scan: ScanResult, group: ProcessGroup
     return batch_scenes
 
 
+def training_threads(config: TrainConfig, scan: ScanResult, batch_scenes: int, group: ProcessGroup) -> int:
+    """torch and numba threads of this process: ``config.threads``, else chosen from the Gaussians of its share of a
+    step (the usable scenes' mean size times its scenes per step; ``threads_for_gaussians``)."""
+    sizes = [s.num_gaussians for s in scan.summaries if s.scene_id in set(scan.usable)]
+    per_step = (sum(sizes) / max(len(sizes), 1)) * max(1, batch_scenes // group.world_size)
+    return threads_for_gaussians(int(per_step), config.threads)
+
+
 def run_cache_budget(source) -> int | None:
     """Bytes the run folder's caches may take: a fraction of the dataset's size for shards on disk, else None."""
     if isinstance(getattr(source, "dataset", None), Path):
@@ -393,10 +402,11 @@ def train_in_process_group(
             state = load_checkpoint(folder, net, optimizer, device=device)
             start_epoch, global_step, last_checkpoint = int(state["epoch"]), int(state["global_step"]), folder
     metrics_path = run_dir / METRICS_NAME
+    threads = training_threads(config, scan, batch_scenes, group)
     if is_main:
         make_dirs(run_dir)
         payload = run_config_payload(config, model_config, teacher_width, vocabulary, scan, group,
-                                     text_embeddings.shape[1], names)
+                                     text_embeddings.shape[1], names, threads)
         payload["notes"] = notes
         write_json_atomic(run_dir / CONFIG_NAME, payload, nan=NAN_IS_ERROR)
         if saved is not None:
@@ -420,9 +430,10 @@ def train_in_process_group(
                batch_scenes, steps_per_epoch, steps_per_epoch * config.epochs, run_dir, metrics_path)
     last_epoch_metrics: dict = {}
     end_epoch = config.epochs if config.stop_after_epochs is None else min(config.epochs, config.stop_after_epochs)
-    for epoch in range(start_epoch, end_epoch):
-        last_epoch_metrics, global_step, checkpoint = train_epoch(run, epoch, global_step)
-        last_checkpoint = checkpoint if is_main else last_checkpoint
+    with thread_cap(threads):
+        for epoch in range(start_epoch, end_epoch):
+            last_epoch_metrics, global_step, checkpoint = train_epoch(run, epoch, global_step)
+            last_checkpoint = checkpoint if is_main else last_checkpoint
     if data.teacher_uncached:
         notes.append(f"teacher features computed {data.teacher_uncached} times without caching: the run folder's "
                      f"caches reached {100 * CACHE_BUDGET_FRACTION:.0f} % of the dataset's size")

@@ -304,6 +304,7 @@ def test_training_decreases_loss_and_resume_continues_the_same_curve(scenes, tmp
 
     source = InMemorySource(scenes)
     common = dict(source=source, model_config=tiny_model_config(12), text_embeddings=text_stub())
+    threads_before = torch.get_num_threads()
     full = train(tiny_config(tmp_path / "full", 2), **common)
     steps = read_metrics(tmp_path / "full")
     assert full.steps == 4 and len(steps) == 4
@@ -330,6 +331,8 @@ def test_training_decreases_loss_and_resume_continues_the_same_curve(scenes, tmp
     cfg = json.loads((tmp_path / "full" / "config.json").read_text())
     assert cfg["data"]["fingerprint"] and cfg["vocabulary"]["names"][0] == "wall"
     assert any("cosine" in n for n in full.notes)  # no teacher: the log says the loss is off
+    assert cfg["threads"] == 1  # tiny scenes: one thread (seggaussian.util.threads.threads_for_gaussians)
+    assert torch.get_num_threads() == threads_before  # the loop's cap is lifted when train returns
 
 
 def _write_shards(dataset: Path, records) -> None:
