@@ -17,6 +17,8 @@ if [ -n "$WHEELS" ] && ls "$WHEELS"/*.whl >/dev/null 2>&1; then
       "$WHEELS"/*.whl || exit 2
   export PYTHONPATH=/tmp/site
 fi
+# seggaussian.data_specs is the folder data_specs/ (pyproject's package-dir): without an install, link it in place
+[ -e seggaussian/data_specs ] || ln -s ../data_specs seggaussian/data_specs
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
   nproc
