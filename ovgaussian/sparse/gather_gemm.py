@@ -280,6 +280,15 @@ def gather_plans(kernel_map: "KernelMap", grouped: bool = True) -> tuple[GatherP
     cache = kernel_map.cache
     if cache is not None and key in cache:
         return cache[key]
+    device = kernel_map.in_indices[0].device if kernel_map.in_indices else torch.device("cpu")
+    if device.type != "cpu":  # a GPU map: the plans are built on the CPU (numba), then moved to the map's device
+        plans = tuple(plan_to(p, device) for p in gather_plans(map_on_cpu(kernel_map), grouped))
+        if cache is not None:
+            cache[key] = plans
+            transposed_cache = kernel_map.transposed().cache
+            if not kernel_map.symmetric and transposed_cache is not None:
+                transposed_cache[key] = plans[::-1]
+        return plans
     min_rows = MIN_PAIRS_PER_ROW_FOR_GROUPS if grouped else math.inf
     plan = build_gather_plan(kernel_map, min_pairs_per_row=min_rows)
     plan_t = flip_plan(plan) if kernel_map.symmetric else build_gather_plan(
@@ -290,6 +299,20 @@ def gather_plans(kernel_map: "KernelMap", grouped: bool = True) -> tuple[GatherP
         if not kernel_map.symmetric and transposed_cache is not None:
             transposed_cache[key] = (plan_t, plan)
     return plan, plan_t
+
+
+def map_on_cpu(kernel_map: "KernelMap") -> "KernelMap":
+    """A copy of ``kernel_map`` with its index tensors on the CPU and an empty cache of its own."""
+    return type(kernel_map)(
+        tuple(t.cpu() for t in kernel_map.in_indices), tuple(t.cpu() for t in kernel_map.out_indices),
+        kernel_map.identity, kernel_map.num_in, kernel_map.num_out, kernel_map.symmetric, {})
+
+
+def plan_to(plan: GatherPlan, device: torch.device) -> GatherPlan:
+    """``plan`` with every index tensor on ``device``."""
+    groups = tuple(GatherGroup(g.rows.to(device), g.offsets.to(device), g.neighbours.to(device)) for g in plan.groups)
+    return plan._replace(groups=groups, residual_in=tuple(t.to(device) for t in plan.residual_in),
+                         residual_out=tuple(t.to(device) for t in plan.residual_out))
 
 
 class _BlockOps(NamedTuple):
