@@ -60,17 +60,23 @@ POOL_MIN_WEIGHT = 1e-3
 #: per 1,000,000 Gaussians (one thread) forward + backward took adapter 11.8 -> 6.8 s CPU and 3D text
 #: loss 7.4 -> 5.4 s CPU against 262,144 rows; 8,192 and fewer rows were slower again (per-op overhead).
 CHECKPOINT_ROWS = 1 << 15
+#: Fewer rows than this are not checkpointed at all: their activations take at most about 1.4 GB (adapter) and
+#: 2 GB (3D text loss), and recomputing them in backward costs about a third of those stages' backward (a demo
+#: step, 3 scenes of 15,000 Gaussians: BENCHMARKS.md "Training step speed").
+CHECKPOINT_MIN_ROWS = 1 << 19
 
 
-def checkpointed_rows(fn, *tensors: Tensor, chunk_rows: int | None = None) -> list:
+def checkpointed_rows(fn, *tensors: Tensor, chunk_rows: int | None = None, min_rows: int | None = None) -> list:
     """``fn`` applied to row chunks of ``tensors`` (same rows of each), each chunk under activation
-    checkpointing when gradients are recorded and there is more than one chunk; returns the per-chunk
-    outputs. ``fn`` must treat rows independently (no batch statistics)."""
+    checkpointing, when gradients are recorded and there are more than ``min_rows`` (default
+    :data:`CHECKPOINT_MIN_ROWS`) and ``chunk_rows`` rows; else ``[fn(*tensors)]``. Returns the per-chunk outputs.
+    ``fn`` must treat rows independently (no batch statistics)."""
     from torch.utils.checkpoint import checkpoint
 
     rows = tensors[0].shape[0]
     chunk_rows = CHECKPOINT_ROWS if chunk_rows is None else int(chunk_rows)
-    if rows <= chunk_rows or not torch.is_grad_enabled():
+    min_rows = CHECKPOINT_MIN_ROWS if min_rows is None else int(min_rows)
+    if rows <= max(chunk_rows, min_rows) or not torch.is_grad_enabled():
         return [fn(*tensors)]
     # torch.split, not slicing: the gradient of each slice view would be a zero-filled copy of the whole
     # tensor (SliceBackward), one per chunk; split's one backward concatenates the chunks' gradients.
