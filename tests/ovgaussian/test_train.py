@@ -546,7 +546,9 @@ def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkey
     torch.testing.assert_close(chunk_loss, whole_loss, rtol=1e-5, atol=1e-6)
     assert chunk_grads.keys() == whole_grads.keys()
     for name, grad in whole_grads.items():
-        torch.testing.assert_close(chunk_grads[name], grad, rtol=1e-4, atol=1e-6, msg=name)
+        # float32 sums in another order: the absolute error scales with the gradient's largest entries
+        scale = float(grad.abs().max())
+        torch.testing.assert_close(chunk_grads[name], grad, rtol=1e-4, atol=1e-6 + 1e-5 * scale, msg=name)
 
 
 def test_decoded_text_logits_equal_the_direct_expression_forward_and_backward():
