@@ -2,16 +2,19 @@
 
 No comparison sort anywhere:
 
-1. ``depth_order``: the selected Gaussians (in index order) are sorted by an unsigned 64-bit key that orders
-   exactly as their float64 depths (the usual sign-flip of the IEEE bits; +0 and -0 equal, NaN last), minus the
-   smallest key, with an LSD radix sort of ``RADIX_BITS``-bit digits: only as many passes as the key range has
-   digits (5 for the depths of a real scene). Each pass is parallel over chunks: per-chunk digit histograms, an
-   exclusive prefix sum (digit-major, then chunk-major), a scatter. LSD radix sorting is stable, so equal depths
-   keep index order, exactly as the former ``argsort(kind="stable")``.
-2. ``tile_lists``: the depth-sorted Gaussians are split into chunks; each chunk counts its intersections per tile
-   (and stores its tile boxes), a prefix sum over (tile, chunk) gives every chunk its write cursor in every tile,
-   and the chunks scatter in parallel. Chunk c's entries of a tile precede chunk c + 1's and keep their order
-   within the chunk, so every tile's list is in depth order with no per-tile sort.
+1. Depth sort (``_radix_sort``): each selected Gaussian (in index order) becomes one uint64, the top bits of a key
+   that orders exactly as its float64 depth (the usual sign-flip of the IEEE bits; +0 and -0 equal, NaN last),
+   minus the smallest key, above the bits of its position. LSD radix passes of ``RADIX_BITS``-bit digits cover
+   only the top bits of the key range (enough to spread n keys over about 4 n buckets: 2 passes at 1M), each
+   parallel over chunks (per-chunk digit histograms, an exclusive prefix sum digit-major then chunk-major, a
+   scatter) and moving 8 bytes per element; runs of equal sorted bits are then ordered by the full key (short
+   insertion sorts). LSD radix sorting is stable, so equal depths keep index order, exactly as the former
+   ``argsort(kind="stable")``.
+2. Tile lists: the depth-sorted Gaussians are split into chunks; each chunk counts its intersections per tile
+   (four corner updates of a 2D difference array per tile box, then a prefix sum), a prefix sum over (tile,
+   chunk) gives every chunk its write cursor in every tile, and the chunks scatter in parallel. Chunk c's entries
+   of a tile precede chunk c + 1's and keep their order within the chunk, so every tile's list is in depth order
+   with no per-tile sort.
 
 Integer arithmetic only: the result is independent of the thread count.
 """
@@ -47,34 +50,31 @@ CHUNKS_PER_THREAD = 4
 
 
 @numba.njit(parallel=True, **_JIT)
-def _tile_boxes(idx, pixel_box, tile_size):
-    """Packed tile boxes of the Gaussians ``idx`` (ascending: pixel_box is read front to back)."""
-    boxes = np.empty(idx.shape[0], np.uint64)
-    for j in prange(idx.shape[0]):
+def _boxes_and_keys(idx, pixel_box, tile_size, depth_bits):
+    """Packed tile boxes and depth keys (``_depth_key``) of the Gaussians ``idx`` (one pass, read front to back)."""
+    n = idx.shape[0]
+    boxes = np.empty(n, np.uint64)
+    keys = np.empty(n, np.uint64)
+    for j in prange(n):
         g = idx[j]
         boxes[j] = _pack_box(pixel_box[g, 0] // tile_size, pixel_box[g, 1] // tile_size,
                              pixel_box[g, 2] // tile_size, pixel_box[g, 3] // tile_size)
-    return boxes
+        keys[j] = _depth_key(depth_bits[g])
+    return boxes, keys
 
 
-@numba.njit(parallel=True, **_JIT)
-def _depth_keys(idx, depth_bits):
-    """Sortable uint64 keys of the float64 depths (given as their IEEE bits) at ``idx``: unsigned order ==
-    float order; -0 and +0 one key; every NaN sorts last (as in numpy)."""
-    n = idx.shape[0]
-    keys = np.empty(n, np.uint64)
-    for j in prange(n):
-        bits = depth_bits[idx[j]]
-        magnitude = bits & _ABS
-        if magnitude > _INF_BITS:  # NaN
-            keys[j] = _ALL
-        elif magnitude == _ZERO:  # +0 or -0
-            keys[j] = _SIGN
-        elif bits & _SIGN:
-            keys[j] = bits ^ _ALL
-        else:
-            keys[j] = bits | _SIGN
-    return keys
+@numba.njit(inline="always", **_JIT)
+def _depth_key(bits):
+    """Sortable uint64 key of a float64 depth given as its IEEE bits: unsigned order == float order; -0 and +0 one
+    key; every NaN sorts last (as in numpy)."""
+    magnitude = bits & _ABS
+    if magnitude > _INF_BITS:  # NaN
+        return _ALL
+    if magnitude == _ZERO:  # +0 or -0
+        return _SIGN
+    if bits & _SIGN:
+        return bits ^ _ALL
+    return bits | _SIGN
 
 
 @numba.njit(inline="always", **_JIT)
@@ -103,34 +103,42 @@ def _digit_histogram(keys, lo, hi, shift, hist):
 
 
 @numba.njit(**_JIT)
-def _digit_scatter(keys, vals, extra, lo, hi, shift, cursor, keys_out, vals_out, extra_out):
-    with_extra = extra.shape[0] > 0
+def _digit_scatter(keys, lo, hi, shift, cursor, keys_out):
     for j in range(lo, hi):
         k = keys[j]
         d = (k >> shift) & _MASK
         p = cursor[d]
         cursor[d] = p + 1
         keys_out[p] = k
-        vals_out[p] = vals[j]
-        if with_extra:
-            extra_out[p] = extra[j]
 
 
 @numba.njit(**_JIT)
 def _count_chunk(boxes, lo, hi, tiles_x, counts):
+    """Intersections per tile of the boxes ``lo:hi``: four corner updates of a 2D difference array per box (no
+    loop over the box's tiles, whose varying trip counts mispredict), then a 2D prefix sum."""
+    tiles_y = counts.shape[0] // tiles_x
+    stride = tiles_x + 1
+    diff = np.zeros((tiles_y + 1) * stride, np.int64)
     for j in range(lo, hi):
         tx0, ty0, tx1, ty1 = _unpack_box(boxes[j])
-        for ty in range(ty0, ty1 + 1):
-            row = ty * tiles_x
-            for tx in range(tx0, tx1 + 1):
-                counts[row + tx] += 1
+        r0 = ty0 * stride
+        r1 = (ty1 + 1) * stride
+        diff[r0 + tx0] += 1
+        diff[r0 + tx1 + 1] -= 1
+        diff[r1 + tx0] -= 1
+        diff[r1 + tx1 + 1] += 1
+    for ty in range(tiles_y):
+        run = 0
+        for tx in range(tiles_x):
+            run += diff[ty * stride + tx]
+            above = counts[(ty - 1) * tiles_x + tx] if ty > 0 else 0
+            counts[ty * tiles_x + tx] = run + above
 
 
 @numba.njit(**_JIT)
-def _scatter_chunk(order, boxes, lo, hi, tiles_x, cursor, ids, isect_start, slot_rank):
+def _scatter_chunk(order, boxes, lo, hi, tiles_x, cursor, ids):
     for j in range(lo, hi):
         g = np.int32(order[j])
-        q = isect_start[j]
         tx0, ty0, tx1, ty1 = _unpack_box(boxes[j])
         for ty in range(ty0, ty1 + 1):
             row = ty * tiles_x
@@ -139,8 +147,6 @@ def _scatter_chunk(order, boxes, lo, hi, tiles_x, cursor, ids, isect_start, slot
                 p = cursor[t]
                 cursor[t] = p + 1
                 ids[p] = g
-                slot_rank[p] = q
-                q += 1
 
 
 @numba.njit(**_JIT)
@@ -153,76 +159,68 @@ def _bit_length(x):
 
 
 @numba.njit(**_JIT)
-def _fix_runs(keys, vals, extra, drop):
-    """Stable sort by the full key of every run of equal ``key >> drop`` (the radix passes sorted those bits).
-
-    Runs are short where depths are spread (insertion sort); a long run of distinct keys gets a stable merge sort.
+def _fix_runs(packed, keys, pos_bits, sorted_shift):
+    """Order every run of equal ``packed >> sorted_shift`` (the bits the radix passes sorted) by (full key,
+    position): the order a stable sort by the full key gives. Runs are short where depths are spread (insertion
+    sort); a long run gets a stable merge sort (its positions are ascending, so ties stay in position order).
     """
-    n = keys.shape[0]
-    with_extra = extra.shape[0] > 0
-    ud = np.uint64(drop)
+    n = packed.shape[0]
+    pos_mask = (_U1 << np.uint64(pos_bits)) - _U1
+    us = np.uint64(sorted_shift)
     start = 0
     while start < n:
-        top = keys[start] >> ud
+        top = packed[start] >> us
         end = start + 1
-        while end < n and (keys[end] >> ud) == top:
+        while end < n and (packed[end] >> us) == top:
             end += 1
         if end - start > 1:
             if end - start <= _INSERTION_MAX:
                 for i in range(start + 1, end):
-                    k, v = keys[i], vals[i]
-                    e = extra[i] if with_extra else _ZERO
+                    v = packed[i]
+                    k = keys[v & pos_mask]
                     j = i - 1
-                    while j >= start and keys[j] > k:
-                        keys[j + 1] = keys[j]
-                        vals[j + 1] = vals[j]
-                        if with_extra:
-                            extra[j + 1] = extra[j]
+                    while j >= start and keys[packed[j] & pos_mask] > k:
+                        packed[j + 1] = packed[j]
                         j -= 1
-                    keys[j + 1] = k
-                    vals[j + 1] = v
-                    if with_extra:
-                        extra[j + 1] = e
+                    packed[j + 1] = v
             else:
-                perm = np.argsort(keys[start:end], kind="mergesort")
-                run_k = keys[start:end][perm]
-                run_v = vals[start:end][perm]
-                keys[start:end] = run_k
-                vals[start:end] = run_v
-                if with_extra:
-                    extra[start:end] = extra[start:end][perm]
+                run = packed[start:end].copy()
+                full = np.empty(end - start, np.uint64)
+                for i in range(end - start):
+                    full[i] = keys[run[i] & pos_mask]
+                perm = np.argsort(full, kind="mergesort")
+                for i in range(end - start):
+                    packed[start + i] = run[perm[i]]
         start = end
 
 
 @numba.njit(parallel=True, **_JIT)
-def _radix_sort(keys, vals, extra, num_chunks):
-    """Stable sort of ``vals`` (and ``extra``, a second uint64 payload, unless empty) by ``keys`` (uint64);
-    returns the sorted (vals, extra).
+def _radix_sort(keys, idx, boxes, num_chunks):
+    """``(idx[pos], boxes[pos])`` for the positions ``pos`` that sort ``keys`` (uint64) stably.
 
-    LSD radix passes over the top ``RADIX_BITS``-bit digits of ``key - min`` only: enough digits to spread
-    ``n`` keys over about 4 n buckets (at most the key range's own bit length). If bits remain below those
-    digits, ``_fix_runs`` orders each run of equal top bits by the full key (runs are short unless many keys
-    share their top bits).
+    Each element is one uint64: the top bits of ``key - min`` above its position's bits, so every radix pass moves
+    8 bytes per element and the position rides along for free. LSD passes of ``RADIX_BITS``-bit digits cover the
+    top bits of the key range only: enough to spread ``n`` keys over about 4 n buckets. ``_fix_runs`` then orders
+    each run of equal sorted bits by the full key (runs are short unless many keys share their top bits).
     """
     n = keys.shape[0]
     lo_key = keys.min()
-    span = keys.max() - lo_key
-    span_bits = _bit_length(span)
+    span_bits = _bit_length(keys.max() - lo_key)
+    pos_bits = max(1, _bit_length(np.uint64(n - 1)))
+    kept_bits = min(span_bits, 64 - pos_bits)  # key bits stored in the packed word
+    drop = np.uint64(span_bits - kept_bits)
     wanted = max(_MIN_TOP_BITS, _bit_length(np.uint64(n)) + 2)
-    passes = (min(span_bits, wanted) + RADIX_BITS - 1) // RADIX_BITS
-    drop = max(0, span_bits - passes * RADIX_BITS)
+    passes = (min(kept_bits, wanted) + RADIX_BITS - 1) // RADIX_BITS
+    sorted_shift = pos_bits + max(0, kept_bits - passes * RADIX_BITS)
+    ub = np.uint64(pos_bits)
     k_a = np.empty(n, np.uint64)
     for j in prange(n):
-        k_a[j] = keys[j] - lo_key
-    v_a = vals.copy()
-    e_a = extra.copy()
+        k_a[j] = (((keys[j] - lo_key) >> drop) << ub) | np.uint64(j)
     k_b = np.empty(n, np.uint64)
-    v_b = np.empty_like(vals)
-    e_b = np.empty_like(extra)
     size = (n + num_chunks - 1) // num_chunks
     hist = np.empty((num_chunks, _RADIX), np.int64)
     for pas in range(passes):
-        shift = np.uint64(drop + pas * RADIX_BITS)
+        shift = np.uint64(sorted_shift + pas * RADIX_BITS)
         for c in prange(num_chunks):
             _digit_histogram(k_a, c * size, min(n, (c + 1) * size), shift, hist[c])
         total = 0
@@ -232,13 +230,20 @@ def _radix_sort(keys, vals, extra, num_chunks):
                 hist[c, d] = total
                 total += cnt
         for c in prange(num_chunks):
-            _digit_scatter(k_a, v_a, e_a, c * size, min(n, (c + 1) * size), shift, hist[c], k_b, v_b, e_b)
+            _digit_scatter(k_a, c * size, min(n, (c + 1) * size), shift, hist[c], k_b)
         k_a, k_b = k_b, k_a
-        v_a, v_b = v_b, v_a
-        e_a, e_b = e_b, e_a
-    if drop > 0:
-        _fix_runs(k_a, v_a, e_a, drop)
-    return v_a, e_a
+    if drop > 0 or sorted_shift > pos_bits:  # key bits below the sorted ones
+        _fix_runs(k_a, keys, pos_bits, sorted_shift)
+    pos_mask = (_U1 << ub) - _U1
+    order = np.empty(n, np.int64)
+    sorted_boxes = np.empty(boxes.shape[0], np.uint64)  # empty when no boxes are given
+    with_boxes = boxes.shape[0] > 0
+    for j in prange(n):
+        p = np.int64(k_a[j] & pos_mask)
+        order[j] = idx[p]
+        if with_boxes:
+            sorted_boxes[j] = boxes[p]
+    return order, sorted_boxes
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -254,12 +259,7 @@ def _count_tiles(boxes, tiles_x, num_tiles, num_chunks):
 
 @numba.njit(parallel=True, **_JIT)
 def _scatter_tiles(order, boxes, counts, tiles_x, num_tiles):
-    """CSR offsets [T + 1] and ids [I]; ``counts`` becomes each chunk's write cursor per tile.
-
-    Also the Gaussian-major numbering of the intersections: the intersections of the j-th Gaussian in depth order
-    (its tiles in row-major order, so its slots in increasing order) get the ranks ``isect_start[j]`` to
-    ``isect_start[j + 1] - 1``; ``slot_rank[p]`` is the rank of slot p.
-    """
+    """CSR offsets [T + 1] and ids [I]; ``counts`` becomes each chunk's write cursor per tile."""
     num_chunks = counts.shape[0]
     offsets = np.empty(num_tiles + 1, np.int64)
     total = 0
@@ -271,19 +271,11 @@ def _scatter_tiles(order, boxes, counts, tiles_x, num_tiles):
             total += cnt
     offsets[num_tiles] = total
     m = order.shape[0]
-    isect_start = np.empty(m + 1, np.int64)
-    for j in prange(m):
-        tx0, ty0, tx1, ty1 = _unpack_box(boxes[j])
-        isect_start[j + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-    isect_start[0] = 0
-    for j in range(m):
-        isect_start[j + 1] += isect_start[j]
     ids = np.empty(total, np.int32)
-    slot_rank = np.empty(total, np.int64)
     size = (m + num_chunks - 1) // num_chunks
     for c in prange(num_chunks):
-        _scatter_chunk(order, boxes, c * size, min(m, (c + 1) * size), tiles_x, counts[c], ids, isect_start, slot_rank)
-    return offsets, ids, isect_start, slot_rank
+        _scatter_chunk(order, boxes, c * size, min(m, (c + 1) * size), tiles_x, counts[c], ids)
+    return offsets, ids
 
 
 def _num_chunks(n: int) -> int:
@@ -296,7 +288,9 @@ def depth_order(idx: np.ndarray, depths: np.ndarray) -> np.ndarray:
     if idx.shape[0] < 2:
         return idx.copy()
     depth_bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
-    keys = run_parallel(_depth_keys, idx, depth_bits, chunk=GAUSSIANS_PER_CHUNK)
+    # the depth keys only (zero boxes)
+    _, keys = run_parallel(_boxes_and_keys, idx, np.zeros((depths.shape[0], 4), np.int64), 1, depth_bits,
+                           chunk=GAUSSIANS_PER_CHUNK)
     order, _ = run_parallel(_radix_sort, keys, idx, np.empty(0, np.uint64), _num_chunks(idx.shape[0]), chunk=0)
     return order
 
@@ -307,27 +301,20 @@ def bin_sorted(idx: np.ndarray, depths: np.ndarray, pixel_box: np.ndarray, tile_
 
     Every Gaussian goes to every tile its inclusive pixel box ``(u0, v0, u1, v1)`` touches. The packed tile boxes
     ride along in the depth sort, so no step reads ``pixel_box`` in depth (random) order.
-    Returns (offsets [T + 1] int64, ids [I] int32, order [M] int64 (the Gaussians by depth), isect_start [M + 1]
-    int64, slot_rank [I] int64): slot p is intersection number ``slot_rank[p]`` in Gaussian-major order, where
-    ``order[j]`` owns the numbers ``isect_start[j]`` to ``isect_start[j + 1] - 1`` (in increasing slot order).
-    The blending backward writes its per-intersection gradients at those numbers and sums them per Gaussian
-    with sequential reads.
+    Returns (offsets [T + 1] int64, ids [I] int32, order [M] int64: the Gaussians by depth).
     """
     num_tiles = tiles_x * tiles_y
     if max(tiles_x, tiles_y) > MAX_TILES_PER_SIDE:
         raise ValueError(f"bin_sorted: at most {MAX_TILES_PER_SIDE} tiles per side, got {tiles_x} x {tiles_y}")
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     if idx.shape[0] == 0:
-        return (np.zeros(num_tiles + 1, np.int64), np.zeros(0, np.int32), idx, np.zeros(1, np.int64),
-                np.zeros(0, np.int64))
+        return np.zeros(num_tiles + 1, np.int64), np.zeros(0, np.int32), idx
     pixel_box = np.ascontiguousarray(pixel_box, dtype=np.int64)
-    boxes = run_parallel(_tile_boxes, idx, pixel_box, tile_size, chunk=GAUSSIANS_PER_CHUNK)
+    depth_bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
+    boxes, keys = run_parallel(_boxes_and_keys, idx, pixel_box, tile_size, depth_bits, chunk=GAUSSIANS_PER_CHUNK)
     if idx.shape[0] > 1:
-        depth_bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
-        keys = run_parallel(_depth_keys, idx, depth_bits, chunk=GAUSSIANS_PER_CHUNK)
         idx, boxes = run_parallel(_radix_sort, keys, idx, boxes, _num_chunks(idx.shape[0]), chunk=0)
     chunks = _num_chunks(idx.shape[0])
     counts = run_parallel(_count_tiles, boxes, tiles_x, num_tiles, chunks, chunk=0)
-    offsets, ids, isect_start, slot_rank = run_parallel(_scatter_tiles, idx, boxes, counts, tiles_x, num_tiles,
-                                                        chunk=0)
-    return offsets, ids, idx, isect_start, slot_rank
+    offsets, ids = run_parallel(_scatter_tiles, idx, boxes, counts, tiles_x, num_tiles, chunk=0)
+    return offsets, ids, idx

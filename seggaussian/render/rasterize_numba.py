@@ -8,8 +8,9 @@ The blending rule and the gradient convention at the ALPHA_MAX clamp are those o
 (gsplat's: no gradient to opacity / 2D Gaussian where alpha is clamped). The backward pass replays the
 forward walk front to back; the colour sum behind a Gaussian is ``C_final - C_up_to_it``, so no division
 by ``1 - alpha`` is needed except for the accumulated-alpha term (``1 - alpha >= 1 - ALPHA_MAX``).
-Gradients are written to one slot per (tile, Gaussian) intersection by the thread owning the tile and
-summed serially afterwards: deterministic for any thread count.
+Gradients are written to one slot per live (tile, Gaussian) intersection (one that some pixel of the tile reached
+before stopping) by the thread owning the tile, then summed per Gaussian in tile order: deterministic for any
+thread count.
 
 Kernels run with fast-math flags (``FASTMATH``, without ``reassoc``, so a kernel gives the same bits whether
 numba compiled it in this process or loaded it from its cache): inputs must be finite, which the projection
@@ -214,10 +215,10 @@ def _forward_kernel(means2d, conics, opacities, colors, offsets, gids, tiles_x, 
 @numba.njit(parallel=True, **_JIT)
 def _backward_kernel(
     means2d, conics, opacities, colors, offsets, gids, tiles_x, width, height,
-    accum, trans, stop_pos, grad_accum, grad_alpha, slot_rank, slot_geo, slot_col,
+    accum, trans, stop_pos, grad_accum, grad_alpha, live_start, slot_geo, slot_col,
 ):
-    """slot_geo[r] = d(mean x, mean y, conic a, b, c, opacity); slot_col[r] = d(colour) of intersection k, stored at
-    r = slot_rank[k] (identity, or the Gaussian-major numbering of ``tiles.SortedTileBins``)."""
+    """slot_geo[r] = d(mean x, mean y, conic a, b, c, opacity); slot_col[r] = d(colour) of the i-th intersection of
+    tile t, stored at r = live_start[t] + i for its live intersections (``_live_slots``) only."""
     num_tiles = offsets.shape[0] - 1
     dim = colors.shape[1]
     for t in prange(num_tiles):
@@ -232,7 +233,6 @@ def _backward_kernel(
         t_final = np.ones(_TILE_PIXELS, np.float32)
         stop_k = np.zeros(_TILE_PIXELS, np.float32)  # pixels outside the image never blend
         g_final = np.zeros(_TILE_PIXELS, np.float32)  # C_final . dL/dC
-        max_stop = 0
         for i in range(_TILE_PIXELS):
             x = x0 + i % _TILE
             y = y0 + i // _TILE
@@ -240,7 +240,6 @@ def _backward_kernel(
                 g_alpha[i] = grad_alpha[y, x]
                 t_final[i] = trans[y, x]
                 stop_k[i] = _f32(stop_pos[y, x])
-                max_stop = max(max_stop, stop_pos[y, x])
                 for ch in range(dim):
                     g_acc[ch, i] = grad_accum[y, x, ch]
                     g_final[i] += accum[y, x, ch] * grad_accum[y, x, ch]
@@ -249,7 +248,9 @@ def _backward_kernel(
         col_dot = np.empty(_TILE_PIXELS, np.float32)
         weight = np.empty(_TILE_PIXELS, np.float32)
         terms = np.empty((6, _TILE_PIXELS), np.float32)  # per-pixel terms of the six geometry gradients
-        for k in range(start, min(end, start + max_stop)):
+        hit = np.empty(_TILE_PIXELS, np.float32)  # 1 where the Gaussian blends at the pixel
+        slot0 = live_start[t] - start
+        for k in range(start, start + (live_start[t + 1] - live_start[t])):
             g = gids[k]
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
@@ -276,6 +277,7 @@ def _backward_kernel(
                 m = inside * _f32(alpha >= _ALPHA_MIN) * _f32(kl < stop_k[i])
                 w = m * alpha * tr[i]
                 weight[i] = w
+                hit[i] = m
                 c_after = c_dot[i] + w * col_dot[i]
                 inv_one_minus = _ONE / (_ONE - alpha)
                 d_alpha = tr[i] * col_dot[i] - (g_final[i] - c_after) * inv_one_minus
@@ -290,7 +292,13 @@ def _backward_kernel(
                 terms[5, i] = d_alpha * e
                 c_dot[i] = c_after
                 tr[i] = tr[i] * (_ONE - m * alpha)
-            r = slot_rank[k]
+            r = slot0 + k
+            if _tree_sum(hit) == _ZERO:  # blends at no pixel: every term is zero, skip the ten sums
+                for j in range(6):
+                    slot_geo[r, j] = _ZERO
+                for ch in range(dim):
+                    slot_col[r, ch] = _ZERO
+                continue
             for j in range(6):
                 slot_geo[r, j] = _tree_sum(terms[j])
             for ch in range(dim):
@@ -300,33 +308,55 @@ def _backward_kernel(
 
 
 @numba.njit(**_JIT)
-def _sum_slots(gids, slot_geo, slot_col, num_gaussians):
-    """Serial, fixed-order sum of the per-intersection gradient slots into per-Gaussian gradients."""
-    geo = np.zeros((num_gaussians, 6), np.float64)
-    col = np.zeros((num_gaussians, slot_col.shape[1]), np.float64)
-    for k in range(gids.shape[0]):
-        g = gids[k]
-        for j in range(6):
-            geo[g, j] += slot_geo[k, j]
-        for j in range(slot_col.shape[1]):
-            col[g, j] += slot_col[k, j]
-    return geo, col
+def _live_slots(offsets, stop_pos, tiles_x, width, height):
+    """``live_start [T + 1]``: prefix sum over tiles of each tile's live intersections, the first
+    ``min(count, max stop position over its pixels)`` of its list (the rest never blend: every pixel of the tile
+    stopped before them). The backward stores gradient slots for those only."""
+    num_tiles = offsets.shape[0] - 1
+    live = np.zeros(num_tiles + 1, np.int64)
+    for t in range(num_tiles):  # serial: one read per pixel (a parallel region costs more at small sizes)
+        count = offsets[t + 1] - offsets[t]
+        if count == 0:
+            continue
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        max_stop = 0
+        for y in range(ty * _TILE, min(height, ty * _TILE + _TILE)):
+            for x in range(tx * _TILE, min(width, tx * _TILE + _TILE)):
+                max_stop = max(max_stop, np.int64(stop_pos[y, x]))
+        live[t + 1] = min(count, max_stop)
+    for t in range(num_tiles):
+        live[t + 1] += live[t]
+    return live
+
+
+@numba.njit(**_JIT)
+def _sum_part(offsets, gids, live_start, slot_geo, slot_col, g_lo, g_hi, geo, col):
+    for t in range(offsets.shape[0] - 1):
+        r0 = live_start[t]
+        k0 = offsets[t]
+        for i in range(live_start[t + 1] - r0):
+            g = gids[k0 + i]
+            if g >= g_lo and g < g_hi:
+                r = r0 + i
+                for c in range(6):
+                    geo[g, c] += slot_geo[r, c]
+                for c in range(slot_col.shape[1]):
+                    col[g, c] += slot_col[r, c]
 
 
 @numba.njit(parallel=True, **_JIT)
-def _sum_slots_grouped(order, isect_start, slot_geo, slot_col, num_gaussians):
-    """``_sum_slots`` for slots stored Gaussian-major (``tiles.SortedTileBins``): parallel over Gaussians, each one's
-    slots read sequentially and added in increasing intersection order, as the serial loop adds them (the same
-    float64 sums, bit for bit, for any thread count)."""
+def _sum_slots(offsets, gids, live_start, slot_geo, slot_col, num_gaussians, num_parts):
+    """Fixed-order sum of the live gradient slots into per-Gaussian gradients (float64).
+
+    Every Gaussian's slots are added in increasing tile order, whatever the thread count: part p (parallel) owns a
+    contiguous range of Gaussian indices and walks all live slots in tile order, adding only its own.
+    """
     geo = np.zeros((num_gaussians, 6), np.float64)
     col = np.zeros((num_gaussians, slot_col.shape[1]), np.float64)
-    for j in prange(order.shape[0]):
-        g = order[j]
-        for q in range(isect_start[j], isect_start[j + 1]):
-            for c in range(6):
-                geo[g, c] += slot_geo[q, c]
-            for c in range(slot_col.shape[1]):
-                col[g, c] += slot_col[q, c]
+    per = (num_gaussians + num_parts - 1) // num_parts
+    for p in prange(num_parts):
+        _sum_part(offsets, gids, live_start, slot_geo, slot_col, p * per, (p + 1) * per, geo, col)
     return geo, col
 
 
@@ -409,23 +439,21 @@ class _BlendFunction(torch.autograd.Function):
         bins: TileBins = ctx.bins
         m2, cn, op, col, accum, trans, stop_pos = ctx.arrays
         n, dim = m2.shape[0], col.shape[1]
-        num = bins.num_intersections
-        slot_geo = np.zeros((num, 6), np.float32)
-        slot_col = np.zeros((num, dim), np.float32)
         g_acc = np.zeros_like(accum) if grad_accum is None else _as_np(grad_accum)
         g_alpha = np.zeros_like(trans) if grad_alpha is None else _as_np(grad_alpha)
-        inverse = getattr(bins, "inverse", None)  # tiles.SortedTileBins: slots stored grouped by Gaussian
-        slot_rank = np.arange(num, dtype=np.int64) if inverse is None else inverse[2]
+        live_start = _live_slots(bins.offsets, stop_pos, bins.tiles_x, bins.width, bins.height)
+        num = int(live_start[-1])
+        slot_geo = np.empty((num, 6), np.float32)  # every live slot is written by the kernel
+        slot_col = np.empty((num, dim), np.float32)
         if num:
             run_parallel(
                 _backward_kernel, m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x,
-                bins.width, bins.height, accum, trans, stop_pos, g_acc, g_alpha, slot_rank, slot_geo, slot_col,
+                bins.width, bins.height, accum, trans, stop_pos, g_acc, g_alpha, live_start, slot_geo, slot_col,
             )
-        if inverse is not None:
-            geo, dcol = run_parallel(_sum_slots_grouped, inverse[0], inverse[1], slot_geo, slot_col, n,
-                                     chunk=GAUSSIANS_PER_CHUNK)
-        else:
-            geo, dcol = _sum_slots(bins.gaussian_ids, slot_geo, slot_col, n)
+        # chunk=0 (numba's default): a chunk size also applies to the kernel's implicit parallel zero-fills, which
+        # with chunk=1 took seconds at 1M Gaussians
+        geo, dcol = run_parallel(_sum_slots, bins.offsets, bins.gaussian_ids, live_start, slot_geo, slot_col, n,
+                                 max(1, numba.get_num_threads()), chunk=0)
         geo = torch.from_numpy(geo)
         d_means2d = geo[:, 0:2].to(ctx.dtypes[0])
         d_conics = geo[:, 2:5].to(ctx.dtypes[1])

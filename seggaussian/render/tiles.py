@@ -17,13 +17,6 @@ from seggaussian.render.rasterize_numba import fill_tile_lists
 from seggaussian.render.results import TileBins
 
 
-class SortedTileBins(TileBins):
-    """``TileBins`` plus ``inverse = (order, isect_start, slot_rank)``: a Gaussian-major numbering of the
-    intersections (``binning_numba.bin_sorted``), so the blending backward stores its per-intersection gradients
-    grouped by Gaussian and sums them in parallel with sequential reads. A plain ``TileBins`` (no ``inverse``)
-    works everywhere; the backward then sums serially."""
-
-
 def _selected(projection: Projection, opacities) -> np.ndarray:  # ascending int64 indices
     valid = projection.valid.detach().cpu().numpy()
     if opacities is not None:
@@ -44,12 +37,10 @@ def bin_gaussians(
     """Sort the valid Gaussians by depth (stable) and append each to every tile its pixel box touches."""
     tiles_x, tiles_y = _tile_grid(width, height)
     idx = _selected(projection, opacities)
-    offsets, ids, order, isect_start, slot_rank = bin_sorted(
+    offsets, ids, _ = bin_sorted(
         idx, projection.depths.detach().cpu().numpy(), projection.pixel_box.detach().cpu().numpy(), TILE_SIZE,
         tiles_x, tiles_y)
-    bins = SortedTileBins(width, height, tiles_x, tiles_y, offsets, ids)
-    bins.inverse = (order, isect_start, slot_rank)
-    return bins
+    return TileBins(width, height, tiles_x, tiles_y, offsets, ids)
 
 
 def bin_gaussians_argsort(projection: Projection, width: int, height: int, opacities=None) -> TileBins:

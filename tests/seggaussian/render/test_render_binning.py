@@ -1,5 +1,5 @@
 """Binning: the radix / counting-sort path against the former argsort path and a naive binning, degenerate inputs,
-and the Gaussian-major gradient slots of the blending backward against the serial sum."""
+identical results for any thread count."""
 
 from __future__ import annotations
 
@@ -40,6 +40,9 @@ def _projection(depths, boxes, valid=None) -> Projection:
     np.random.default_rng(1).normal(size=50_000),
     np.concatenate([3.0 + np.arange(3000) * 1e-15, [1e9, 0.02]]),  # a long run sharing its top key bits
     np.full(1000, 2.5),
+    # keys spanning all 64 bits with many positions: key bits below the packed ones are ordered by the run fix-up
+    np.random.default_rng(3).normal(size=100_000) * 10.0 ** np.random.default_rng(4).integers(-300, 300, 100_000),
+    np.repeat(np.random.default_rng(5).normal(size=300) * 1e200, 200),  # long runs of equal wide-range keys
 ])
 def test_depth_order_is_a_stable_argsort(depths):
     idx = np.random.default_rng(2).permutation(len(depths))  # depth_order sorts any index list, ties by position
@@ -77,44 +80,104 @@ def test_degenerate_binning_inputs():
     assert one.offsets.tolist() == [0, 3] and one.gaussian_ids.tolist() == [0, 1, 2]
 
 
-def test_inverse_numbering_lists_each_gaussians_slots():
+def test_bin_sorted_returns_the_depth_order():
     scene = random_scene(300, 4, dtype=torch.float64, spread=1.0)
     viewmat, K = camera(100, 70)
     proj = project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K, 100, 70)
     idx = np.flatnonzero(proj.valid.numpy())
-    offsets, ids, order, start, rank = bin_sorted(idx, proj.depths.numpy(), proj.pixel_box.numpy(), TILE_SIZE, 7, 5)
-    slots = np.empty_like(rank)
-    slots[rank] = np.arange(len(rank))
-    for j, g in enumerate(order):
-        mine = slots[start[j]:start[j + 1]]
-        assert np.all(np.diff(mine) > 0) and np.all(ids[mine] == g)
-    assert start[-1] == len(ids)
+    offsets, ids, order = bin_sorted(idx, proj.depths.numpy(), proj.pixel_box.numpy(), TILE_SIZE, 7, 5)
+    assert np.array_equal(order, depth_order(idx, proj.depths.numpy()))
+    assert offsets[-1] == len(ids) and set(ids.tolist()) <= set(idx.tolist())
 
 
-@pytest.mark.parametrize("num", [0, 1, 200])
-def test_grouped_backward_slots_match_the_serial_sum(num, monkeypatch):
-    """The blending gradients with Gaussian-major slots equal (bit for bit) those of plain TileBins (serial sum)."""
-    import sys
+def test_binning_is_identical_for_one_and_two_threads():
+    import numba
 
-    from seggaussian.render.results import TileBins
+    scene = random_scene(3000, 5, dtype=torch.float32, spread=1.0)
+    viewmat, K = camera(100, 70)
+    threads = numba.get_num_threads()
+    results = []
+    for n in (1, max(2, threads)):
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+        try:
+            proj = project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K, 100, 70)
+            results.append((proj, bin_gaussians(proj, 100, 70, torch.sigmoid(scene["opacity_logits"]))))
+        finally:
+            numba.set_num_threads(threads)
+    (p1, b1), (p2, b2) = results
+    for a, b in zip(p1, p2):
+        assert torch.equal(a, b)
+    _same_bins(b1, b2)
 
-    rasterize_module = sys.modules["seggaussian.render.rasterize"]  # the package exports a function of that name
 
-    scene = random_scene(num, 8, dtype=torch.float32, spread=0.8)
+def test_backward_stores_only_the_live_intersections():
+    """A dense opaque scene stops most pixels early: the backward keeps gradient slots for the intersections some
+    pixel reached only, and its gradients still match the per-pixel reference."""
+    from seggaussian.render.rasterize_numba import _live_slots
+    from test_render_rasterize import assert_grads_close, render_with_grads
+
+    scene = random_scene(400, 9, dtype=torch.float64, spread=0.6)
+    scene["opacity_logits"] = scene["opacity_logits"].abs() + 3.0
+    scene["log_scales"] = scene["log_scales"] + 1.5
     viewmat, K = camera()
+    proj = project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K, 32, 24)
+    bins = bin_gaussians(proj, 32, 24, torch.sigmoid(scene["opacity_logits"]))
+    fast, fast_grads = render_with_grads(scene, "fast")
+    ref, ref_grads = render_with_grads(scene, "reference")
+    assert float((fast.image - ref.image).detach().abs().max()) <= 1e-4
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert_grads_close(fast_grads[name], ref_grads[name], name)
+    # every pixel of every tile stops early, so most of each tile's list is never reached
+    import seggaussian.render.rasterize_numba as rn
 
-    def grads(plain: bool):
-        if plain:
-            monkeypatch.setattr(rasterize_module, "bin_gaussians",
-                                lambda *a: TileBins(*bin_gaussians(*a)))  # drops the inverse numbering
-        else:
-            monkeypatch.setattr(rasterize_module, "bin_gaussians", bin_gaussians)
-        leaves = {k: v.clone().requires_grad_(True) for k, v in scene.items()}
-        out = rasterize(leaves["means"], leaves["quats"], leaves["log_scales"], leaves["opacity_logits"], viewmat, K,
-                        64, 48, sh=leaves["sh"], backend="fast")
-        (out.image.square().sum() + out.alpha.sum() + out.depth.sum()).backward()
-        return [leaves[k].grad for k in ("means", "quats", "log_scales", "opacity_logits", "sh")]
+    m2, cn, op = (rn._as_np(x) for x in (proj.means2d, proj.conics, torch.sigmoid(scene["opacity_logits"])))
+    col = np.zeros((len(op), 1), np.float32)
+    accum, trans = np.zeros((24, 32, 1), np.float32), np.ones((24, 32), np.float32)
+    stop_pos = np.zeros((24, 32), np.int32)
+    rn._forward_kernel(m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x, 32, 24, accum, trans, stop_pos)
+    live = _live_slots(bins.offsets, stop_pos, bins.tiles_x, 32, 24)
+    assert 0 < live[-1] < bins.num_intersections / 4
 
-    for a, b in zip(grads(True), grads(False)):
-        assert a is not None and torch.equal(a, b)
-    assert all(math.isfinite(float(g.abs().sum())) for g in grads(False))
+
+_THREADS_SCRIPT = """
+import hashlib, sys
+import numpy as np, torch
+sys.path.insert(0, {tests!r})
+from test_render_common import camera, random_scene
+from seggaussian.render.projection_numba import project_gaussians_fast
+from seggaussian.render.rasterize import rasterize
+from seggaussian.render.tiles import bin_gaussians
+scene = random_scene(20000, 11, spread=1.0)
+viewmat, K = camera(160, 120)
+h = hashlib.sha256()
+proj = project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K, 160, 120)
+bins = bin_gaussians(proj, 160, 120, torch.sigmoid(scene["opacity_logits"]))
+for a in (*proj, bins.offsets, bins.gaussian_ids):
+    h.update(np.ascontiguousarray(np.asarray(a)).tobytes())
+leaves = {{k: v.clone().requires_grad_(True) for k, v in scene.items()}}
+out = rasterize(leaves["means"], leaves["quats"], leaves["log_scales"], leaves["opacity_logits"], viewmat, K, 160, 120,
+                sh=leaves["sh"], backend="fast")
+(out.image.square().sum() + out.alpha.sum() + out.depth.sum()).backward()
+for a in (out.image, out.alpha, out.depth, *(leaves[k].grad for k in ("means", "quats", "log_scales", "opacity_logits", "sh"))):
+    h.update(a.detach().numpy().tobytes())
+print(bins.num_intersections, h.hexdigest())
+"""
+
+
+def test_projection_binning_and_gradients_identical_for_1_and_2_numba_threads():
+    """Fresh processes with NUMBA_NUM_THREADS=1 and 2: projection, tile lists, image and gradients bit for bit."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tests = str(Path(__file__).resolve().parent)
+    script = _THREADS_SCRIPT.format(tests=tests)
+    digests = []
+    for threads in ("1", "2"):
+        env = dict(os.environ, NUMBA_NUM_THREADS=threads, OMP_NUM_THREADS="1")
+        res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600)
+        assert res.returncode == 0, res.stderr[-2000:]
+        digests.append(res.stdout.strip().splitlines()[-1])
+    assert int(digests[0].split()[0]) > 0
+    assert digests[0] == digests[1]
