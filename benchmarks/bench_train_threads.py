@@ -32,6 +32,7 @@ def one_run(data: str, threads: int, epochs: int) -> dict:
     """Train in this process (called in a child): median step wall/CPU and mean phase seconds per step."""
     sys.path.insert(0, str(REPO))
     sys.path.insert(0, str(REPO / "benchmarks"))
+    import seggaussian  # noqa: F401  (first: its OpenMP defaults must be set before torch starts its threads)
     import torch
 
     import bench_paper_step as paper
