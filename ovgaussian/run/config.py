@@ -134,7 +134,7 @@ class TrainConfig:
     """Stop after this many epochs (as if interrupted; the schedule still spans ``epochs``); resume later."""
     threads: Optional[int] = None
     """torch and numba threads of each training process; not given: one thread when a process's step holds fewer than
-    1,000,000 Gaussians (with passive OpenMP waits a small step runs about 2x faster on one thread than on two),
+    1,000,000 Gaussians (with passive OpenMP waits a demo step takes 1.4-1.6 s on one thread, 2.4-2.7 s on two),
     else all of them (``seggaussian.util.threads.threads_for_gaussians``)."""
     model_preset: Literal["default", "slim"] = "default"
     """Model width preset: ``default`` (paper widths) or ``slim`` (narrow backbone for CPU)."""

@@ -8,7 +8,7 @@ worker; BENCHMARKS.md "Fitted splats").
 Small work gains nothing from several threads: with passive OpenMP waits (``seggaussian/__init__.py``) every
 parallel region wakes sleeping threads, and a training step of the demo's size runs thousands of small regions.
 :func:`threads_for_gaussians` picks one thread below :data:`PARALLEL_MIN_GAUSSIANS` Gaussians of work
-(BENCHMARKS.md "Training threads").
+(BENCHMARKS.md "Training step speed").
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import numba
 import torch
 
 #: Gaussians per unit of work (a training step's batch, a scene evaluated) below which one thread does it. Measured
-#: on the 2-core machines with passive OpenMP waits (BENCHMARKS.md "Training threads"): a demo step (3 scenes of
-#: 15,000 fitted Gaussians, slim network) took 1.2 s wall with one thread and 2.3 s with two; 3 x 100,000 Gaussians
-#: (MinkUNet34C, 5 cm) about 20 s either way; 1 x 1,000,000 18-22 s with one thread and 16-20 s with two.
+#: on the 2-core machines with passive OpenMP waits (BENCHMARKS.md "Training step speed"): a demo step (3 scenes of
+#: 15,000 fitted Gaussians, slim network) took 1.4-1.6 s wall with one thread and 2.4-2.7 s with two; 3 x 100,000
+#: Gaussians (MinkUNet34C, 5 cm) about 20 s either way; 1 x 1,000,000 18-22 s with one thread and 16-20 s with two.
 PARALLEL_MIN_GAUSSIANS = 1_000_000
 
 
