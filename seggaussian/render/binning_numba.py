@@ -63,6 +63,15 @@ def _boxes_and_keys(idx, pixel_box, tile_size, depth_bits):
     return boxes, keys
 
 
+@numba.njit(parallel=True, **_JIT)
+def _depth_keys(idx, depth_bits):
+    """Depth keys (``_depth_key``) of the Gaussians ``idx``."""
+    keys = np.empty(idx.shape[0], np.uint64)
+    for j in prange(idx.shape[0]):
+        keys[j] = _depth_key(depth_bits[idx[j]])
+    return keys
+
+
 @numba.njit(inline="always", **_JIT)
 def _depth_key(bits):
     """Sortable uint64 key of a float64 depth given as its IEEE bits: unsigned order == float order; -0 and +0 one
@@ -288,9 +297,7 @@ def depth_order(idx: np.ndarray, depths: np.ndarray) -> np.ndarray:
     if idx.shape[0] < 2:
         return idx.copy()
     depth_bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
-    # the depth keys only (zero boxes)
-    _, keys = run_parallel(_boxes_and_keys, idx, np.zeros((depths.shape[0], 4), np.int64), 1, depth_bits,
-                           chunk=GAUSSIANS_PER_CHUNK)
+    keys = run_parallel(_depth_keys, idx, depth_bits, chunk=GAUSSIANS_PER_CHUNK)
     order, _ = run_parallel(_radix_sort, keys, idx, np.empty(0, np.uint64), _num_chunks(idx.shape[0]), chunk=0)
     return order
 
