@@ -282,17 +282,12 @@ def gather_plans(kernel_map: "KernelMap", grouped: bool = True) -> tuple[GatherP
         return cache[key]
     device = kernel_map.in_indices[0].device if kernel_map.in_indices else torch.device("cpu")
     if device.type != "cpu":  # a GPU map: the plans are built on the CPU (numba), then moved to the map's device
-        plans = tuple(plan_to(p, device) for p in gather_plans(map_on_cpu(kernel_map), grouped))
-        if cache is not None:
-            cache[key] = plans
-            transposed_cache = kernel_map.transposed().cache
-            if not kernel_map.symmetric and transposed_cache is not None:
-                transposed_cache[key] = plans[::-1]
-        return plans
-    min_rows = MIN_PAIRS_PER_ROW_FOR_GROUPS if grouped else math.inf
-    plan = build_gather_plan(kernel_map, min_pairs_per_row=min_rows)
-    plan_t = flip_plan(plan) if kernel_map.symmetric else build_gather_plan(
-        kernel_map.transposed(), min_pairs_per_row=min_rows)
+        plan, plan_t = (plan_to(p, device) for p in gather_plans(map_on_cpu(kernel_map), grouped))
+    else:
+        min_rows = MIN_PAIRS_PER_ROW_FOR_GROUPS if grouped else math.inf
+        plan = build_gather_plan(kernel_map, min_pairs_per_row=min_rows)
+        plan_t = flip_plan(plan) if kernel_map.symmetric else build_gather_plan(
+            kernel_map.transposed(), min_pairs_per_row=min_rows)
     if cache is not None:
         cache[key] = (plan, plan_t)
         transposed_cache = kernel_map.transposed().cache

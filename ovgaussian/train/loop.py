@@ -235,7 +235,8 @@ def global_batch_size(config: TrainConfig, scan: ScanResult, group: ProcessGroup
 def training_threads(config: TrainConfig, scan: ScanResult, batch_scenes: int, group: ProcessGroup) -> int:
     """torch and numba threads of this process: ``config.threads``, else chosen from the Gaussians of its share of a
     step (the usable scenes' mean size times its scenes per step; ``threads_for_gaussians``)."""
-    sizes = [s.num_gaussians for s in scan.summaries if s.scene_id in set(scan.usable)]
+    usable = set(scan.usable)
+    sizes = [s.num_gaussians for s in scan.summaries if s.scene_id in usable]
     per_step = (sum(sizes) / max(len(sizes), 1)) * max(1, batch_scenes // group.world_size)
     return threads_for_gaussians(int(per_step), config.threads)
 
