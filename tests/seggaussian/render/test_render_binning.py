@@ -110,10 +110,26 @@ def test_binning_is_identical_for_one_and_two_threads():
     _same_bins(b1, b2)
 
 
+@pytest.mark.parametrize("num", [0, 1])
+def test_live_slot_backward_on_degenerate_scenes_matches_the_reference(num):
+    """No Gaussian (no slot at all) and one Gaussian: the live-slot backward gives the reference's gradients."""
+    from test_render_rasterize import assert_grads_close, render_with_grads
+
+    scene = random_scene(num, 12, dtype=torch.float64, spread=0.3)
+    fast, fast_grads = render_with_grads(scene, "fast")
+    ref, ref_grads = render_with_grads(scene, "reference")
+    assert float((fast.image - ref.image).detach().abs().max()) <= 1e-4
+    assert (float(ref.alpha.max()) > 0.05) == (num > 0)  # the one Gaussian is seen
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert fast_grads[name].shape == ref_grads[name].shape == (num, *scene[name].shape[1:])
+        if num:
+            assert_grads_close(fast_grads[name], ref_grads[name], name)
+
+
 def test_backward_stores_only_the_live_intersections():
     """A dense opaque scene stops most pixels early: the backward keeps gradient slots for the intersections some
     pixel reached only, and its gradients still match the per-pixel reference."""
-    from seggaussian.render.rasterize_numba import _live_slots
+    import seggaussian.render.rasterize_numba as rn
     from test_render_rasterize import assert_grads_close, render_with_grads
 
     scene = random_scene(400, 9, dtype=torch.float64, spread=0.6)
@@ -128,14 +144,12 @@ def test_backward_stores_only_the_live_intersections():
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         assert_grads_close(fast_grads[name], ref_grads[name], name)
     # every pixel of every tile stops early, so most of each tile's list is never reached
-    import seggaussian.render.rasterize_numba as rn
-
     m2, cn, op = (rn._as_np(x) for x in (proj.means2d, proj.conics, torch.sigmoid(scene["opacity_logits"])))
     col = np.zeros((len(op), 1), np.float32)
     accum, trans = np.zeros((24, 32, 1), np.float32), np.ones((24, 32), np.float32)
     stop_pos = np.zeros((24, 32), np.int32)
     rn._forward_kernel(m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x, 32, 24, accum, trans, stop_pos)
-    live = _live_slots(bins.offsets, stop_pos, bins.tiles_x, 32, 24)
+    live = rn._live_slots(bins.offsets, stop_pos, bins.tiles_x, 32, 24)
     assert 0 < live[-1] < bins.num_intersections / 4
 
 
