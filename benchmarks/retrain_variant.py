@@ -29,6 +29,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True, help="new run folder; the report goes to OUT/report.json")
     parser.add_argument("--input-encoding", choices=("raw", "robust"), default=None)
     parser.add_argument("--pool-weighting", choices=("mean", "opacity"), default=None)
+    parser.add_argument("--epochs", type=int, default=None, help="override the run's epochs (a quick check)")
     args = parser.parse_args()
 
     from ovgaussian.bench.config import BenchConfig
@@ -38,8 +39,8 @@ def main() -> int:
     from seggaussian.util.atomic import write_json_atomic
 
     saved = config_from_dict(TrainConfig, json.loads((args.run / "config.json").read_text())["train"])
-    changes = {k: v for k, v in (("input_encoding", args.input_encoding), ("pool_weighting", args.pool_weighting))
-               if v is not None}
+    changes = {k: v for k, v in (("input_encoding", args.input_encoding), ("pool_weighting", args.pool_weighting),
+                                 ("epochs", args.epochs)) if v is not None}
     config = dataclasses.replace(saved, out=args.out / "run", progress=False, **changes)
     started = time.perf_counter()
     result = train(config)

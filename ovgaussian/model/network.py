@@ -61,8 +61,9 @@ POOL_MIN_WEIGHT = 1e-3
 #: loss 7.4 -> 5.4 s CPU against 262,144 rows; 8,192 and fewer rows were slower again (per-op overhead).
 CHECKPOINT_ROWS = 1 << 15
 #: Fewer rows than this are not checkpointed at all: their activations take at most about 1.4 GB (adapter) and
-#: 2 GB (3D text loss), and recomputing them in backward costs about a third of those stages' backward (a demo
-#: step, 3 scenes of 15,000 Gaussians: BENCHMARKS.md "Training step speed").
+#: 2 GB (3D text loss), and recomputing them in backward costs about a third of those stages' backward (measured
+#: at 1,000,000 rows; a demo step, 3 scenes of 15,000 Gaussians, 1.14 -> 0.97 s CPU: BENCHMARKS.md "Training step
+#: speed").
 CHECKPOINT_MIN_ROWS = 1 << 19
 
 
