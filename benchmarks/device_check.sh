@@ -18,7 +18,9 @@ if [ -n "$WHEELS" ] && ls "$WHEELS"/*.whl >/dev/null 2>&1; then
   export PYTHONPATH=/tmp/site
 fi
 # seggaussian.data_specs is the folder data_specs/ (pyproject's package-dir): without an install, link it in place
-[ -e seggaussian/data_specs ] || ln -s ../data_specs seggaussian/data_specs
+if [ ! -e seggaussian/data_specs ]; then
+  ln -s ../data_specs seggaussian/data_specs && trap 'rm -f seggaussian/data_specs' EXIT  # leave no file behind
+fi
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
   nproc
