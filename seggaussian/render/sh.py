@@ -16,40 +16,45 @@ def sh_degree_of(sh: Tensor) -> int:  # sh: [N, num_sh_coeffs, 3]
     return degree
 
 
+def sh_basis(
+    dirs: Tensor,  # [N, 3] unit view directions (camera centre -> mean)
+    degree: int,
+) -> Tensor:  # [N, (degree + 1)^2]
+    """The real SH basis of bands 0..degree at ``dirs``: column ``k`` multiplies coefficient ``sh[:, k]``
+    (the 3DGS reference's polynomials and signs; differentiable in ``dirs``)."""
+    x, y, z = (dirs[:, i : i + 1] for i in range(3))
+    columns = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        columns += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        columns += [
+            SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        columns += [
+            SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), SH_C3[4] * x * (4.0 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy),
+        ]
+    return torch.cat(columns, 1)
+
+
 def evaluate_sh(
     sh: Tensor,  # [N, num_sh_coeffs, 3]
     dirs: Tensor,  # [N, 3] unit view directions (camera centre -> mean)
     degree: int,
 ) -> Tensor:  # [N, 3]
-    """Sum of the SH basis times coefficients, for bands 0..degree (no +0.5 offset, no clamp)."""
-    out = SH_C0 * sh[:, 0]
-    if degree < 1:
-        return out
-    x, y, z = (dirs[:, i : i + 1] for i in range(3))
-    out = out - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
-    if degree < 2:
-        return out
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    out = (
-        out
-        + SH_C2[0] * xy * sh[:, 4]
-        + SH_C2[1] * yz * sh[:, 5]
-        + SH_C2[2] * (2.0 * zz - xx - yy) * sh[:, 6]
-        + SH_C2[3] * xz * sh[:, 7]
-        + SH_C2[4] * (xx - yy) * sh[:, 8]
-    )
-    if degree < 3:
-        return out
-    return (
-        out
-        + SH_C3[0] * y * (3.0 * xx - yy) * sh[:, 9]
-        + SH_C3[1] * xy * z * sh[:, 10]
-        + SH_C3[2] * y * (4.0 * zz - xx - yy) * sh[:, 11]
-        + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[:, 12]
-        + SH_C3[4] * x * (4.0 * zz - xx - yy) * sh[:, 13]
-        + SH_C3[5] * z * (xx - yy) * sh[:, 14]
-        + SH_C3[6] * x * (xx - 3.0 * yy) * sh[:, 15]
-    )
+    """Sum of the SH basis times coefficients, for bands 0..degree (no +0.5 offset, no clamp).
+
+    One product with the basis matrix: its backward writes the coefficients' gradient once. (Selecting each
+    coefficient ``sh[:, k]`` would make autograd zero-fill a whole ``[N, K, 3]`` gradient per coefficient: 16 per
+    render at degree 3, the largest cost of a CPU fit's backward pass.)
+    """
+    k = (degree + 1) ** 2
+    basis = sh_basis(dirs, degree)  # [N, k]
+    coeffs = sh if sh.shape[1] == k else sh[:, :k]
+    return (basis.unsqueeze(-1) * coeffs).sum(1)
 
 
 def sh_to_colors(

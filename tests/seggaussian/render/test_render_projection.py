@@ -85,6 +85,26 @@ def test_sh_matches_direct_basis_formula():
     assert torch.allclose(sh_to_colors(sh, dirs), expected.clamp_min(0), atol=1e-6)
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_evaluate_sh_matches_the_numpy_basis_and_gradcheck(degree):
+    """The one-product evaluation against the per-coefficient sum of the frames module's numpy basis, with bands above
+    ``degree`` ignored; gradients (coefficients and directions) by finite differences."""
+    import numpy as np
+
+    from seggaussian.frames.sh_rotation import sh_basis as numpy_basis
+    from seggaussian.render.sh import evaluate_sh
+
+    gen = torch.Generator().manual_seed(degree)
+    dirs = torch.nn.functional.normalize(torch.randn(7, 3, generator=gen, dtype=torch.float64), dim=1)
+    sh = torch.randn(7, 16, 3, generator=gen, dtype=torch.float64)
+    basis = numpy_basis(dirs.numpy(), degree)  # [7, (degree + 1)^2]
+    expected = sum(basis[:, k : k + 1] * sh[:, k].numpy() for k in range(basis.shape[1]))
+    assert np.allclose(evaluate_sh(sh, dirs, degree).numpy(), expected, atol=1e-12)
+    sh.requires_grad_(True)
+    dirs.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda s, d: evaluate_sh(s, d, degree), (sh, dirs), eps=1e-6, atol=1e-8)
+
+
 def test_tile_lists_match_a_naive_binning():
     import numpy as np
 
