@@ -41,6 +41,7 @@ _CUTOFF = _f32(RADIUS_SIGMAS**2)
 _INV16 = _f32(1.0 / 16.0)
 _C2, _C3, _C4, _C5, _C6 = _f32(1 / 2), _f32(1 / 3), _f32(1 / 4), _f32(1 / 5), _f32(1 / 6)
 _TILE = TILE_SIZE
+_UTILE = np.uint64(TILE_SIZE)
 _TILE_PIXELS = TILE_SIZE * TILE_SIZE
 #: Tiles check "every pixel stopped" once per this many Gaussians (a reduction over 256 pixels).
 _DONE_CHECK_EVERY = 32
@@ -56,7 +57,7 @@ _BANDS_PER_THREAD = 2
 #: it into the caller's module, whose object code is what ``cache=True`` stores: a freshly compiled kernel and
 #: the same kernel loaded from the cache then summed in different orders (different gradients, a different fit;
 #: issue 16). Without ``reassoc`` the float arithmetic is the order written here, compiled or cached; the pixel
-#: sums that needed ``reassoc`` to vectorize are written as explicit pairwise trees (``_tree_sum``).
+#: sums that needed ``reassoc`` to vectorize are written as explicit pairwise trees (``_range_sum``).
 FASTMATH = frozenset({"nnan", "ninf", "nsz", "arcp", "contract", "afn"})
 _JIT = dict(cache=True, fastmath=set(FASTMATH), nogil=True, error_model="numpy")
 
@@ -73,17 +74,32 @@ def _exp_neg(x):
 
 
 @numba.njit(inline="always", **_JIT)
-def _tree_sum(x):
-    """Sum of the ``_TILE_PIXELS`` (a power of two) values of ``x`` in a fixed pairwise order, overwriting ``x``.
-
-    Each level is an element-wise add of two halves, which LLVM vectorizes without reordering anything.
-    """
-    width = _TILE_PIXELS // 2
+def _range_sum(x, i0, i1, lanes):
+    """Sum of ``x[i0:i1]`` (whole tile rows: both multiples of ``_TILE``) in a fixed order: the rows are added
+    element-wise into ``lanes`` (one row of scratch), in row order, which LLVM vectorizes without reordering; then
+    that row pairwise."""
+    for j in range(_TILE):
+        lanes[j] = _ZERO
+    for i in range(i0, i1, _UTILE):
+        for j in range(_UTILE):
+            lanes[j] = lanes[j] + x[i + j]
+    width = _TILE // 2
     while width > 0:
-        for i in range(width):
-            x[i] = x[i] + x[i + width]
+        for j in range(width):
+            lanes[j] = lanes[j] + lanes[j + width]
         width //= 2
-    return x[0]
+    return lanes[0]
+
+
+@numba.njit(inline="always", **_JIT)
+def _row_range(rows, g, y0):
+    """``[i0, i1)`` (uint64): the pixels (row-major in the tile whose top row is ``y0``) of the tile rows that Gaussian
+    ``g``'s pixel box ``rows[g] = (v_min, v_max)`` covers. The box holds its 3-sigma ellipse with a margin for float32
+    rounding, so every pixel outside the range fails the per-pixel cut-off: skipping it changes nothing. Unsigned, so
+    that numba's indexing has no negative-index wrap-around to check and the pixel loops stay vectorized."""
+    r0 = max(0, np.int64(rows[g, 0]) - y0)
+    r1 = max(r0, min(_TILE - 1, np.int64(rows[g, 1]) - y0) + 1)
+    return np.uint64(r0 * _TILE), np.uint64(r1 * _TILE)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -169,7 +185,8 @@ def _tile_pixels(t, tiles_x, px, py):
 
 
 @numba.njit(parallel=True, **_JIT)
-def _forward_kernel(means2d, conics, opacities, colors, offsets, gids, tiles_x, width, height, accum, trans, stop_pos):
+def _forward_kernel(means2d, conics, opacities, colors, rows, offsets, gids, tiles_x, width, height, accum, trans,
+                    stop_pos):
     num_tiles = offsets.shape[0] - 1
     dim = colors.shape[1]
     for t in prange(num_tiles):
@@ -194,13 +211,14 @@ def _forward_kernel(means2d, conics, opacities, colors, offsets, gids, tiles_x, 
             ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
             op = opacities[g]
             kl = _f32(k - start)
-            for i in range(_TILE_PIXELS):
+            i0, i1 = _row_range(rows, g, y0)
+            for i in range(i0, i1):
                 weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
                 active[i] = active[i] - stop
                 stop_k[i] = stop_k[i] + stop * (kl - stop_k[i])
             for ch in range(dim):
                 col = colors[g, ch]
-                for i in range(_TILE_PIXELS):
+                for i in range(i0, i1):
                     acc[ch, i] += weight[i] * col
         for i in range(_TILE_PIXELS):
             x = x0 + i % _TILE
@@ -214,7 +232,7 @@ def _forward_kernel(means2d, conics, opacities, colors, offsets, gids, tiles_x, 
 
 @numba.njit(parallel=True, **_JIT)
 def _backward_kernel(
-    means2d, conics, opacities, colors, offsets, gids, tiles_x, width, height,
+    means2d, conics, opacities, colors, rows, offsets, gids, tiles_x, width, height,
     accum, trans, stop_pos, grad_accum, grad_alpha, live_start, slot_geo, slot_col,
 ):
     """slot_geo[r] = d(mean x, mean y, conic a, b, c, opacity); slot_col[r] = d(colour) of the i-th intersection of
@@ -249,6 +267,7 @@ def _backward_kernel(
         weight = np.empty(_TILE_PIXELS, np.float32)
         terms = np.empty((6, _TILE_PIXELS), np.float32)  # per-pixel terms of the six geometry gradients
         hit = np.empty(_TILE_PIXELS, np.float32)  # 1 where the Gaussian blends at the pixel
+        lanes = np.empty(_TILE, np.float32)  # scratch of _range_sum
         slot0 = live_start[t] - start
         for k in range(start, start + (live_start[t + 1] - live_start[t])):
             g = gids[k]
@@ -257,13 +276,14 @@ def _backward_kernel(
             cb2 = _TWO * cb
             op = opacities[g]
             kl = _f32(k - start)
-            for i in range(_TILE_PIXELS):
+            i0, i1 = _row_range(rows, g, y0)
+            for i in range(i0, i1):
                 col_dot[i] = _ZERO
             for ch in range(dim):
                 col = colors[g, ch]
-                for i in range(_TILE_PIXELS):
+                for i in range(i0, i1):
                     col_dot[i] += col * g_acc[ch, i]
-            for i in range(_TILE_PIXELS):
+            for i in range(i0, i1):
                 dx = px[i] - mx
                 dy = py[i] - my
                 s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
@@ -293,18 +313,18 @@ def _backward_kernel(
                 c_dot[i] = c_after
                 tr[i] = tr[i] * (_ONE - m * alpha)
             r = slot0 + k
-            if _tree_sum(hit) == _ZERO:  # blends at no pixel: every term is zero, skip the ten sums
+            if _range_sum(hit, i0, i1, lanes) == _ZERO:  # blends at no pixel: every term is zero, skip the ten sums
                 for j in range(6):
                     slot_geo[r, j] = _ZERO
                 for ch in range(dim):
                     slot_col[r, ch] = _ZERO
                 continue
             for j in range(6):
-                slot_geo[r, j] = _tree_sum(terms[j])
+                slot_geo[r, j] = _range_sum(terms[j], i0, i1, lanes)
             for ch in range(dim):
-                for i in range(_TILE_PIXELS):
+                for i in range(i0, i1):
                     terms[0, i] = weight[i] * g_acc[ch, i]
-                slot_col[r, ch] = _tree_sum(terms[0])
+                slot_col[r, ch] = _range_sum(terms[0], i0, i1, lanes)
 
 
 @numba.njit(**_JIT)
@@ -361,7 +381,7 @@ def _sum_slots(offsets, gids, live_start, slot_geo, slot_col, num_gaussians, num
 
 
 @numba.njit(parallel=True, **_JIT)
-def _weights_kernel(means2d, conics, opacities, offsets, gids, tiles_x, width, height, ids, weights, residual):
+def _weights_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, width, height, ids, weights, residual):
     num_tiles = offsets.shape[0] - 1
     top_k = ids.shape[2]
     for t in prange(num_tiles):
@@ -384,10 +404,11 @@ def _weights_kernel(means2d, conics, opacities, offsets, gids, tiles_x, width, h
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
             op = opacities[g]
-            for i in range(_TILE_PIXELS):
+            i0, i1 = _row_range(rows, g, y0)
+            for i in range(i0, i1):
                 weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
                 active[i] = active[i] - stop
-            for i in range(_TILE_PIXELS):
+            for i in range(i0, i1):
                 if weight[i] > _ZERO:
                     x = x0 + i % _TILE
                     y = y0 + i // _TILE
@@ -426,7 +447,7 @@ class _BlendFunction(torch.autograd.Function):
         stop_pos = np.zeros((h, w), np.int32)
         if bins.num_intersections:
             run_parallel(
-                _forward_kernel, m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x, w, h,
+                _forward_kernel, m2, cn, op, col, bins.rows, bins.offsets, bins.gaussian_ids, bins.tiles_x, w, h,
                 accum, trans, stop_pos,
             )
         ctx.bins = bins
@@ -447,7 +468,7 @@ class _BlendFunction(torch.autograd.Function):
         slot_col = np.empty((num, dim), np.float32)
         if num:
             run_parallel(
-                _backward_kernel, m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x,
+                _backward_kernel, m2, cn, op, col, bins.rows, bins.offsets, bins.gaussian_ids, bins.tiles_x,
                 bins.width, bins.height, accum, trans, stop_pos, g_acc, g_alpha, live_start, slot_geo, slot_col,
             )
         # chunk=0 (numba's default): a chunk size also applies to the kernel's implicit parallel zero-fills, which
@@ -483,7 +504,7 @@ def blend_weights_fast(
     residual = np.zeros((h, w), np.float32)
     if bins.num_intersections:
         run_parallel(
-            _weights_kernel, _as_np(means2d), _as_np(conics), _as_np(opacities), bins.offsets, bins.gaussian_ids,
+            _weights_kernel, _as_np(means2d), _as_np(conics), _as_np(opacities), bins.rows, bins.offsets, bins.gaussian_ids,
             bins.tiles_x, w, h, ids, weights, residual,
         )
     return BlendWeights(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(residual))

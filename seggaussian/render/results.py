@@ -36,6 +36,8 @@ class TileBins(NamedTuple):
         offsets: ``[tiles_x * tiles_y + 1]`` int64: tile t holds ``gaussian_ids[offsets[t]:offsets[t + 1]]``;
             tiles are numbered row-major (``t = ty * tiles_x + tx``).
         gaussian_ids: ``[I]`` int32 Gaussian indices, each tile's run sorted by depth (ties: index order).
+        rows: ``[N, 2]`` int32 ``(v_min, v_max)``: the pixel rows of each Gaussian's box (the projection's
+            ``pixel_box``); the kernels skip a tile's rows outside it, where the 3-sigma cut-off fails anyway.
     """
 
     width: int
@@ -44,6 +46,7 @@ class TileBins(NamedTuple):
     tiles_y: int
     offsets: np.ndarray
     gaussian_ids: np.ndarray
+    rows: np.ndarray
 
     @property
     def num_intersections(self) -> int:

@@ -24,6 +24,10 @@ def _selected(projection: Projection, opacities) -> np.ndarray:  # ascending int
     return np.flatnonzero(valid)
 
 
+def _box_rows(projection: Projection) -> np.ndarray:  # [N, 2] int32 (v_min, v_max)
+    return np.ascontiguousarray(projection.pixel_box.detach().cpu().numpy()[:, 1::2], dtype=np.int32)
+
+
 def _tile_grid(width: int, height: int) -> tuple[int, int]:
     return (width + TILE_SIZE - 1) // TILE_SIZE, (height + TILE_SIZE - 1) // TILE_SIZE
 
@@ -40,7 +44,7 @@ def bin_gaussians(
     offsets, ids, _ = bin_sorted(
         idx, projection.depths.detach().cpu().numpy(), projection.pixel_box.detach().cpu().numpy(), TILE_SIZE,
         tiles_x, tiles_y)
-    return TileBins(width, height, tiles_x, tiles_y, offsets, ids)
+    return TileBins(width, height, tiles_x, tiles_y, offsets, ids, _box_rows(projection))
 
 
 def bin_gaussians_argsort(projection: Projection, width: int, height: int, opacities=None) -> TileBins:
@@ -51,4 +55,4 @@ def bin_gaussians_argsort(projection: Projection, width: int, height: int, opaci
     order = idx[np.argsort(depths, kind="stable")].astype(np.int64)
     pixel_box = np.ascontiguousarray(projection.pixel_box.detach().cpu().numpy())
     offsets, ids = fill_tile_lists(order, pixel_box, tiles_x, tiles_y)
-    return TileBins(width, height, tiles_x, tiles_y, offsets, ids)
+    return TileBins(width, height, tiles_x, tiles_y, offsets, ids, _box_rows(projection))

@@ -148,7 +148,8 @@ def test_backward_stores_only_the_live_intersections():
     col = np.zeros((len(op), 1), np.float32)
     accum, trans = np.zeros((24, 32, 1), np.float32), np.ones((24, 32), np.float32)
     stop_pos = np.zeros((24, 32), np.int32)
-    rn._forward_kernel(m2, cn, op, col, bins.offsets, bins.gaussian_ids, bins.tiles_x, 32, 24, accum, trans, stop_pos)
+    rn._forward_kernel(m2, cn, op, col, bins.rows, bins.offsets, bins.gaussian_ids, bins.tiles_x, 32, 24, accum, trans,
+                       stop_pos)
     live = rn._live_slots(bins.offsets, stop_pos, bins.tiles_x, 32, 24)
     assert 0 < live[-1] < bins.num_intersections / 4
 
