@@ -15,6 +15,7 @@ from numba import prange
 from torch import Tensor
 
 from seggaussian.core.constants import MAX_SH_DEGREE, SH_C0, SH_C1, SH_C2, SH_C3
+from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
 
 
 def sh_degree_of(sh: Tensor) -> int:  # sh: [N, num_sh_coeffs, 3]
@@ -88,7 +89,7 @@ class _Contract(torch.autograd.Function):
     def forward(ctx, basis: Tensor, coeffs: Tensor) -> Tensor:
         out = np.empty((basis.shape[0], 3), _np(basis).dtype)
         if basis.shape[0]:
-            _contract_forward(_np(basis), _np(coeffs), out)
+            run_parallel(_contract_forward, _np(basis), _np(coeffs), out, chunk=GAUSSIANS_PER_CHUNK)
         ctx.save_for_backward(basis, coeffs)
         return torch.from_numpy(out)
 
@@ -98,7 +99,8 @@ class _Contract(torch.autograd.Function):
         g_basis = np.empty(tuple(basis.shape), _np(basis).dtype)
         g_coeffs = np.empty(tuple(coeffs.shape), _np(coeffs).dtype)
         if basis.shape[0]:
-            _contract_backward(_np(basis), _np(coeffs), _np(grad.to(basis.dtype)), g_basis, g_coeffs)
+            run_parallel(_contract_backward, _np(basis), _np(coeffs), _np(grad.to(basis.dtype)), g_basis, g_coeffs,
+                         chunk=GAUSSIANS_PER_CHUNK)
         return torch.from_numpy(g_basis), torch.from_numpy(g_coeffs)
 
 
