@@ -49,8 +49,6 @@ _DONE_CHECK_EVERY = 32
 _PARALLEL_CHUNK = 2
 #: Gaussians handed to a thread at a time in per-Gaussian loops (uniform work: large chunks).
 GAUSSIANS_PER_CHUNK = 4096
-#: Bands of tile rows per thread when filling the tile lists (a few, for load balance).
-_BANDS_PER_THREAD = 2
 
 #: Fast-math flags of every kernel: all of LLVM's except ``reassoc``. With ``reassoc`` the optimizer may reorder
 #: float sums, and numba optimizes a ``prange`` body once when it compiles it fresh and once more when it links
@@ -122,56 +120,6 @@ def _blend_step(dx, dy, ca, cb2, cc, op, tr, active):
     stop = m * _f32(tr * (_ONE - alpha) < _T_MIN)
     m = m - stop
     return m * alpha * tr, tr * (_ONE - m * alpha), stop
-
-
-@numba.njit(parallel=True, **_JIT)
-def _gather_tile_boxes(order, pixel_box, tile_size):
-    """Tile boxes of the Gaussians in ``order`` (one random read per Gaussian, in parallel)."""
-    boxes = np.empty((order.shape[0], 4), np.int32)
-    for j in prange(order.shape[0]):
-        g = order[j]
-        for k in range(4):
-            boxes[j, k] = pixel_box[g, k] // tile_size
-    return boxes
-
-
-@numba.njit(parallel=True, **_JIT)
-def _fill_sorted(order, boxes, tiles_x, tiles_y, num_bands):
-    """Counting sort into tiles, parallel over bands of tile rows (each band owns its tiles: no races,
-    and every tile receives its Gaussians in ``order``, as a serial fill would)."""
-    num_tiles = tiles_x * tiles_y
-    band_rows = (tiles_y + num_bands - 1) // num_bands
-    counts = np.zeros(num_tiles + 1, np.int64)
-    for band in prange(num_bands):
-        r0 = band * band_rows
-        r1 = min(tiles_y, r0 + band_rows) - 1
-        for j in range(order.shape[0]):
-            for ty in range(max(boxes[j, 1], r0), min(boxes[j, 3], r1) + 1):
-                for tx in range(boxes[j, 0], boxes[j, 2] + 1):
-                    counts[ty * tiles_x + tx + 1] += 1
-    for t in range(num_tiles):
-        counts[t + 1] += counts[t]
-    cursor = counts[:-1].copy()
-    ids = np.empty(counts[num_tiles], np.int32)
-    for band in prange(num_bands):
-        r0 = band * band_rows
-        r1 = min(tiles_y, r0 + band_rows) - 1
-        for j in range(order.shape[0]):
-            g = order[j]
-            for ty in range(max(boxes[j, 1], r0), min(boxes[j, 3], r1) + 1):
-                for tx in range(boxes[j, 0], boxes[j, 2] + 1):
-                    t = ty * tiles_x + tx
-                    ids[cursor[t]] = g
-                    cursor[t] += 1
-    return counts, ids
-
-
-def fill_tile_lists(order: np.ndarray, pixel_box: np.ndarray, tiles_x: int, tiles_y: int):
-    """CSR tile lists: Gaussians visited in ``order`` (front to back) appended to every tile their
-    inclusive pixel box ``(u0, v0, u1, v1)`` touches. Returns (offsets [T + 1] int64, ids [I] int32)."""
-    boxes = run_parallel(_gather_tile_boxes, order, pixel_box, TILE_SIZE, chunk=GAUSSIANS_PER_CHUNK)
-    num_bands = min(tiles_y, _BANDS_PER_THREAD * numba.get_num_threads())
-    return run_parallel(_fill_sorted, order, boxes, tiles_x, tiles_y, num_bands, chunk=1)
 
 
 @numba.njit(inline="always", **_JIT)

@@ -11,9 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from seggaussian.core.constants import ALPHA_MIN, TILE_SIZE
-from seggaussian.render.binning_numba import bin_sorted
+from seggaussian.render.binning_numba import bin_sorted, fill_tile_lists
 from seggaussian.render.projection import Projection
-from seggaussian.render.rasterize_numba import fill_tile_lists
 from seggaussian.render.results import TileBins
 
 
