@@ -3,7 +3,7 @@
 #   synth -> build (a CPU 3DGS fit of every room, labels, label maps, shards) -> split -> train (short) -> bench -> predict.
 # Everything trains and scores on fitted splats, as users bring scenes (oracle Gaussians sampled on the mesh are a
 # control: `seggaussian build --gaussians oracle`).
-# About 1,000 s of CPU (28 min wall measured under load 4-8; a quiet timing is due, BENCHMARKS.md); every knob can be overridden from the environment.
+# About 790 s of CPU, 611 s wall on a quiet 2-core machine (BENCHMARKS.md "Fitted splats"); every knob can be overridden from the environment.
 # Prints the Table-1 row of the trained run next to two non-learned baselines scored by the same code.
 set -euo pipefail
 cd "$(dirname "$0")/.."
