@@ -196,3 +196,35 @@ def test_projection_binning_and_gradients_identical_for_1_and_2_numba_threads():
         digests.append(res.stdout.strip().splitlines()[-1])
     assert int(digests[0].split()[0]) > 0
     assert digests[0] == digests[1]
+
+
+@pytest.mark.parametrize("seed, scale_shift", [(21, -1.5), (22, 0.0), (23, 1.0)])
+def test_skipping_the_rows_outside_a_box_changes_nothing(seed, scale_shift):
+    """The kernels skip a tile's rows outside each Gaussian's pixel box (``TileBins.rows``). With every box widened to
+    the whole image no row is skipped: the forward must give the same bits, the blend weights too, and the backward
+    the same gradients up to float32 summation order. Small, mid-sized and large Gaussians (boxes within one tile
+    row band, across tile edges, and over whole tiles)."""
+    import seggaussian.render.rasterize_numba as rn
+
+    w, h = 70, 45  # tiles cut by the image edge on both axes
+    scene = random_scene(600, seed, spread=1.0)
+    scene["log_scales"] = scene["log_scales"] + scale_shift
+    viewmat, K = camera(w, h)
+    proj = project_gaussians_fast(scene["means"], scene["quats"], scene["log_scales"], viewmat, K, w, h)
+    opacities = torch.sigmoid(scene["opacity_logits"])
+    bins = bin_gaussians(proj, w, h, opacities)
+    whole = bins._replace(rows=np.tile(np.array([[0, h - 1]], np.int32), (len(bins.rows), 1)))
+    assert (bins.rows[:, 1] - bins.rows[:, 0] < h - 1).any()  # some boxes do skip rows
+    colors = torch.rand(len(opacities), 4, generator=torch.Generator().manual_seed(seed))
+    results = []
+    for b in (bins, whole):
+        leaves = [x.detach().clone().requires_grad_(True) for x in (proj.means2d, proj.conics, opacities, colors)]
+        accum, alpha = rn.blend_fast(*leaves, b)
+        (accum.square().sum() + alpha.sum()).backward()
+        weights = rn.blend_weights_fast(proj.means2d, proj.conics, opacities, b, 8)
+        results.append((accum.detach(), alpha.detach(), weights, [x.grad for x in leaves]))
+    (acc_a, alpha_a, w_a, g_a), (acc_b, alpha_b, w_b, g_b) = results
+    assert torch.equal(acc_a, acc_b) and torch.equal(alpha_a, alpha_b)
+    assert all(torch.equal(x, y) for x, y in zip(w_a, w_b))
+    for x, y in zip(g_a, g_b):
+        assert torch.allclose(x, y, rtol=1e-4, atol=1e-5 * float(y.abs().max()))
