@@ -42,6 +42,7 @@ _INV16 = _f32(1.0 / 16.0)
 _C2, _C3, _C4, _C5, _C6 = _f32(1 / 2), _f32(1 / 3), _f32(1 / 4), _f32(1 / 5), _f32(1 / 6)
 _TILE = TILE_SIZE
 _UTILE = np.uint64(TILE_SIZE)
+_U0, _U1, _U2 = np.uint64(0), np.uint64(1), np.uint64(2)
 _TILE_PIXELS = TILE_SIZE * TILE_SIZE
 #: Tiles check "every pixel stopped" once per this many Gaussians (a reduction over 256 pixels).
 _DONE_CHECK_EVERY = 32
@@ -72,21 +73,30 @@ def _exp_neg(x):
 
 
 @numba.njit(inline="always", **_JIT)
-def _range_sum(x, i0, i1, lanes):
-    """Sum of ``x[i0:i1]`` (whole tile rows: both multiples of ``_TILE``) in a fixed order: the rows are added
-    element-wise into ``lanes`` (one row of scratch), in row order, which LLVM vectorizes without reordering; then
-    that row pairwise."""
-    for j in range(_TILE):
-        lanes[j] = _ZERO
-    for i in range(i0, i1, _UTILE):
-        for j in range(_UTILE):
-            lanes[j] = lanes[j] + x[i + j]
-    width = _TILE // 2
-    while width > 0:
-        for j in range(width):
-            lanes[j] = lanes[j] + lanes[j + width]
-        width //= 2
-    return lanes[0]
+def _fold(x, dst, src, count):
+    """``x[dst:dst + count] += x[src:src + count]`` (non-overlapping ranges): an element-wise, vectorized add."""
+    for q in range(count):
+        x[dst + q] = x[dst + q] + x[src + q]
+
+
+@numba.njit(inline="always", **_JIT)
+def _range_sum(x, i0, i1):
+    """Sum of ``x[i0:i1]`` (uint64 bounds, whole tile rows: both multiples of ``_TILE``), overwriting it, in a fixed
+    order: the upper half of the rows is folded onto the lower half until one row is left, then that row's upper
+    half onto its lower half down to one value. Each fold is an element-wise add, which LLVM vectorizes without
+    reordering anything, and the order depends on the number of rows only: the same for any thread count."""
+    rows = (i1 - i0) // _UTILE
+    if rows == _U0:
+        return _ZERO
+    while rows > _U1:
+        half = rows // _U2
+        _fold(x, i0, i0 + (rows - half) * _UTILE, half * _UTILE)
+        rows = rows - half
+    width = _UTILE // _U2
+    while width > _U0:
+        _fold(x, i0, i0 + width, width)
+        width = width // _U2
+    return x[i0]
 
 
 @numba.njit(inline="always", **_JIT)
@@ -178,6 +188,17 @@ def _forward_kernel(means2d, conics, opacities, colors, rows, offsets, gids, til
                     accum[y, x, ch] = acc[ch, i]
 
 
+# The backward kernel keeps its per-pixel state in one flat array, one 256-pixel segment per quantity at these
+# (unsigned, constant) offsets. As separate arrays, the pixel loop reads and writes so many that LLVM gave up the
+# runtime overlap checks its vectorization needed and ran it one pixel at a time; segments of one array at
+# constant distances >= the trip count need no check.
+_S = np.uint64(_TILE_PIXELS)
+_PX, _PY, _STOP, _GFIN, _GALPHA, _TFIN, _TR, _CDOT, _COLDOT, _WEIGHT, _HIT = (np.uint64(q) * _S for q in range(11))
+_TERMS = tuple(np.uint64(11 + q) * _S for q in range(6))
+_T0, _T1, _T2, _T3, _T4, _T5 = _TERMS
+_STATE = 17 * _TILE_PIXELS
+
+
 @numba.njit(parallel=True, **_JIT)
 def _backward_kernel(
     means2d, conics, opacities, colors, rows, offsets, gids, tiles_x, width, height,
@@ -191,31 +212,27 @@ def _backward_kernel(
         start, end = offsets[t], offsets[t + 1]
         if end == start:
             continue
-        px = np.empty(_TILE_PIXELS, np.float32)
-        py = np.empty(_TILE_PIXELS, np.float32)
-        x0, y0 = _tile_pixels(t, tiles_x, px, py)
+        st = np.zeros(_STATE, np.float32)  # per-pixel state, segments at _PX, _PY, ... (above)
         g_acc = np.zeros((dim, _TILE_PIXELS), np.float32)
-        g_alpha = np.zeros(_TILE_PIXELS, np.float32)
-        t_final = np.ones(_TILE_PIXELS, np.float32)
-        stop_k = np.zeros(_TILE_PIXELS, np.float32)  # pixels outside the image never blend
-        g_final = np.zeros(_TILE_PIXELS, np.float32)  # C_final . dL/dC
+        ty = t // tiles_x
+        x0, y0 = (t - ty * tiles_x) * _TILE, ty * _TILE
         for i in range(_TILE_PIXELS):
+            u = np.uint64(i)
             x = x0 + i % _TILE
             y = y0 + i // _TILE
-            if x < width and y < height:
-                g_alpha[i] = grad_alpha[y, x]
-                t_final[i] = trans[y, x]
-                stop_k[i] = _f32(stop_pos[y, x])
+            st[_PX + u] = _f32(x) + _HALF
+            st[_PY + u] = _f32(y) + _HALF
+            st[_TFIN + u] = _ONE
+            st[_TR + u] = _ONE
+            if x < width and y < height:  # pixels outside the image never blend (stop position 0)
+                st[_GALPHA + u] = grad_alpha[y, x]
+                st[_TFIN + u] = trans[y, x]
+                st[_STOP + u] = _f32(stop_pos[y, x])
+                g_final = _ZERO  # C_final . dL/dC
                 for ch in range(dim):
                     g_acc[ch, i] = grad_accum[y, x, ch]
-                    g_final[i] += accum[y, x, ch] * grad_accum[y, x, ch]
-        tr = np.ones(_TILE_PIXELS, np.float32)
-        c_dot = np.zeros(_TILE_PIXELS, np.float32)  # C_up_to_here . dL/dC
-        col_dot = np.empty(_TILE_PIXELS, np.float32)
-        weight = np.empty(_TILE_PIXELS, np.float32)
-        terms = np.empty((6, _TILE_PIXELS), np.float32)  # per-pixel terms of the six geometry gradients
-        hit = np.empty(_TILE_PIXELS, np.float32)  # 1 where the Gaussian blends at the pixel
-        lanes = np.empty(_TILE, np.float32)  # scratch of _range_sum
+                    g_final += accum[y, x, ch] * grad_accum[y, x, ch]
+                st[_GFIN + u] = g_final
         slot0 = live_start[t] - start
         for k in range(start, start + (live_start[t + 1] - live_start[t])):
             g = gids[k]
@@ -226,14 +243,15 @@ def _backward_kernel(
             kl = _f32(k - start)
             i0, i1 = _row_range(rows, g, y0)
             for i in range(i0, i1):
-                col_dot[i] = _ZERO
+                st[_COLDOT + i] = _ZERO
             for ch in range(dim):
                 col = colors[g, ch]
+                g_acc_ch = g_acc[ch]
                 for i in range(i0, i1):
-                    col_dot[i] += col * g_acc[ch, i]
+                    st[_COLDOT + i] += col * g_acc_ch[i]
             for i in range(i0, i1):
-                dx = px[i] - mx
-                dy = py[i] - my
+                dx = st[_PX + i] - mx
+                dy = st[_PY + i] - my
                 s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
                 inside = _f32(s <= _CUTOFF)
                 positive = _f32(s > _ZERO)
@@ -242,37 +260,44 @@ def _backward_kernel(
                 alpha = op * e
                 over = _f32(alpha > _ALPHA_MAX)
                 alpha = alpha + over * (_ALPHA_MAX - alpha)
-                m = inside * _f32(alpha >= _ALPHA_MIN) * _f32(kl < stop_k[i])
-                w = m * alpha * tr[i]
-                weight[i] = w
-                hit[i] = m
-                c_after = c_dot[i] + w * col_dot[i]
+                m = inside * _f32(alpha >= _ALPHA_MIN) * _f32(kl < st[_STOP + i])
+                tr = st[_TR + i]
+                col_dot = st[_COLDOT + i]
+                w = m * alpha * tr
+                st[_WEIGHT + i] = w
+                st[_HIT + i] = m
+                c_after = st[_CDOT + i] + w * col_dot
                 inv_one_minus = _ONE / (_ONE - alpha)
-                d_alpha = tr[i] * col_dot[i] - (g_final[i] - c_after) * inv_one_minus
-                d_alpha = d_alpha + g_alpha[i] * t_final[i] * inv_one_minus
+                d_alpha = tr * col_dot - (st[_GFIN + i] - c_after) * inv_one_minus
+                d_alpha = d_alpha + st[_GALPHA + i] * st[_TFIN + i] * inv_one_minus
                 d_alpha = d_alpha * m * (_ONE - over)
                 d_s = -_HALF * d_alpha * op * e * positive
-                terms[0, i] = -d_s * (_TWO * ca * dx + cb2 * dy)
-                terms[1, i] = -d_s * (cb2 * dx + _TWO * cc * dy)
-                terms[2, i] = d_s * dx * dx
-                terms[3, i] = d_s * _TWO * dx * dy
-                terms[4, i] = d_s * dy * dy
-                terms[5, i] = d_alpha * e
-                c_dot[i] = c_after
-                tr[i] = tr[i] * (_ONE - m * alpha)
+                st[_T0 + i] = -d_s * (_TWO * ca * dx + cb2 * dy)
+                st[_T1 + i] = -d_s * (cb2 * dx + _TWO * cc * dy)
+                st[_T2 + i] = d_s * dx * dx
+                st[_T3 + i] = d_s * _TWO * dx * dy
+                st[_T4 + i] = d_s * dy * dy
+                st[_T5 + i] = d_alpha * e
+                st[_CDOT + i] = c_after
+                st[_TR + i] = tr * (_ONE - m * alpha)
             r = slot0 + k
-            if _range_sum(hit, i0, i1, lanes) == _ZERO:  # blends at no pixel: every term is zero, skip the ten sums
-                for j in range(6):
-                    slot_geo[r, j] = _ZERO
+            if _range_sum(st, _HIT + i0, _HIT + i1) == _ZERO:  # blends at no pixel: all terms zero
+                for q in range(6):
+                    slot_geo[r, q] = _ZERO
                 for ch in range(dim):
                     slot_col[r, ch] = _ZERO
                 continue
-            for j in range(6):
-                slot_geo[r, j] = _range_sum(terms[j], i0, i1, lanes)
+            slot_geo[r, 0] = _range_sum(st, _T0 + i0, _T0 + i1)
+            slot_geo[r, 1] = _range_sum(st, _T1 + i0, _T1 + i1)
+            slot_geo[r, 2] = _range_sum(st, _T2 + i0, _T2 + i1)
+            slot_geo[r, 3] = _range_sum(st, _T3 + i0, _T3 + i1)
+            slot_geo[r, 4] = _range_sum(st, _T4 + i0, _T4 + i1)
+            slot_geo[r, 5] = _range_sum(st, _T5 + i0, _T5 + i1)
             for ch in range(dim):
+                g_acc_ch = g_acc[ch]
                 for i in range(i0, i1):
-                    terms[0, i] = weight[i] * g_acc[ch, i]
-                slot_col[r, ch] = _range_sum(terms[0], i0, i1, lanes)
+                    st[_T0 + i] = st[_WEIGHT + i] * g_acc_ch[i]
+                slot_col[r, ch] = _range_sum(st, _T0 + i0, _T0 + i1)
 
 
 @numba.njit(**_JIT)
