@@ -2,7 +2,8 @@
 
 The basis is the one ``seggaussian.render.sh.evaluate_sh`` evaluates, signs included: band 1 is
 ``(-C1 y, C1 z, -C1 x)``, bands 2 and 3 carry the signed constants ``SH_C2``, ``SH_C3`` of
-``seggaussian.core.constants``. ``sh_basis`` below is the same polynomial basis in numpy (the tests check the two agree).
+``seggaussian.core.constants``. ``basis_columns`` below is the one copy of those polynomials; ``sh_basis`` evaluates
+them in numpy, ``seggaussian.render.sh.sh_basis`` in torch.
 
 For an orthogonal ``M`` (a rotation, or a reflection with det -1) each band ``l`` is mapped onto itself:
 ``Y_l(M d) = D_l(M) Y_l(d)`` for every unit direction ``d``, with ``D_l(M)`` orthogonal (the basis is orthonormal up
@@ -72,30 +73,35 @@ def check_orthogonal(rotation, name: str = "rotation") -> np.ndarray:
     return m
 
 
-def sh_basis(dirs, degree: int) -> np.ndarray:
-    """``[P, (degree+1)^2]`` float64: the 3DGS real SH basis at unit directions ``dirs`` ``[P, 3]``.
-
-    Column ``k`` is the function that multiplies coefficient ``sh[:, k]`` in ``evaluate_sh`` (same polynomials,
-    constants and signs)."""
-    degree = _check_degree(degree)
-    d = np.asarray(dirs, dtype=np.float64)
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    columns = [np.full_like(x, SH_C0)]
+def basis_columns(x, y, z, ones, degree: int) -> list:
+    """The ``(degree + 1)^2`` basis functions at the direction components ``x, y, z`` (numpy arrays or torch tensors
+    of one shape; ``ones`` of that shape too), in coefficient order: the one copy of the 3DGS polynomials, constants
+    and signs, shared by ``sh_basis`` here (numpy) and ``seggaussian.render.sh.sh_basis`` (torch, differentiable)."""
+    columns = [SH_C0 * ones]
     if degree >= 1:
         columns += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         columns += [
-            SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * x * z,
-            SH_C2[4] * (xx - yy),
+            SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy),
         ]
     if degree >= 3:
         columns += [
-            SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * x * y * z, SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4.0 * zz - xx - yy),
             SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), SH_C3[4] * x * (4.0 * zz - xx - yy),
             SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy),
         ]
-    return np.stack(columns, axis=1)
+    return columns
+
+
+def sh_basis(dirs, degree: int) -> np.ndarray:
+    """``[P, (degree+1)^2]`` float64: the 3DGS real SH basis at unit directions ``dirs`` ``[P, 3]``.
+
+    Column ``k`` is the function that multiplies coefficient ``sh[:, k]`` in ``evaluate_sh`` (``basis_columns``)."""
+    degree = _check_degree(degree)
+    d = np.asarray(dirs, dtype=np.float64)
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    return np.stack(basis_columns(x, y, z, np.ones_like(x), degree), axis=1)
 
 
 def fibonacci_directions(count: int) -> np.ndarray:

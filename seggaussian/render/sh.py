@@ -14,7 +14,8 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from seggaussian.core.constants import MAX_SH_DEGREE, SH_C0, SH_C1, SH_C2, SH_C3
+from seggaussian.core.constants import MAX_SH_DEGREE
+from seggaussian.frames.sh_rotation import basis_columns
 from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
 
 
@@ -31,23 +32,9 @@ def sh_basis(
     degree: int,
 ) -> Tensor:  # [N, (degree + 1)^2]
     """The real SH basis of bands 0..degree at ``dirs``: column ``k`` multiplies coefficient ``sh[:, k]``
-    (the 3DGS reference's polynomials and signs; differentiable in ``dirs``)."""
+    (the polynomials of ``frames.sh_rotation.basis_columns``, in torch: differentiable in ``dirs``)."""
     x, y, z = (dirs[:, i : i + 1] for i in range(3))
-    columns = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        columns += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        columns += [
-            SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        columns += [
-            SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4.0 * zz - xx - yy),
-            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), SH_C3[4] * x * (4.0 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy),
-        ]
-    return torch.cat(columns, 1)
+    return torch.cat(basis_columns(x, y, z, torch.ones_like(x), degree), 1)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

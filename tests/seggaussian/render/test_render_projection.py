@@ -87,8 +87,10 @@ def test_sh_matches_direct_basis_formula():
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_evaluate_sh_matches_the_numpy_basis_and_gradcheck(degree):
-    """The one-product evaluation against the per-coefficient sum of the frames module's numpy basis, with bands above
-    ``degree`` ignored; gradients (coefficients and directions) by finite differences."""
+    """The compiled contraction (float64) against the per-coefficient sum over the numpy evaluation of the same
+    polynomials (``frames.sh_rotation.sh_basis``), with bands above ``degree`` ignored; gradients (coefficients and
+    directions) by finite differences. The polynomials themselves are checked by the rotation tests of
+    tests/seggaussian/frames (each band maps onto itself under any rotation) and the explicit band-1 test above."""
     import numpy as np
 
     from seggaussian.frames.sh_rotation import sh_basis as numpy_basis
