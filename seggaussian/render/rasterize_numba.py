@@ -56,7 +56,7 @@ GAUSSIANS_PER_CHUNK = 4096
 #: it into the caller's module, whose object code is what ``cache=True`` stores: a freshly compiled kernel and
 #: the same kernel loaded from the cache then summed in different orders (different gradients, a different fit;
 #: issue 16). Without ``reassoc`` the float arithmetic is the order written here, compiled or cached; the pixel
-#: sums that needed ``reassoc`` to vectorize are written as explicit pairwise trees (``_range_sum``).
+#: sums that needed ``reassoc`` to vectorize are written as explicit element-wise folds (``_range_sum``).
 FASTMATH = frozenset({"nnan", "ninf", "nsz", "arcp", "contract", "afn"})
 _JIT = dict(cache=True, fastmath=set(FASTMATH), nogil=True, error_model="numpy")
 
@@ -133,13 +133,20 @@ def _blend_step(dx, dy, ca, cb2, cc, op, tr, active):
 
 
 @numba.njit(inline="always", **_JIT)
-def _tile_pixels(t, tiles_x, px, py):
+def _tile_origin(t, tiles_x):
+    """Top-left pixel ``(x0, y0)`` of tile ``t`` (tiles numbered row-major)."""
     ty = t // tiles_x
-    tx = t - ty * tiles_x
+    return (t - ty * tiles_x) * _TILE, ty * _TILE
+
+
+@numba.njit(inline="always", **_JIT)
+def _tile_pixels(t, tiles_x, px, py):
+    """Pixel-centre coordinates of tile ``t``'s pixels (row-major) into ``px``, ``py``; returns its origin."""
+    x0, y0 = _tile_origin(t, tiles_x)
     for i in range(_TILE_PIXELS):
-        px[i] = _f32(tx * _TILE + (i % _TILE)) + _HALF
-        py[i] = _f32(ty * _TILE + (i // _TILE)) + _HALF
-    return tx * _TILE, ty * _TILE
+        px[i] = _f32(x0 + (i % _TILE)) + _HALF
+        py[i] = _f32(y0 + (i // _TILE)) + _HALF
+    return x0, y0
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -194,8 +201,7 @@ def _forward_kernel(means2d, conics, opacities, colors, rows, offsets, gids, til
 # constant distances >= the trip count need no check.
 _S = np.uint64(_TILE_PIXELS)
 _PX, _PY, _STOP, _GFIN, _GALPHA, _TFIN, _TR, _CDOT, _COLDOT, _WEIGHT, _HIT = (np.uint64(q) * _S for q in range(11))
-_TERMS = tuple(np.uint64(11 + q) * _S for q in range(6))
-_T0, _T1, _T2, _T3, _T4, _T5 = _TERMS
+_T0, _T1, _T2, _T3, _T4, _T5 = (np.uint64(11 + q) * _S for q in range(6))  # the six geometry gradient terms
 _STATE = 17 * _TILE_PIXELS
 
 
@@ -214,8 +220,7 @@ def _backward_kernel(
             continue
         st = np.zeros(_STATE, np.float32)  # per-pixel state, segments at _PX, _PY, ... (above)
         g_acc = np.zeros((dim, _TILE_PIXELS), np.float32)
-        ty = t // tiles_x
-        x0, y0 = (t - ty * tiles_x) * _TILE, ty * _TILE
+        x0, y0 = _tile_origin(t, tiles_x)
         for i in range(_TILE_PIXELS):
             u = np.uint64(i)
             x = x0 + i % _TILE
@@ -311,11 +316,10 @@ def _live_slots(offsets, stop_pos, tiles_x, width, height):
         count = offsets[t + 1] - offsets[t]
         if count == 0:
             continue
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
+        x0, y0 = _tile_origin(t, tiles_x)
         max_stop = 0
-        for y in range(ty * _TILE, min(height, ty * _TILE + _TILE)):
-            for x in range(tx * _TILE, min(width, tx * _TILE + _TILE)):
+        for y in range(y0, min(height, y0 + _TILE)):
+            for x in range(x0, min(width, x0 + _TILE)):
                 max_stop = max(max_stop, np.int64(stop_pos[y, x]))
         live[t + 1] = min(count, max_stop)
     for t in range(num_tiles):

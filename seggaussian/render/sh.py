@@ -74,19 +74,20 @@ class _Contract(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, basis: Tensor, coeffs: Tensor) -> Tensor:
-        out = np.empty((basis.shape[0], 3), _np(basis).dtype)
-        if basis.shape[0]:
-            run_parallel(_contract_forward, _np(basis), _np(coeffs), out, chunk=GAUSSIANS_PER_CHUNK)
+        b, c = _np(basis), _np(coeffs)
+        out = np.empty((b.shape[0], 3), b.dtype)
+        if b.shape[0]:
+            run_parallel(_contract_forward, b, c, out, chunk=GAUSSIANS_PER_CHUNK)
         ctx.save_for_backward(basis, coeffs)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         basis, coeffs = ctx.saved_tensors
-        g_basis = np.empty(tuple(basis.shape), _np(basis).dtype)
-        g_coeffs = np.empty(tuple(coeffs.shape), _np(coeffs).dtype)
-        if basis.shape[0]:
-            run_parallel(_contract_backward, _np(basis), _np(coeffs), _np(grad.to(basis.dtype)), g_basis, g_coeffs,
+        b, c = _np(basis), _np(coeffs)
+        g_basis, g_coeffs = np.empty_like(b), np.empty_like(c)
+        if b.shape[0]:
+            run_parallel(_contract_backward, b, c, _np(grad.to(basis.dtype)), g_basis, g_coeffs,
                          chunk=GAUSSIANS_PER_CHUNK)
         return torch.from_numpy(g_basis), torch.from_numpy(g_coeffs)
 
