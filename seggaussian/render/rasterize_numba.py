@@ -118,7 +118,9 @@ def _blend_step(dx, dy, ca, cb2, cc, op, tr, active):
     ``op``: opacity; ``tr``: transmittance before this Gaussian; ``active``: 1 while the pixel still blends.
     Returns ``(weight, tr_after, stop)``: the blend weight ``alpha * tr`` (0 when skipped), the transmittance after
     it, and 1 where this Gaussian would push the transmittance below ``TRANSMITTANCE_MIN`` (the pixel stops before
-    it). The one copy of the rule for every blending kernel, so their weights agree bit for bit.
+    it). The one copy of the rule for every forward walk (forward, blend weights, pixel weights), so their weights
+    agree bit for bit. The backward kernel replays the same steps inline, because it needs their intermediates
+    (``e``, the clamp flag) for the derivatives; the reference tests hold the two to one rule.
     """
     s = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
     inside = _f32(s <= _CUTOFF)
