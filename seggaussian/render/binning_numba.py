@@ -26,7 +26,7 @@ import numpy as np
 from numba import prange
 
 from seggaussian.core.constants import TILE_SIZE
-from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
+from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
 
 _JIT = dict(cache=True, nogil=True)
 

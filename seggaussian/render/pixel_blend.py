@@ -31,10 +31,8 @@ from seggaussian.core.constants import TILE_SIZE
 from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights
 from seggaussian.render.inputs import check_inputs
 from seggaussian.render.projection_numba import project_gaussians_fast
-from seggaussian.render.rasterize_numba import (
-    _DONE_CHECK_EVERY, _HALF, _JIT, _TWO, _ZERO, _blend_step, _f32,
-    run_parallel,
-)
+from seggaussian.render.parallel import run_parallel
+from seggaussian.render.rasterize_numba import _DONE_CHECK_EVERY, _HALF, _JIT, _TWO, _ZERO, _blend_step, _f32
 from seggaussian.render.results import BlendWeights, TileBins
 from seggaussian.render.tiles import bin_gaussians
 

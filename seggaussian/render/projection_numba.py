@@ -33,7 +33,7 @@ from seggaussian.render.projection import (
     Projection,
     camera_centre,
 )
-from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
+from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 

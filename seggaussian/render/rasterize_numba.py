@@ -18,8 +18,7 @@ guarantees for the Gaussians it marks valid (only those are binned).
 
 The kernels use numba's parallel threading layer: calling them in a forked child of a process that
 already ran one (e.g. a DataLoader worker) can kill the child; use the ``spawn`` start method or no
-worker processes. ``run_parallel`` restores torch's thread count, which numba's first parallel call
-may reset.
+worker processes. Every kernel is called through ``parallel.run_parallel``.
 """
 
 from __future__ import annotations
@@ -31,6 +30,7 @@ from numba import prange
 from torch import Tensor
 
 from seggaussian.core.constants import ALPHA_MAX, ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE, TRANSMITTANCE_MIN
+from seggaussian.render.parallel import run_parallel
 from seggaussian.render.results import BlendWeights, TileBins
 
 _f32 = np.float32
@@ -46,10 +46,6 @@ _U0, _U1, _U2 = np.uint64(0), np.uint64(1), np.uint64(2)
 _TILE_PIXELS = TILE_SIZE * TILE_SIZE
 #: Tiles check "every pixel stopped" once per this many Gaussians (a reduction over 256 pixels).
 _DONE_CHECK_EVERY = 32
-#: Tiles handed to a thread at a time (tiles differ widely in work; small chunks balance the load).
-_PARALLEL_CHUNK = 2
-#: Gaussians handed to a thread at a time in per-Gaussian loops (uniform work: large chunks).
-GAUSSIANS_PER_CHUNK = 4096
 
 #: Fast-math flags of every kernel: all of LLVM's except ``reassoc``. With ``reassoc`` the optimizer may reorder
 #: float sums, and numba optimizes a ``prange`` body once when it compiles it fresh and once more when it links
@@ -402,16 +398,6 @@ def _weights_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, wi
 def _as_np(x: Tensor) -> np.ndarray:
     """float32 contiguous numpy copy/view (converted by numpy: no torch thread synchronization)."""
     return np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float32)
-
-
-def run_parallel(kernel, *args, chunk: int = _PARALLEL_CHUNK):
-    """Call a parallel numba kernel with a small work chunk, keeping torch's thread count unchanged."""
-    threads = torch.get_num_threads()
-    with numba.parallel_chunksize(chunk):
-        result = kernel(*args)
-    if torch.get_num_threads() != threads:  # numba's OpenMP layer may reset torch's thread count
-        torch.set_num_threads(threads)
-    return result
 
 
 class _BlendFunction(torch.autograd.Function):

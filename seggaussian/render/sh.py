@@ -16,7 +16,7 @@ from torch import Tensor
 
 from seggaussian.core.constants import MAX_SH_DEGREE
 from seggaussian.frames.sh_rotation import basis_columns
-from seggaussian.render.rasterize_numba import GAUSSIANS_PER_CHUNK, run_parallel
+from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
 
 
 def sh_degree_of(sh: Tensor) -> int:  # sh: [N, num_sh_coeffs, 3]
