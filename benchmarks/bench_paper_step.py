@@ -173,7 +173,8 @@ def run(args) -> dict:
     from ovgaussian.text.vocabulary import training_vocabulary
 
     t_setup = time.perf_counter()
-    config = TrainConfig(model_preset=args.preset, data=DataConfig(pixels_per_view=args.pixels))
+    config = TrainConfig(model_preset=args.preset,
+                         data=DataConfig(pixels_per_view=args.pixels, loss_gaussians=args.loss_gaussians))
     vocabulary = training_vocabulary(20)
     records = [make_room(s, args.gaussians) for s in range(args.scenes)]
     data = TrainingData(InMemorySource(records), config.data, vocabulary)
@@ -214,7 +215,7 @@ def run(args) -> dict:
     phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
     return {
         "workload": {"scenes": args.scenes, "gaussians_per_scene": args.gaussians, "image": f"{HEIGHT}x{WIDTH}",
-                     "pixels_per_view": args.pixels, "preset": args.preset,
+                     "pixels_per_view": args.pixels, "preset": args.preset, "loss_gaussians": args.loss_gaussians,
                      "parameters": sum(p.numel() for p in net.parameters())},
         "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "platform": platform.platform(),
                     "loadavg_at_end": os.getloadavg(),
@@ -288,6 +289,8 @@ def main() -> int:
     parser.add_argument("--scenes", type=int, default=3)
     parser.add_argument("--pixels", type=int, default=16384, help="sampled pixels per view")
     parser.add_argument("--preset", default="default", choices=("default", "slim"))
+    parser.add_argument("--loss-gaussians", type=int, default=None, metavar="L",
+                        help="Gaussians per scene in the 3D-to-text loss (DataConfig.loss_gaussians); default all")
     parser.add_argument("--steps", type=int, default=2, help="measured steps after one warm-up step")
     parser.add_argument("--max-peak-gb", type=float, default=8.0, help="budget: peak resident memory (issue 31)")
     parser.add_argument("--max-step-s", type=float, default=20.0, help="budget: median step wall time (issue 31)")

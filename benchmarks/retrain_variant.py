@@ -1,7 +1,8 @@
 """Retrain a finished run with other input settings, everything else equal, and bench it as an earlier report did.
 
-Issue 27's comparison of the input encoding and the voxel pooling on fitted splats: the run's config.json is read
-back through ``config_from_dict``, only ``--input-encoding`` / ``--pool-weighting`` change, and the bench uses the
+Issue 27's comparison of the input encoding and the voxel pooling on fitted splats, and issue 31's learning check of
+a 3D-loss subset (``--loss-gaussians``): the run's config.json is read back through ``config_from_dict``, only the
+named settings change, and the bench uses the
 report's own BenchConfig (same dataset, splits, classes, views), so the two reports differ only by the setting.
 
     .venv/bin/python benchmarks/retrain_variant.py --run out/suite-fit20/runs/full \\
@@ -30,6 +31,8 @@ def main() -> int:
     parser.add_argument("--input-encoding", choices=("raw", "robust"), default=None)
     parser.add_argument("--pool-weighting", choices=("mean", "opacity"), default=None)
     parser.add_argument("--epochs", type=int, default=None, help="override the run's epochs (a quick check)")
+    parser.add_argument("--loss-gaussians", type=int, default=None,
+                        help="Gaussians per scene in the 3D-to-text loss (DataConfig.loss_gaussians)")
     args = parser.parse_args()
 
     from ovgaussian.bench.config import BenchConfig
@@ -42,6 +45,9 @@ def main() -> int:
     changes = {k: v for k, v in (("input_encoding", args.input_encoding), ("pool_weighting", args.pool_weighting),
                                  ("epochs", args.epochs)) if v is not None}
     config = dataclasses.replace(saved, out=args.out / "run", progress=False, **changes)
+    if args.loss_gaussians is not None:
+        config = dataclasses.replace(config, data=dataclasses.replace(config.data, loss_gaussians=args.loss_gaussians))
+        changes["loss_gaussians"] = args.loss_gaussians
     started = time.perf_counter()
     result = train(config)
     trained_s = time.perf_counter() - started

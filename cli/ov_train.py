@@ -37,6 +37,7 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(TrainConfig, "model_preset", "--model-preset", type=click.Choice(["default", "slim"]), default="default",
                show_default=True)
 @config_option(DataConfig, "pixels_per_view", "--pixels-per-view", type=click.IntRange(min=1), default=None)
+@config_option(DataConfig, "loss_gaussians", "--loss-gaussians", type=click.IntRange(min=1), default=None)
 @config_option(TrainConfig, "voxel_size", "--voxel-size", type=click.FloatRange(min=0, min_open=True), default=None)
 @config_option(TrainConfig, "use_coordinates", "--use-coordinates/--no-coordinates", default=TrainConfig.use_coordinates,
                show_default=True)
@@ -61,7 +62,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @json_option
 @guarded
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
-            no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, voxel_size,
+            no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, loss_gaussians,
+            voxel_size,
             use_coordinates, input_encoding, pool_weighting, class_balance, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
             splat_augment, verify, keep_checkpoints, threads, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
@@ -76,6 +78,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         pool_weighting=pool_weighting,
         keep_checkpoints=keep_checkpoints, threads=threads,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
+                        loss_gaussians=loss_gaussians,
                         holdout_classes=tuple(n.strip() for n in holdout_classes.split(",") if n.strip()),
                         splat_augment=splat_augment, verify=verify),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),

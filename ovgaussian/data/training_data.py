@@ -106,6 +106,8 @@ class SceneSample(NamedTuple):
         pixel_labels: ``[P]`` int64 seen-class index or IGNORE_LABEL.
         teacher: ``[P, D]`` float32 teacher features at those pixels, or None.
         image_size: (H, W).
+        loss_rows: ``[L]`` int64 increasing rows of the Gaussians in the 3D-to-text loss
+            (``DataConfig.loss_gaussians``), or None for every Gaussian.
     """
 
     scene_id: str
@@ -122,6 +124,7 @@ class SceneSample(NamedTuple):
     pixel_labels: "torch.Tensor"
     teacher: "torch.Tensor | None"
     image_size: tuple[int, int]
+    loss_rows: "torch.Tensor | None" = None
 
 
 def prepare_scene(record, vocabulary: Vocabulary) -> PreparedScene:
@@ -298,10 +301,15 @@ class TrainingData:
         if self.config.splat_augment and rng.random() < SPLAT_AUGMENT_PROBABILITY:
             means, quats, log_scales, opacity_logits, sh_dc, labels = splat_statistics(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels, IGNORE_LABEL)
+        loss_rows = None
+        wanted = self.config.loss_gaussians
+        if wanted is not None and wanted < len(labels):  # drawn last: without it a run draws as before, bitwise
+            loss_rows = torch.from_numpy(np.sort(rng.choice(len(labels), size=wanted, replace=False)))
         return SceneSample(
             scene_id, view_name, torch.from_numpy(means), torch.from_numpy(quats), torch.from_numpy(log_scales),
             torch.from_numpy(opacity_logits), torch.from_numpy(sh_dc), torch.from_numpy(labels),
             pixels, pixel_ids, pixel_weights, torch.from_numpy(view.labels.reshape(-1)[flat]), teacher, (h, w),
+            loss_rows,
         )
 
 

@@ -375,13 +375,18 @@ class OVGaussianNet(nn.Module):
         means: Tensor,  # [N, 3] world positions, metres
         attributes: Tensor,  # [N, 11] from gaussian_attributes (or [N, 14] with coordinates appended)
         batch_index: Tensor,  # [N] scene of each Gaussian, 0..B-1
+        rows: "Tensor | None" = None,  # [R] int64 Gaussians whose vectors are wanted; None: all
     ) -> Tensor:
-        """Semantic vectors ``[N, semantic_width]``."""
+        """Semantic vectors ``[N, semantic_width]`` (``[R, semantic_width]`` of ``rows``, in their order: the
+        voxels still pool every Gaussian, only the per-Gaussian stage is restricted)."""
         attributes = self.prepare_inputs(means, attributes, batch_index)
         vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
                               weights=self.pool_weights(attributes))
         voxel_features = self.backbone(vox.voxels)  # [M, S]
-        per_gaussian = voxel_features[vox.point_to_voxel]  # [N, S]
+        point_to_voxel = vox.point_to_voxel
+        if rows is not None:
+            point_to_voxel, attributes = point_to_voxel[rows], attributes[rows]
+        per_gaussian = voxel_features[point_to_voxel]  # [N or R, S]
         if self.config.use_adapter:
             return torch.cat(checkpointed_rows(self.adapter, per_gaussian, attributes), dim=0)
         return self.point_head(per_gaussian)

@@ -44,6 +44,11 @@ class DataConfig:
     colour noise, and unlabelled floaters added. For training on oracle Gaussians that must then work on fits."""
     verify: bool = False
     """Check every shard read against the manifest's sha256 (sizes are always checked)."""
+    loss_gaussians: Optional[int] = None
+    """Gaussians per scene in a step's 3D-to-text loss, drawn uniformly without replacement (seeded; those without
+    a label drop out as usual); None uses every Gaussian. With a number, the adapter and the decoder run only on
+    those Gaussians and the contributors of the sampled pixels, while the sparse U-Net still sees the whole scene:
+    for scenes of about a million Gaussians (BENCHMARKS.md, "Training step speed")."""
 
 
 @dataclass(frozen=True)

@@ -116,25 +116,46 @@ def text_cross_entropy_3d(
     return (total * 0.0, 0) if count == 0 else (total / count, count)
 
 
+def needed_rows(sample: SceneSample) -> "torch.Tensor | None":
+    """``[R]`` increasing rows of the Gaussians a step needs of this scene when it draws a 3D-loss subset
+    (``sample.loss_rows``): the subset and every contributor of the sampled pixels; None without a subset."""
+    if sample.loss_rows is None:
+        return None
+    contributors = sample.pixel_ids[sample.pixel_ids >= 0]
+    return torch.unique(torch.cat([sample.loss_rows, contributors]))  # sorted
+
+
 def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embeddings: "torch.Tensor",
                  config: TrainConfig, use_teacher: bool, class_weights: "torch.Tensor | None" = None,
-                 unlabelled_columns: "torch.Tensor | None" = None):
+                 unlabelled_columns: "torch.Tensor | None" = None, rows: "torch.Tensor | None" = None):
     """:class:`ovgaussian.train.losses.LossTerms` of one scene from its semantic vectors ``[N, S]``; with
     ``unlabelled_columns`` ``[U]`` (the unseen classes' rows of ``text_embeddings``) the unlabelled Gaussians and
-    covered pixels take the partial-label term."""
+    covered pixels take the partial-label term.
+
+    ``rows`` (:func:`needed_rows`): ``semantic`` is ``[R, S]``, the vectors of those rows only; the 3D term then
+    covers ``sample.loss_rows`` and the pixels read their contributors through ``rows``."""
     device = semantic.device
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = sample.labels.to(device)
+    pixel_ids = sample.pixel_ids.to(device)
+    if rows is not None:
+        position = torch.full((labels.shape[0],), -1, dtype=torch.int64, device=device)
+        position[rows.to(device)] = torch.arange(rows.shape[0], device=device)
+        pixel_ids = torch.where(pixel_ids >= 0, position[pixel_ids.clamp_min(0)], -1)
+        loss_rows = (torch.arange(labels.shape[0]) if sample.loss_rows is None else sample.loss_rows).to(device)
+        semantic_3d, labels = semantic[position[loss_rows]], labels[loss_rows]
+    else:
+        semantic_3d = semantic
     if config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     else:
-        semantic3, labels3 = semantic, labels  # transductive: every Gaussian takes a term
+        semantic3, labels3 = semantic_3d, labels  # transductive: every Gaussian takes a term
         if unlabelled_columns is None:
             labelled = labels != IGNORE_LABEL
-            semantic3, labels3 = semantic[labelled], labels[labelled]
+            semantic3, labels3 = semantic_3d[labelled], labels[labelled]
         text_3d = text_cross_entropy_3d(net.phi, semantic3, labels3, text_embeddings, temperature, class_weights,
                                         unlabelled_columns, unlabelled_weight)
-    pixel_ids, pixel_weights = sample.pixel_ids.to(device), sample.pixel_weights.to(device)
+    pixel_weights = sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)
     covered = (pixel_weights * (pixel_ids >= 0)).sum(-1) >= COVERAGE_MIN
@@ -155,13 +176,20 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
 def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: TrainConfig, use_teacher: bool,
                  device, class_weights: "torch.Tensor | None" = None,
                  unlabelled_columns: "torch.Tensor | None" = None) -> list:
-    """LossTerms of each scene of this process's slice (one network forward for all of them)."""
+    """LossTerms of each scene of this process's slice (one network forward for all of them; with 3D-loss subsets,
+    ``DataConfig.loss_gaussians``, the per-Gaussian stages run on :func:`needed_rows` only)."""
     means, attributes, batch_index = network_inputs(samples, device)
-    semantic = net(means, attributes, batch_index)
+    scene_rows = [needed_rows(sample) for sample in samples]
+    if all(rows is None for rows in scene_rows):
+        semantic, counts = net(means, attributes, batch_index), [len(sample.means) for sample in samples]
+    else:
+        scene_rows = [torch.arange(len(s.means)) if rows is None else rows for s, rows in zip(samples, scene_rows)]
+        starts = torch.tensor([0] + [len(s.means) for s in samples]).cumsum(0)
+        wanted = torch.cat([rows + start for rows, start in zip(scene_rows, starts.tolist())])
+        semantic, counts = net(means, attributes, batch_index, rows=wanted.to(device)), [len(r) for r in scene_rows]
     terms, start = [], 0
-    for sample in samples:
-        n = len(sample.means)
+    for sample, rows, n in zip(samples, scene_rows, counts):
         terms.append(scene_losses(net, semantic[start:start + n], sample, text_embeddings, config, use_teacher,
-                                  class_weights, unlabelled_columns))
+                                  class_weights, unlabelled_columns, rows))
         start += n
     return terms

@@ -831,3 +831,65 @@ def test_splat_augment_gives_fitted_statistics_and_keeps_the_views_blend(scenes)
         sum(t.total for t in terms).backward()
         assert all(p.grad is None or torch.isfinite(p.grad).all() for p in net.parameters())
     assert 1 <= hits <= 7
+
+
+def _losses_and_grads(net, samples, text, config, **kwargs):
+    from ovgaussian.train.step_losses import batch_losses
+
+    net.zero_grad(set_to_none=True)
+    terms = batch_losses(net, samples, text, config, False, "cpu", **kwargs)
+    sum(t.total for t in terms).backward()
+    return terms, {name: p.grad.clone() for name, p in net.named_parameters() if p.grad is not None}
+
+
+def test_a_3d_loss_subset_gives_the_full_forward_restricted_to_it(scenes, tmp_path):
+    """DataConfig.loss_gaussians: the adapter and decoder run on the subset and the pixels' contributors only, and
+    every loss term and gradient equals the full forward's with the labels outside the subset ignored."""
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.step_losses import needed_rows
+
+    voc = training_vocabulary(20)
+    plain_data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=60), voc)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=60, loss_gaussians=50), voc)
+    samples = [data.sample(s, np.random.default_rng(3)) for s in ("scene00", "scene01")]
+    plain = [plain_data.sample(s, np.random.default_rng(3)) for s in ("scene00", "scene01")]
+    for subset, whole in zip(samples, plain):  # the subset is drawn last: everything else as without it
+        assert subset.loss_rows is not None and subset.loss_rows.shape == (50,)
+        assert bool((subset.loss_rows[1:] > subset.loss_rows[:-1]).all())
+        assert torch.equal(subset.pixels, whole.pixels) and torch.equal(subset.means, whole.means)
+        rows = needed_rows(subset)
+        assert len(rows) < len(subset.means)  # the per-Gaussian stages are skipped somewhere
+    masked = []
+    for sample in samples:
+        labels = torch.full_like(sample.labels, IGNORE_LABEL)
+        labels[sample.loss_rows] = sample.labels[sample.loss_rows]
+        masked.append(sample._replace(labels=labels, loss_rows=None))
+    net = build_network(tiny_model_config(12))
+    config = tiny_config(tmp_path, 1)
+    got, got_grads = _losses_and_grads(net, samples, text_stub(), config)
+    want, want_grads = _losses_and_grads(net, masked, text_stub(), config)
+    for a, b in zip(got, want):
+        assert a.count_3d == b.count_3d > 0 and a.count_2d == b.count_2d > 0
+        for name in ("total", "text_3d", "text_2d"):
+            torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-5, atol=1e-6)
+    assert got_grads.keys() == want_grads.keys()
+    for name in got_grads:
+        torch.testing.assert_close(got_grads[name], want_grads[name], rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_a_3d_loss_subset_as_large_as_the_scene_changes_nothing(scenes, tmp_path):
+    """A subset of every row (one scene drawn, one not) takes the same losses and gradients as no subset."""
+    from ovgaussian.run.checkpoint import build_network
+
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=60), voc)
+    samples = [data.sample(s, np.random.default_rng(5)) for s in ("scene00", "scene01")]
+    everything = [samples[0]._replace(loss_rows=torch.arange(len(samples[0].means))), samples[1]]
+    net = build_network(tiny_model_config(12))
+    config = tiny_config(tmp_path, 1)
+    got, got_grads = _losses_and_grads(net, everything, text_stub(), config)
+    want, want_grads = _losses_and_grads(net, samples, text_stub(), config)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a.total, b.total, rtol=1e-5, atol=1e-6)
+    for name in want_grads:
+        torch.testing.assert_close(got_grads[name], want_grads[name], rtol=1e-4, atol=1e-6, msg=name)
