@@ -149,13 +149,10 @@ class SuiteConfig:
     gaussians: int = 40000
     """Oracle Gaussians sampled per room (the oracle dataset: the control row, or everything with
     ``splats="oracle"``)."""
-    epochs: int = 60
-    """Epochs of every run (60 x 15 steps of 3 rooms; one schedule for all runs). Measured on the full run (same
-    data, one thread, passive OpenMP): 20 epochs (300 steps, 496 s CPU) left the training loss at 0.89, still
-    falling, and the model undertrained (seen-class 2D IoU 67 % in the training rooms' novel views, 66 % in the
-    val rooms', unseen pixels left out); 60 epochs (900 steps, 1,307 s CPU) end at loss 0.30 and raise 3D CSA
-    31.3 -> 41.6, 2D CSA 36.0 -> 47.4 and NVA 33.9 -> 44.2 (seen classes 84 % and 85 %). The whole profile fits
-    60 minutes on 2 cores (BENCHMARKS.md)."""
+    epochs: int = 30
+    """Epochs of every run (30 x 15 steps of 3 rooms; one schedule for all runs): with it the whole profile, the
+    72 room fits included, runs from nothing within 75 minutes on 2 cores (BENCHMARKS.md, "Benchmark profile on
+    fitted splats, 30 epochs", which also says what more epochs buy)."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
