@@ -157,6 +157,8 @@ class SuiteConfig:
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
     """Pixels sampled per view for the 2D losses."""
+    loss_gaussians: Optional[int] = None
+    """Gaussians per room in each step's 3D-to-text loss (``DataConfig.loss_gaussians``); None: every Gaussian."""
     lr: float = 0.05
     """Initial SGD learning rate (cosine decay)."""
     model_preset: Literal["default", "slim"] = "slim"

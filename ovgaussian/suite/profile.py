@@ -202,7 +202,7 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
         seed=config.seed, model_preset=config.model_preset, use_adapter=spec.use_adapter,
         voxel_size=config.voxel_size, use_coordinates=config.use_coordinates, progress=False,
         data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
-                        holdout_classes=spec.holdout_classes),
+                        holdout_classes=spec.holdout_classes, loss_gaussians=config.loss_gaussians),
         loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
                         class_balance=config.class_balance, unlabelled_as_unseen=spec.unlabelled_as_unseen),
         optim=OptimConfig(lr=config.lr),

@@ -109,6 +109,9 @@ def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
     assert not configs["no-adapter"].use_adapter and configs["text-2d-only"].loss.no_3dt_align
     assert [n for n, c in configs.items() if c.loss.unlabelled_as_unseen] == ["transductive"]
     assert replace(configs["transductive"], loss=full.loss, out=full.out) == full  # only the switch differs
+    subset = SuiteConfig(out=Path("/tmp/profile"), loss_gaussians=2048)
+    assert {S.train_config(subset, spec, Path("/tmp/d")).data.loss_gaussians for spec in RUNS} == {2048}
+    assert full.data.loss_gaussians is None
 
 
 def test_calibrated_stacking_row_uses_the_calibration_run_and_is_checked_for_ova():
