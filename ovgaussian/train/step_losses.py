@@ -138,14 +138,14 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = sample.labels.to(device)
     pixel_ids = sample.pixel_ids.to(device)
-    if rows is not None:
+    semantic_3d = semantic
+    if rows is not None:  # without a subset of its own, a scene's rows are all of it (batch_losses)
         position = torch.full((labels.shape[0],), -1, dtype=torch.int64, device=device)
         position[rows.to(device)] = torch.arange(rows.shape[0], device=device)
         pixel_ids = torch.where(pixel_ids >= 0, position[pixel_ids.clamp_min(0)], -1)
-        loss_rows = (torch.arange(labels.shape[0]) if sample.loss_rows is None else sample.loss_rows).to(device)
-        semantic_3d, labels = semantic[position[loss_rows]], labels[loss_rows]
-    else:
-        semantic_3d = semantic
+        if sample.loss_rows is not None:
+            loss_rows = sample.loss_rows.to(device)
+            semantic_3d, labels = semantic[position[loss_rows]], labels[loss_rows]
     if config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     else:
