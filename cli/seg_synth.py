@@ -23,25 +23,27 @@ from cli._output import finish, guarded, json_option
               help="Image width (ScanNet++ height = 3/4 width; Replica keeps the NICE-SLAM 1200x680 aspect).")
 @click.option("--views", type=click.IntRange(min=1), default=32, show_default=True, help="Views per scene.")
 @click.option("--max-edge", type=click.FloatRange(min=0.005), default=0.05, show_default=True, help="Longest mesh edge (metres).")
+@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Processes writing scenes at once (the files do not depend on it).")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(out, scenes, replica_scenes, seed, layout, width, views, max_edge, progress, as_json) -> None:
+def command(out, scenes, replica_scenes, seed, layout, width, views, max_edge, jobs, progress, as_json) -> None:
     """Write synthetic furnished rooms (mesh, labels, cameras, RGB and ground-truth label images)."""
     from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
     config = SynthConfig(width=width, num_views=views, max_edge=max_edge)
     if layout == "both":
-        jobs = [("scannetpp", out / "scannetpp", scenes),
-                ("replica", out / "replica", replica_scenes if replica_scenes is not None else max(1, math.ceil(scenes / 3)))]
+        layouts = [("scannetpp", out / "scannetpp", scenes),
+                   ("replica", out / "replica", replica_scenes if replica_scenes is not None else max(1, math.ceil(scenes / 3)))]
     else:
-        jobs = [(layout, out, scenes)]
+        layouts = [(layout, out, scenes)]
     show = progress and not as_json
     start = time.perf_counter()
     written: dict[str, list[str]] = {}
-    for kind, root, count in jobs:
+    for kind, root, count in layouts:
         report = (lambda i, name, kind=kind, count=count: click.echo(f"{kind} {i + 1}/{count}: {name}", err=True)) if show else None
-        written[kind] = synthesize(root, count, seed, kind, config, progress=report)
+        written[kind] = synthesize(root, count, seed, kind, config, progress=report, jobs=jobs)
     seconds = time.perf_counter() - start
     total = sum(len(v) for v in written.values())
     parts = ", ".join(f"{len(v)} {k}" for k, v in written.items())

@@ -168,9 +168,9 @@ def build_data(config: SuiteConfig) -> SuiteData:
     raw = config.out / "raw"
     synth = SynthConfig(width=config.width, num_views=config.views)
     if not (raw / "scannetpp").is_dir():
-        synthesize(raw / "scannetpp", config.scenes, config.seed, "scannetpp", synth)
+        synthesize(raw / "scannetpp", config.scenes, config.seed, "scannetpp", synth, jobs=config.jobs)
     if not (raw / "replica").is_dir():
-        synthesize(raw / "replica", config.replica_scenes, config.seed, "replica", synth)
+        synthesize(raw / "replica", config.replica_scenes, config.seed, "replica", synth, jobs=config.jobs)
     split = SplitConfig(ratios=(*config.val_ratio, config.replica_scenes), seed=config.seed)
     oracle = config.out / "dataset-oracle" if config.splats == "fit" else config.out / "dataset"
     build_dataset(BuildConfig(

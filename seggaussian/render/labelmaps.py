@@ -9,6 +9,7 @@ the label of what is in front, not of a surface hidden behind it.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -54,8 +55,10 @@ def _majority(labels: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     return torch.gather(labels, -1, best_slot[..., None])[..., 0], best_total
 
 
+@functools.lru_cache(maxsize=None)
 def _label_maps_kernel():
-    """The compiled per-pixel vote (built on first use; numba is imported only here)."""
+    """The compiled per-pixel vote (built on first use, once per process: each new dispatcher would load the
+    kernel from numba's disk cache again, about 15 ms a view; numba is imported only here)."""
     import numba
 
     @numba.njit(parallel=True, cache=True)

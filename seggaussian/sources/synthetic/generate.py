@@ -10,7 +10,9 @@ renamed into place, so an interrupted run leaves no half-written scene behind.
 from __future__ import annotations
 
 import hashlib
+import multiprocessing
 import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,11 +81,14 @@ def synthesize(
     layout: str = "scannetpp",
     config: SynthConfig = SynthConfig(),
     progress: Callable[[int, str], None] | None = None,
+    jobs: int = 1,
 ) -> list[str]:
-    """Write ``num_scenes`` scenes under ``out`` in ``layout``; returns their scene ids.
+    """Write ``num_scenes`` scenes under ``out`` in ``layout``; returns their scene ids (in index order).
 
     ScanNet++: ``out`` becomes a DATA_ROOT (``data/``, ``metadata/``, ``splits/``).
     Replica: ``out/<room>/`` per scene.
+    ``jobs`` > 1: that many spawned processes write scenes at once (the bytes do not depend on it); ``progress``
+    is then called as scenes finish, in any order.
     """
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
@@ -91,31 +96,49 @@ def synthesize(
         raise ValueError(f"num_scenes must be >= 0, got {num_scenes}")
     if config.width < 16 or config.num_views < 1 or not config.max_edge > 0:
         raise ValueError(f"invalid SynthConfig {config}")
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
     out = Path(out)
     scene_parent = out / "data" if layout == "scannetpp" else out
     make_dirs(scene_parent)
     sweep_temps(scene_parent)  # staging folders of a killed earlier run
-    ids = []
-    for index in range(num_scenes):
-        name = scene_name(seed, index, layout)
-        room, cameras = build_scene(seed, index, layout, config)
-        staging = temp_name(scene_parent / name)
-        if layout == "scannetpp":
-            # writers take the folder that holds data/<id>; stage under a private DATA_ROOT
-            synth_scannetpp.write_scene(staging, name, room, cameras)
-            _move_into_place(staging / "data" / name, scene_parent / name)
-        else:
-            synth_replica.write_scene(staging, name, room, cameras)
-            _move_into_place(staging / name, scene_parent / name)
-        shutil.rmtree(staging)
-        ids.append(name)
-        if progress is not None:
-            progress(index, name)
+    ids: list[str] = [scene_name(seed, index, layout) for index in range(num_scenes)]
+    if jobs == 1 or num_scenes <= 1:
+        for index in range(num_scenes):
+            write_scene(scene_parent, seed, index, layout, config)
+            if progress is not None:
+                progress(index, ids[index])
+    else:
+        # spawn: open3d's and numba's threads do not survive fork
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(write_scene, scene_parent, seed, index, layout, config): index
+                       for index in range(num_scenes)}
+            for future in as_completed(futures):
+                future.result()
+                if progress is not None:
+                    progress(futures[future], ids[futures[future]])
     if layout == "scannetpp":
         synth_scannetpp.write_metadata(out, ids)
     else:
         synth_replica.write_root_files(out, ids)
     return ids
+
+
+def write_scene(scene_parent: Path, seed: int, index: int, layout: str, config: SynthConfig) -> str:
+    """Write scene ``index`` as ``scene_parent/<its id>`` (staged in a hidden folder, renamed into place);
+    returns its id."""
+    name = scene_name(seed, index, layout)
+    room, cameras = build_scene(seed, index, layout, config)
+    staging = temp_name(scene_parent / name)
+    if layout == "scannetpp":
+        # writers take the folder that holds data/<id>; stage under a private DATA_ROOT
+        synth_scannetpp.write_scene(staging, name, room, cameras)
+        _move_into_place(staging / "data" / name, scene_parent / name)
+    else:
+        synth_replica.write_scene(staging, name, room, cameras)
+        _move_into_place(staging / name, scene_parent / name)
+    shutil.rmtree(staging)
+    return name
 
 
 def _move_into_place(source: Path, target: Path) -> None:

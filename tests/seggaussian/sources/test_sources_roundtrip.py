@@ -148,6 +148,19 @@ def test_synthesis_is_deterministic(tmp_path, layout):
     assert not any(p.name.startswith(".") for p in (tmp_path / "a").rglob("*"))  # no staging left
 
 
+@pytest.mark.parametrize("layout", ["scannetpp", "replica"])
+def test_synthesis_in_processes_writes_the_same_tree(tmp_path, layout):
+    """jobs=2 (a spawned pool, scenes finishing in any order) writes the bytes of jobs=1, ids in index order."""
+    small = synthetic.SynthConfig(width=48, num_views=2, max_edge=0.15)
+    seen = []
+    serial = synthetic.synthesize(tmp_path / "a", 3, 3, layout, small)
+    pooled = synthetic.synthesize(tmp_path / "b", 3, 3, layout, small, jobs=2,
+                                  progress=lambda index, name: seen.append((index, name)))
+    assert pooled == serial and sorted(seen) == list(enumerate(serial))
+    assert _tree_digest(tmp_path / "a") == _tree_digest(tmp_path / "b")
+    assert not any(p.name.startswith(".") for p in (tmp_path / "b").rglob("*"))
+
+
 def test_reading_never_writes_into_the_raw_tree(scannetpp_root, replica_root):
     for reader, (root, ids) in ((scannetpp, scannetpp_root), (replica, replica_root)):
         before = {p: p.stat().st_mtime_ns for p in root.rglob("*")}
