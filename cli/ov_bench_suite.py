@@ -24,7 +24,8 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "gaussians", "--gaussians", type=click.IntRange(min=1), default=D.gaussians,
                show_default=True)
 @config_option(SuiteConfig, "epochs", "--epochs", type=click.IntRange(min=1), default=D.epochs, show_default=True)
-@config_option(SuiteConfig, "loss_gaussians", "--loss-gaussians", type=click.IntRange(min=1), default=None)
+@config_option(SuiteConfig, "loss_gaussians", "--loss-gaussians", type=click.IntRange(min=0), default=D.loss_gaussians,
+               show_default=True)
 @config_option(SuiteConfig, "max_views", "--max-views", type=click.IntRange(min=1), default=D.max_views,
                show_default=True)
 @config_option(SuiteConfig, "ablation", "--ablation/--no-ablation", default=D.ablation, show_default=True)
@@ -38,7 +39,7 @@ def command(out, scenes, replica_scenes, splats, gaussians, epochs, loss_gaussia
     from ovgaussian.suite.profile import run_suite
 
     config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, splats=splats, gaussians=gaussians, epochs=epochs,
-                         loss_gaussians=loss_gaussians, max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)
+                         loss_gaussians=loss_gaussians or None, max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)
     report = run_suite(config, log=(lambda m: click.echo(m, err=True)) if progress and not as_json else None)
     passed = sum(ok for ok, _ in report.checks.values())
     wall, cpu = report.wall, report.cpu

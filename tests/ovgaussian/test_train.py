@@ -640,6 +640,21 @@ def test_two_trainings_with_one_seed_hash_equal(scenes, tmp_path):
     assert digests[0] == digests[1]
 
 
+def test_the_scene_cache_size_does_not_change_a_run(shard_dataset, tmp_path):
+    """Scenes kept in memory across epochs (cache of every scene) against re-read from the shards each time
+    (cache of one): weights, optimizer state and metrics hash bitwise equal, so nothing mutates a cached scene."""
+    from ovgaussian.train.loop import train
+
+    digests = []
+    for size in (1, 64):
+        out = tmp_path / f"cache{size}"
+        cfg = tiny_config(out, 3, data=DataConfig(dataset=shard_dataset, blend_top_k=8, pixels_per_view=256,
+                                                  scene_cache_size=size))
+        result = train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())
+        digests.append(_run_digest(result, out))
+    assert digests[0] == digests[1]
+
+
 def _metrics(out: Path) -> list[dict]:
     return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
 
