@@ -24,7 +24,7 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "gaussians", "--gaussians", type=click.IntRange(min=1), default=D.gaussians,
                show_default=True)
 @config_option(SuiteConfig, "epochs", "--epochs", type=click.IntRange(min=1), default=D.epochs, show_default=True)
-@config_option(SuiteConfig, "loss_gaussians", "--loss-gaussians", type=click.IntRange(min=0), default=D.loss_gaussians,
+@config_option(SuiteConfig, "loss_gaussians", "--loss-gaussians", type=click.IntRange(min=0), default=D.loss_gaussians or 0,
                show_default=True)
 @config_option(SuiteConfig, "max_views", "--max-views", type=click.IntRange(min=1), default=D.max_views,
                show_default=True)

@@ -157,11 +157,11 @@ class SuiteConfig:
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
     """Pixels sampled per view for the 2D losses."""
-    loss_gaussians: Optional[int] = 2048
-    """Gaussians per room in each step's 3D-to-text loss (``DataConfig.loss_gaussians``; 0 on the command line or
-    None: every Gaussian). 2048, about 7 % of a fitted room: a step costs a quarter less and learns as well (the
-    20-epoch full run retrained both ways: 3D CSA 24.6 [23.4, 25.7] against 24.2 [22.7, 25.6]; BENCHMARKS.md,
-    "A 3D-loss subset")."""
+    loss_gaussians: Optional[int] = None
+    """Gaussians per room in each step's 3D-to-text loss (``DataConfig.loss_gaussians``; None, or 0 on the command
+    line: every Gaussian). 2048 took the profile from nothing to 61 minutes, but its runs learned less: 3D CSA on
+    fits 25.4 against 27.1, and the oracle control 32.8 against 36.5 (BENCHMARKS.md, "Benchmark profile with a
+    3D-loss subset"), so every Gaussian is the default."""
     scene_cache_size: int = 64
     """Prepared rooms each training keeps in memory (``DataConfig.scene_cache_size``): at least the train split,
     so a room is read and decoded from the shards once per run, not once per epoch (about 0.07 s CPU a room, a

@@ -111,8 +111,8 @@ def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
     assert replace(configs["transductive"], loss=full.loss, out=full.out) == full  # only the switch differs
     assert {c.data.loss_gaussians for c in configs.values()} == {config.loss_gaussians}
     assert {c.data.scene_cache_size for c in configs.values()} == {config.scene_cache_size}
-    every = SuiteConfig(out=Path("/tmp/profile"), loss_gaussians=None)
-    assert {S.train_config(every, spec, Path("/tmp/d")).data.loss_gaussians for spec in RUNS} == {None}
+    subset = SuiteConfig(out=Path("/tmp/profile"), loss_gaussians=2048)
+    assert {S.train_config(subset, spec, Path("/tmp/d")).data.loss_gaussians for spec in RUNS} == {2048}
 
 
 def test_bench_suite_cli_maps_loss_gaussians_0_to_every_gaussian(monkeypatch, tmp_path):
@@ -123,7 +123,7 @@ def test_bench_suite_cli_maps_loss_gaussians_0_to_every_gaussian(monkeypatch, tm
     seen = []
     monkeypatch.setattr(S, "run_suite", lambda config, log=None: seen.append(config) or (_ for _ in ()).throw(
         ValueError("stop here")))
-    for args, expected in (([], SuiteConfig().loss_gaussians), (["--loss-gaussians", "0"], None),
+    for args, expected in (([], None), (["--loss-gaussians", "0"], None),
                            (["--loss-gaussians", "512"], 512)):
         CliRunner().invoke(command, ["--out", str(tmp_path), *args])
         assert seen.pop().loss_gaussians == expected
