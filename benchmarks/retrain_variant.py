@@ -1,7 +1,7 @@
 """Retrain a finished run with other input settings, everything else equal, and bench it as an earlier report did.
 
-Issue 27's comparison of the input encoding and the voxel pooling on fitted splats, and issue 31's learning check of
-a 3D-loss subset (``--loss-gaussians``): the run's config.json is read back through ``config_from_dict``, only the
+Issue 27's comparison of the input encoding, the voxel pooling and the class weights (``--class-balance``) on fitted
+splats, and issue 31's learning check of a 3D-loss subset (``--loss-gaussians``): the run's config.json is read back through ``config_from_dict``, only the
 named settings change, and the bench uses the
 report's own BenchConfig (same dataset, splits, classes, views), so the two reports differ only by the setting.
 
@@ -33,6 +33,8 @@ def main() -> int:
     parser.add_argument("--epochs", type=int, default=None, help="override the run's epochs (a quick check)")
     parser.add_argument("--loss-gaussians", type=int, default=None,
                         help="Gaussians per scene in the 3D-to-text loss (DataConfig.loss_gaussians)")
+    parser.add_argument("--class-balance", type=float, default=None,
+                        help="exponent of the class weights of the text cross-entropies (LossConfig.class_balance)")
     args = parser.parse_args()
 
     from ovgaussian.bench.config import BenchConfig
@@ -48,6 +50,9 @@ def main() -> int:
     if args.loss_gaussians is not None:
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, loss_gaussians=args.loss_gaussians))
         changes["loss_gaussians"] = args.loss_gaussians
+    if args.class_balance is not None:
+        config = dataclasses.replace(config, loss=dataclasses.replace(config.loss, class_balance=args.class_balance))
+        changes["class_balance"] = args.class_balance
     started = time.perf_counter()
     result = train(config)
     trained_s = time.perf_counter() - started
