@@ -73,7 +73,7 @@ def main() -> None:
             loss.backward()
             if rep:
                 times[name].append(time.perf_counter() - t0)
-            losses[name] = float(loss)
+            losses[name] = float(loss.detach())
     print(f"generator step: {classes} classes x {n} samples, width {args.width}, spread {args.spread}, "
           f"{args.threads} thread(s), forward + backward, median of {args.repeats} (alternated):")
     for name, values in times.items():
