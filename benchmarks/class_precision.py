@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/class_precision.py --run out/suite-e30/runs/full-oracle --data out/suite-e30/dataset-oracle
 
 Issue 27's 90 % check compares a run trained and scored on fitted splats with one on oracle Gaussians. The 3D IoU
-counts Gaussians, and a fit spreads its Gaussians over a room unlike the area-uniform oracle sampler, so this prints,
+counts Gaussians, and a fit spreads its Gaussians over a room unlike the oracle sampler (first hits of rays through the views' pixels), so this prints,
 per benchmark class present in the split: its share of the scored Gaussians, recall, false positives as a multiple of
 its own count (and the classes they come from), and IoU. Then the pooled mIoU (equal to the bench's 3D CSA on
 ``val``), and the pooled mIoU with only the Gaussians of opacity at or above a few thresholds scored. Gaussians without
