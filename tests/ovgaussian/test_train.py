@@ -640,19 +640,28 @@ def test_two_trainings_with_one_seed_hash_equal(scenes, tmp_path):
     assert digests[0] == digests[1]
 
 
-def test_the_scene_cache_size_does_not_change_a_run(shard_dataset, tmp_path):
+def test_the_scene_cache_size_does_not_change_a_run(shard_dataset, tmp_path, monkeypatch):
     """Scenes kept in memory across epochs (cache of every scene) against re-read from the shards each time
-    (cache of one): weights, optimizer state and metrics hash bitwise equal, so nothing mutates a cached scene."""
+    (cache of one): weights, optimizer state and metrics hash bitwise equal, so nothing mutates a cached scene;
+    and the large cache did read each scene fewer times."""
+    from ovgaussian.data.scene_source import ShardSource
     from ovgaussian.train.loop import train
 
-    digests = []
+    reads = []
+    read_scene = ShardSource.read_scene
+    monkeypatch.setattr(ShardSource, "read_scene", lambda self, scene_id: reads.append(scene_id) or read_scene(
+        self, scene_id))
+    digests, read_counts = [], []
     for size in (1, 64):
         out = tmp_path / f"cache{size}"
         cfg = tiny_config(out, 3, data=DataConfig(dataset=shard_dataset, blend_top_k=8, pixels_per_view=256,
                                                   scene_cache_size=size))
+        reads.clear()
         result = train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())
         digests.append(_run_digest(result, out))
+        read_counts.append(len(reads))
     assert digests[0] == digests[1]
+    assert read_counts[1] == 2 * 4 < read_counts[0]  # 4 scenes: the scan's read and one for training, each
 
 
 def _metrics(out: Path) -> list[dict]:

@@ -149,13 +149,25 @@ def test_synthesis_is_deterministic(tmp_path, layout):
 
 
 @pytest.mark.parametrize("layout", ["scannetpp", "replica"])
-def test_synthesis_in_processes_writes_the_same_tree(tmp_path, layout):
+def test_synthesis_in_processes_writes_the_same_tree(tmp_path, layout, monkeypatch):
     """jobs=2 (a spawned pool, scenes finishing in any order) writes the bytes of jobs=1, ids in index order."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    pools = []
+
+    class RecordedPool(ProcessPoolExecutor):
+        def __init__(self, *args, **kwargs):
+            pools.append(kwargs.get("max_workers"))
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(synthetic, "ProcessPoolExecutor", RecordedPool)
     small = synthetic.SynthConfig(width=48, num_views=2, max_edge=0.15)
     seen = []
     serial = synthetic.synthesize(tmp_path / "a", 3, 3, layout, small)
+    assert pools == []
     pooled = synthetic.synthesize(tmp_path / "b", 3, 3, layout, small, jobs=2,
                                   progress=lambda index, name: seen.append((index, name)))
+    assert pools == [2]  # the scenes were written by a pool of two processes
     assert pooled == serial and sorted(seen) == list(enumerate(serial))
     assert _tree_digest(tmp_path / "a") == _tree_digest(tmp_path / "b")
     assert not any(p.name.startswith(".") for p in (tmp_path / "b").rglob("*"))
