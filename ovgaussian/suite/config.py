@@ -164,8 +164,8 @@ class SuiteConfig:
     3D-loss subset"), so every Gaussian is the default."""
     scene_cache_size: int = 64
     """Prepared rooms each training keeps in memory (``DataConfig.scene_cache_size``): at least the train split,
-    so a room is read and decoded from the shards once per run, not once per epoch (about 0.07 s CPU a room, a
-    tenth of a step's cost here). With the profile's 45 train rooms a training process held about 2.7 GB."""
+    so a room is read and decoded from the shards once per run, not once per epoch (0.07 s CPU a room, three rooms a
+    step: a tenth of a step's cost here). With the profile's 45 train rooms a training process held about 2.7 GB."""
     lr: float = 0.05
     """Initial SGD learning rate (cosine decay)."""
     model_preset: Literal["default", "slim"] = "slim"
