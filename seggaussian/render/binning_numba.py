@@ -7,8 +7,9 @@ No comparison sort anywhere:
    minus the smallest key, above the bits of its position. LSD radix passes of ``RADIX_BITS``-bit digits cover
    only the top bits of the key range (enough to spread n keys over about 4 n buckets: 2 passes at 1M), each
    parallel over chunks (per-chunk digit histograms, an exclusive prefix sum digit-major then chunk-major, a
-   scatter) and moving 8 bytes per element; runs of equal sorted bits are then ordered by the full key (short
-   insertion sorts). LSD radix sorting is stable, so equal depths keep index order, exactly as the former
+   scatter) and moving 8 bytes per element; runs of equal sorted bits are then ordered by their packed words (the
+   key bits below the sorted ones, then the position; short insertion sorts in cache), and only words that share
+   every packed key bit by the full key. LSD radix sorting is stable, so equal depths keep index order, exactly as the former
    ``argsort(kind="stable")``.
 2. Tile lists: the depth-sorted Gaussians are split into chunks; each chunk counts its intersections per tile
    (four corner updates of a 2D difference array per tile box, then a prefix sum), a prefix sum over (tile,
@@ -20,6 +21,9 @@ Integer arithmetic only: the result is independent of the thread count.
 """
 
 from __future__ import annotations
+
+import sys
+import threading
 
 import numba
 import numpy as np
@@ -171,39 +175,96 @@ def _bit_length(x):
 
 
 @numba.njit(**_JIT)
-def _fix_runs(packed, keys, pos_bits, sorted_shift):
-    """Order every run of equal ``packed >> sorted_shift`` (the bits the radix passes sorted) by (full key,
-    position): the order a stable sort by the full key gives. Runs are short where depths are spread (insertion
-    sort); a long run gets a stable merge sort (its positions are ascending, so ties stay in position order).
-    """
-    n = packed.shape[0]
+def _insertion_sort_packed(packed, start, end):
+    """Sort ``packed[start:end]`` ascending as uint64 (the values are distinct: each holds its position)."""
+    for i in range(start + 1, end):
+        v = packed[i]
+        j = i - 1
+        while j >= start and packed[j] > v:
+            packed[j + 1] = packed[j]
+            j -= 1
+        packed[j + 1] = v
+
+
+@numba.njit(**_JIT)
+def _order_by_full_key(packed, start, end, keys, pos_mask):
+    """Stable sort of ``packed[start:end]`` (in position order) by ``keys[position]``: insertion sort when short,
+    a merge sort otherwise."""
+    if end - start <= _INSERTION_MAX:
+        for i in range(start + 1, end):
+            v = packed[i]
+            k = keys[v & pos_mask]
+            j = i - 1
+            while j >= start and keys[packed[j] & pos_mask] > k:
+                packed[j + 1] = packed[j]
+                j -= 1
+            packed[j + 1] = v
+        return
+    run = packed[start:end].copy()
+    full = np.empty(end - start, np.uint64)
+    for i in range(end - start):
+        full[i] = keys[run[i] & pos_mask]
+    perm = np.argsort(full, kind="mergesort")
+    for i in range(end - start):
+        packed[start + i] = run[perm[i]]
+
+
+@numba.njit(**_JIT)
+def _fix_runs_between(packed, keys, lo, hi, pos_bits, sorted_shift, dropped):
+    """``_fix_runs`` on ``packed[lo:hi]``, which starts and ends on run boundaries."""
     pos_mask = (_U1 << np.uint64(pos_bits)) - _U1
     us = np.uint64(sorted_shift)
-    start = 0
-    while start < n:
+    up = np.uint64(pos_bits)
+    start = lo
+    while start < hi:
         top = packed[start] >> us
         end = start + 1
-        while end < n and (packed[end] >> us) == top:
+        while end < hi and (packed[end] >> us) == top:
             end += 1
         if end - start > 1:
-            if end - start <= _INSERTION_MAX:
-                for i in range(start + 1, end):
-                    v = packed[i]
-                    k = keys[v & pos_mask]
-                    j = i - 1
-                    while j >= start and keys[packed[j] & pos_mask] > k:
-                        packed[j + 1] = packed[j]
-                        j -= 1
-                    packed[j + 1] = v
-            else:
-                run = packed[start:end].copy()
-                full = np.empty(end - start, np.uint64)
-                for i in range(end - start):
-                    full[i] = keys[run[i] & pos_mask]
-                perm = np.argsort(full, kind="mergesort")
-                for i in range(end - start):
-                    packed[start + i] = run[perm[i]]
+            if sorted_shift > pos_bits:  # kept bits below the sorted ones: order by the whole word
+                if end - start <= _INSERTION_MAX:
+                    _insertion_sort_packed(packed, start, end)
+                else:
+                    packed[start:end] = np.sort(packed[start:end])
+            if dropped:  # equal kept bits, positions ascending: the full key decides
+                s = start
+                while s < end:
+                    kept = packed[s] >> up
+                    e = s + 1
+                    while e < end and (packed[e] >> up) == kept:
+                        e += 1
+                    if e - s > 1:
+                        _order_by_full_key(packed, s, e, keys, pos_mask)
+                    s = e
         start = end
+
+
+@numba.njit(parallel=True, **_JIT)
+def _fix_runs(packed, keys, pos_bits, sorted_shift, dropped, num_chunks):
+    """Order every run of equal ``packed >> sorted_shift`` (the bits the radix passes sorted) by (full key,
+    position): the order a stable sort by the full key gives.
+
+    A packed word holds the key's top bits above its position, so sorting a run by the packed words themselves
+    (which are in cache) orders it by (kept key bits, position) without reading ``keys``. Only where ``dropped``
+    (key bits did not fit the word) and two words share every kept bit does the full key decide, read from ``keys``
+    (the random reads that dominated this pass when every run was ordered by its full keys). Runs are disjoint, so
+    chunks that start on run boundaries are fixed in parallel (the result does not depend on the chunking).
+    """
+    n = packed.shape[0]
+    us = np.uint64(sorted_shift)
+    size = (n + num_chunks - 1) // num_chunks
+    bounds = np.empty(num_chunks + 1, np.int64)
+    bounds[num_chunks] = n
+    for c in prange(num_chunks):
+        b = min(n, c * size)
+        while 0 < b < n and (packed[b] >> us) == (packed[b - 1] >> us):
+            b += 1  # move forward to the start of a run
+        bounds[c] = b
+    for c in prange(num_chunks):
+        hi = bounds[c + 1]
+        if hi > bounds[c]:
+            _fix_runs_between(packed, keys, bounds[c], hi, pos_bits, sorted_shift, dropped)
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -213,7 +274,7 @@ def _radix_sort(keys, idx, boxes, num_chunks):
     Each element is one uint64: the top bits of ``key - min`` above its position's bits, so every radix pass moves
     8 bytes per element and the position rides along for free. LSD passes of ``RADIX_BITS``-bit digits cover the
     top bits of the key range only: enough to spread ``n`` keys over about 4 n buckets. ``_fix_runs`` then orders
-    each run of equal sorted bits by the full key (runs are short unless many keys share their top bits).
+    each run of equal sorted bits (runs are short unless many keys share their top bits).
     """
     n = keys.shape[0]
     lo_key = keys.min()
@@ -245,7 +306,7 @@ def _radix_sort(keys, idx, boxes, num_chunks):
             _digit_scatter(k_a, c * size, min(n, (c + 1) * size), shift, hist[c], k_b)
         k_a, k_b = k_b, k_a
     if drop > 0 or sorted_shift > pos_bits:  # key bits below the sorted ones
-        _fix_runs(k_a, keys, pos_bits, sorted_shift)
+        _fix_runs(k_a, keys, pos_bits, sorted_shift, drop > 0, num_chunks)
     pos_mask = (_U1 << ub) - _U1
     order = np.empty(n, np.int64)
     sorted_boxes = np.empty(boxes.shape[0], np.uint64)  # empty when no boxes are given
@@ -269,10 +330,11 @@ def _count_tiles(boxes, tiles_x, num_tiles, num_chunks):
     return counts
 
 
-@numba.njit(parallel=True, **_JIT)
-def _scatter_tiles(order, boxes, counts, tiles_x, num_tiles):
-    """CSR offsets [T + 1] and ids [I]; ``counts`` becomes each chunk's write cursor per tile."""
-    num_chunks = counts.shape[0]
+@numba.njit(**_JIT)
+def _cursors(counts):
+    """CSR offsets [T + 1] of the per-chunk counts [chunks, T]; ``counts`` becomes each chunk's write cursor per
+    tile (chunk c's entries of a tile after chunk c - 1's)."""
+    num_chunks, num_tiles = counts.shape
     offsets = np.empty(num_tiles + 1, np.int64)
     total = 0
     for t in range(num_tiles):
@@ -282,12 +344,66 @@ def _scatter_tiles(order, boxes, counts, tiles_x, num_tiles):
             counts[c, t] = total
             total += cnt
     offsets[num_tiles] = total
+    return offsets
+
+
+@numba.njit(parallel=True, **_JIT)
+def _scatter_tiles(order, boxes, cursors, tiles_x, ids):
+    """Fill ``ids`` [I]: every Gaussian of ``order`` at its chunk's cursor in each tile of its box."""
+    num_chunks = cursors.shape[0]
     m = order.shape[0]
-    ids = np.empty(total, np.int32)
     size = (m + num_chunks - 1) // num_chunks
     for c in prange(num_chunks):
-        _scatter_chunk(order, boxes, c * size, min(m, (c + 1) * size), tiles_x, counts[c], ids)
-    return offsets, ids
+        _scatter_chunk(order, boxes, c * size, min(m, (c + 1) * size), tiles_x, cursors[c], ids)
+
+
+class _TileIdBuffers:
+    """Large tile-list arrays recycled between renders: a fresh 44 MB array (1,000,000 Gaussians at 876x584) costs
+    its page faults on first write, about as long as filling it (25 ms of a 60 ms fill, measured).
+
+    A buffer is handed out again only when nothing else refers to it: every numpy view or slice of it, and every
+    tensor made from one, holds a reference to the buffer itself (numpy views point at the array that owns the
+    memory), so its reference count is then the pool's own. Lists under :data:`MIN_POOLED_IDS` entries are plain
+    ``np.empty`` arrays; at most :data:`MAX_POOLED_BUFFERS` buffers are kept (a render that finds all of them in
+    use gets a plain array).
+    """
+
+    def __init__(self, max_buffers: int) -> None:
+        self._buffers: list[np.ndarray] = []
+        self._max_buffers = max_buffers
+        self._lock = threading.Lock()
+
+    def _is_free(self, i: int) -> bool:
+        # the list's reference and getrefcount's own argument: nobody else holds the buffer
+        return sys.getrefcount(self._buffers[i]) <= 2
+
+    def take(self, size: int) -> np.ndarray:
+        """An int32 array of ``size`` entries (contents undefined)."""
+        if size < MIN_POOLED_IDS:
+            return np.empty(size, np.int32)
+        with self._lock:
+            free = [i for i in range(len(self._buffers)) if self._is_free(i)]
+            for i in free:
+                if self._buffers[i].shape[0] >= size:
+                    return self._buffers[i][:size]
+            if free:  # free but too small: replaced by a larger one
+                del self._buffers[free[0]]
+            elif len(self._buffers) >= self._max_buffers:
+                return np.empty(size, np.int32)
+            self._buffers.append(np.empty(size + size // 8, np.int32))  # headroom for the next frame's count
+            return self._buffers[-1][:size]
+
+    def clear(self) -> None:
+        """Forget every buffer (memory still referenced elsewhere stays valid)."""
+        with self._lock:
+            self._buffers.clear()
+
+
+#: Tile lists at least this long come from the recycled buffers.
+MIN_POOLED_IDS = 1 << 20
+#: At most this many recycled tile-list buffers (a training step renders a few views before its backward).
+MAX_POOLED_BUFFERS = 4
+TILE_ID_BUFFERS = _TileIdBuffers(MAX_POOLED_BUFFERS)
 
 
 def _num_chunks(n: int) -> int:
@@ -326,7 +442,9 @@ def bin_sorted(idx: np.ndarray, depths: np.ndarray, pixel_box: np.ndarray, tile_
         idx, boxes = run_parallel(_radix_sort, keys, idx, boxes, _num_chunks(idx.shape[0]), chunk=0)
     chunks = _num_chunks(idx.shape[0])
     counts = run_parallel(_count_tiles, boxes, tiles_x, num_tiles, chunks, chunk=0)
-    offsets, ids = run_parallel(_scatter_tiles, idx, boxes, counts, tiles_x, num_tiles, chunk=0)
+    offsets = _cursors(counts)
+    ids = TILE_ID_BUFFERS.take(int(offsets[num_tiles]))
+    run_parallel(_scatter_tiles, idx, boxes, counts, tiles_x, ids, chunk=0)
     return offsets, ids, idx
 
 

@@ -43,6 +43,9 @@ def _projection(depths, boxes, valid=None) -> Projection:
     # keys spanning all 64 bits with many positions: key bits below the packed ones are ordered by the run fix-up
     np.random.default_rng(3).normal(size=100_000) * 10.0 ** np.random.default_rng(4).integers(-300, 300, 100_000),
     np.repeat(np.random.default_rng(5).normal(size=300) * 1e200, 200),  # long runs of equal wide-range keys
+    # short runs of keys that differ only in their last bits (dropped from the packed word): the full key decides
+    np.random.default_rng(6).permutation(np.repeat(np.random.default_rng(7).normal(size=3000) * 1e100, 5)
+                                         * (1.0 + np.random.default_rng(8).integers(0, 4, 15_000) * 2.0 ** -52)),
 ])
 def test_depth_order_is_a_stable_argsort(depths):
     idx = np.random.default_rng(2).permutation(len(depths))  # depth_order sorts any index list, ties by position
@@ -228,3 +231,65 @@ def test_skipping_the_rows_outside_a_box_changes_nothing(seed, scale_shift):
     assert all(torch.equal(x, y) for x, y in zip(w_a, w_b))
     for x, y in zip(g_a, g_b):
         assert torch.allclose(x, y, rtol=1e-4, atol=1e-5 * float(y.abs().max()))
+
+
+def test_tile_list_buffers_are_recycled_only_when_nothing_refers_to_them():
+    from seggaussian.render.binning_numba import MIN_POOLED_IDS, _TileIdBuffers
+
+    pool = _TileIdBuffers(max_buffers=2)
+    size = MIN_POOLED_IDS
+    address = lambda a: a.__array_interface__["data"][0]  # noqa: E731
+    ids = pool.take(size)
+    pooled = address(ids)
+    # a slice of the list, or a tensor made from it, keeps the memory out of the pool after the list is gone
+    for holder in (lambda a: a[10:20], lambda a: torch.from_numpy(a), lambda a: a):
+        ids[:] = 7
+        kept = holder(ids)
+        del ids
+        other = pool.take(size)
+        assert address(other) != pooled and (kept == 7).all()
+        del other, kept
+        ids = pool.take(size)
+        assert address(ids) == pooled  # free again once nothing refers to it
+    del ids
+    assert address(pool.take(size + 5)) == pooled  # a list of another length reuses the buffer too (headroom)
+    # both buffers in use: a third list is a plain array
+    a, b = pool.take(size), pool.take(size)
+    c = pool.take(size)
+    assert len({address(a), address(b), address(c)}) == 3 and c.base is None
+    del a, b, c
+    big = pool.take(4 * size)  # longer than every free buffer: one of them is replaced
+    assert big.shape == (4 * size,) and big.base is not None
+    small = pool.take(100)  # short lists are never pooled
+    assert small.shape == (100,) and small.base is None
+
+
+def test_renders_kept_for_backward_do_not_share_recycled_tile_lists(monkeypatch):
+    """Three views rendered before one backward (as a training step does) with every tile list pooled: the images
+    and gradients equal those with no pooling, so no render's lists were overwritten by a later one."""
+    import seggaussian.render.binning_numba as binning
+
+    scene = random_scene(2000, 9, dtype=torch.float32, spread=1.0)
+    eyes = [(0.3, -3.0, 0.6), (2.5, 1.0, 1.2), (-1.0, 2.8, -0.5)]
+
+    def run(min_pooled):
+        monkeypatch.setattr(binning, "MIN_POOLED_IDS", min_pooled)
+        binning.TILE_ID_BUFFERS.clear()
+        params = {k: scene[k].clone().requires_grad_(True) for k in ("means", "quats", "log_scales",
+                                                                     "opacity_logits", "features")}
+        images = []
+        for eye in eyes:
+            viewmat, K = camera(64, 48, eye)
+            images.append(rasterize(params["means"], params["quats"], params["log_scales"],
+                                    params["opacity_logits"], viewmat, K, 64, 48, features=params["features"]).image)
+        sum((img * (i + 1)).sum() for i, img in enumerate(images)).backward()
+        return [img.detach() for img in images], {k: p.grad for k, p in params.items()}
+
+    plain_images, plain_grads = run(1 << 62)
+    pooled_images, pooled_grads = run(0)
+    assert len(binning.TILE_ID_BUFFERS._buffers) == len(eyes)  # each view got its own buffer
+    for a, b in zip(plain_images, pooled_images):
+        assert torch.equal(a, b)
+    for k in plain_grads:
+        assert torch.equal(plain_grads[k], pooled_grads[k]), k
+    binning.TILE_ID_BUFFERS.clear()
