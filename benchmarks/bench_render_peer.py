@@ -433,14 +433,14 @@ def make_case(peer: types.SimpleNamespace, num: int, width: int, height: int) ->
     from bench_render import make_scene  # the scene of benchmarks/bench_render.py
 
     from seggaussian.render import projection as ours_projection
-    from seggaussian.render import sh as ours_sh
+    from seggaussian.core.constants import SH_C0
     from seggaussian.render.projection_numba import project_gaussians_fast
 
     scene, viewmat, K = make_scene(num, width, height)
     sh = scene["sh"]
     if sh.shape[1] != 1:
         raise ValueError("bench_render_peer: SH degree 0 only (the peer's view direction is reversed)")
-    top = (1.0 - 0.5) / ours_sh.SH_C0 * (1.0 - 1e-6)  # colour = SH_C0 * sh + 0.5 stays <= 1 (the peer's clamp)
+    top = (1.0 - 0.5) / SH_C0 * (1.0 - 1e-6)  # colour = SH_C0 * sh + 0.5 stays <= 1 (the peer's clamp)
     clipped = int((sh > top).any(-1).sum())  # Gaussians with a clipped channel
     scene["sh"] = sh.clamp(max=top)
     if abs(peer.CameraParams.blur_cov - ours_projection.COV2D_DILATION) > 0:
