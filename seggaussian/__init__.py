@@ -13,6 +13,13 @@ _os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 # `seggaussian` / `ovgaussian` command does. A user's own setting wins.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+# glibc keeps freed memory for reuse instead of unmapping it: arrays of a million Gaussians otherwise start on fresh
+# pages each time, at about 1 ms per MB of page faults (seggaussian/util/allocator.py). SEGGAUSSIAN_MALLOC=system
+# opts out.
+from seggaussian.util.allocator import keep_freed_memory as _keep_freed_memory  # noqa: E402
+
+_keep_freed_memory()
+
 # numba's kernel cache in a folder named by the digest of every numba module's source, so an update never
 # runs a stale cached kernel (numba checks only the jitted function's own file; seggaussian/util/numba_cache.py).
 if "NUMBA_CACHE_DIR" not in _os.environ:
