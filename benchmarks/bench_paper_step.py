@@ -164,6 +164,8 @@ def run(args) -> dict:
     import numpy as np
     import torch
 
+    from seggaussian.util.allocator import settings as allocator_settings
+
     from ovgaussian.run.checkpoint import build_network
     from ovgaussian.data.training_data import TrainingData
     from ovgaussian.data.scene_source import InMemorySource
@@ -219,7 +221,7 @@ def run(args) -> dict:
                      "parameters": sum(p.numel() for p in net.parameters())},
         "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "platform": platform.platform(),
                     "loadavg_at_end": os.getloadavg(),
-                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")},
+                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "allocator": allocator_settings()},
         "setup_s": setup_s, "steps": steps, "step_wall_s_median": median,
         "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
         "phases_s_median": phases, "peak_rss_gb": peak_gb,

@@ -134,6 +134,7 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
     from seggaussian.render.projection_numba import project_gaussians_fast
     from seggaussian.render.sh import sh_to_colors
     from seggaussian.render.tiles import bin_gaussians, bin_gaussians_argsort
+    from seggaussian.util.allocator import settings as allocator_settings
 
     scene, viewmat, K = make_scene(num, width, height)
 
@@ -194,7 +195,8 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
             "projection_s": projection_s, "binning_s": binning_s, "binning_argsort_s": binning_argsort_s,
             "blend_s": blend_s, "blend_backward_s": blend_backward_s, "projection_backward_s": projection_backward_s,
             "intersections": bins.num_intersections, "peak_rss_gb": peak_kb / 1024**2,
-            "threads": torch.get_num_threads(), "load_average_1min": os.getloadavg()[0]}
+            "threads": torch.get_num_threads(), "load_average_1min": os.getloadavg()[0],
+            "allocator": allocator_settings()}
 
 
 def bench_large(num: int, width: int, height: int, repeats: int) -> dict:
