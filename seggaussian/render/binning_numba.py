@@ -209,6 +209,16 @@ def _order_by_full_key(packed, start, end, keys, pos_mask):
         packed[start + i] = run[perm[i]]
 
 
+@numba.njit(inline="always", **_JIT)
+def _run_end(packed, start, hi, shift):
+    """End (exclusive, at most ``hi``) of the run of words whose bits above ``shift`` equal ``packed[start]``'s."""
+    top = packed[start] >> shift
+    end = start + 1
+    while end < hi and (packed[end] >> shift) == top:
+        end += 1
+    return end
+
+
 @numba.njit(**_JIT)
 def _fix_runs_between(packed, keys, lo, hi, pos_bits, sorted_shift, dropped):
     """``_fix_runs`` on ``packed[lo:hi]``, which starts and ends on run boundaries."""
@@ -217,10 +227,7 @@ def _fix_runs_between(packed, keys, lo, hi, pos_bits, sorted_shift, dropped):
     up = np.uint64(pos_bits)
     start = lo
     while start < hi:
-        top = packed[start] >> us
-        end = start + 1
-        while end < hi and (packed[end] >> us) == top:
-            end += 1
+        end = _run_end(packed, start, hi, us)
         if end - start > 1:
             if sorted_shift > pos_bits:  # kept bits below the sorted ones: order by the whole word
                 if end - start <= _INSERTION_MAX:
@@ -230,10 +237,7 @@ def _fix_runs_between(packed, keys, lo, hi, pos_bits, sorted_shift, dropped):
             if dropped:  # equal kept bits, positions ascending: the full key decides
                 s = start
                 while s < end:
-                    kept = packed[s] >> up
-                    e = s + 1
-                    while e < end and (packed[e] >> up) == kept:
-                        e += 1
+                    e = _run_end(packed, s, end, up)
                     if e - s > 1:
                         _order_by_full_key(packed, s, e, keys, pos_mask)
                     s = e
