@@ -1,5 +1,6 @@
-"""Helpers that are not the domain: atomic writes, JSON-ready values, per-scene seeds, config field docs, the
-source closure of a module (build cache keys), numba's kernel cache folder and the thread caps of a worker.
+"""Helpers that are not the domain: the allocator setting, atomic writes, JSON-ready values, per-scene seeds, config
+field docs, the source closure of a module (build cache keys), numba's kernel cache folder and the thread caps of a
+worker.
 """
 
-__all__ = ["atomic", "field_docs", "jsonsafe", "module_closure", "numba_cache", "seeds", "threads"]
+__all__ = ["allocator", "atomic", "field_docs", "jsonsafe", "module_closure", "numba_cache", "seeds", "threads"]

@@ -234,9 +234,9 @@ def test_skipping_the_rows_outside_a_box_changes_nothing(seed, scale_shift):
 
 
 def test_tile_list_buffers_are_recycled_only_when_nothing_refers_to_them():
-    from seggaussian.render.binning_numba import MIN_POOLED_IDS, _TileIdBuffers
+    from seggaussian.render.tile_buffers import MIN_POOLED_IDS, TileIdBuffers
 
-    pool = _TileIdBuffers(max_buffers=2)
+    pool = TileIdBuffers(max_buffers=2)
     size = MIN_POOLED_IDS
     address = lambda a: a.__array_interface__["data"][0]  # noqa: E731
     ids = pool.take(size)
@@ -267,14 +267,14 @@ def test_tile_list_buffers_are_recycled_only_when_nothing_refers_to_them():
 def test_renders_kept_for_backward_do_not_share_recycled_tile_lists(monkeypatch):
     """Three views rendered before one backward (as a training step does) with every tile list pooled: the images
     and gradients equal those with no pooling, so no render's lists were overwritten by a later one."""
-    import seggaussian.render.binning_numba as binning
+    import seggaussian.render.tile_buffers as tile_buffers
 
     scene = random_scene(2000, 9, dtype=torch.float32, spread=1.0)
     eyes = [(0.3, -3.0, 0.6), (2.5, 1.0, 1.2), (-1.0, 2.8, -0.5)]
 
     def run(min_pooled):
-        monkeypatch.setattr(binning, "MIN_POOLED_IDS", min_pooled)
-        binning.TILE_ID_BUFFERS.clear()
+        monkeypatch.setattr(tile_buffers, "MIN_POOLED_IDS", min_pooled)
+        tile_buffers.TILE_ID_BUFFERS.clear()
         params = {k: scene[k].clone().requires_grad_(True) for k in ("means", "quats", "log_scales",
                                                                      "opacity_logits", "features")}
         images = []
@@ -287,9 +287,9 @@ def test_renders_kept_for_backward_do_not_share_recycled_tile_lists(monkeypatch)
 
     plain_images, plain_grads = run(1 << 62)
     pooled_images, pooled_grads = run(0)
-    assert len(binning.TILE_ID_BUFFERS._buffers) == len(eyes)  # each view got its own buffer
+    assert len(tile_buffers.TILE_ID_BUFFERS._buffers) == len(eyes)  # each view got its own buffer
     for a, b in zip(plain_images, pooled_images):
         assert torch.equal(a, b)
     for k in plain_grads:
         assert torch.equal(plain_grads[k], pooled_grads[k]), k
-    binning.TILE_ID_BUFFERS.clear()
+    tile_buffers.TILE_ID_BUFFERS.clear()
