@@ -1,7 +1,7 @@
 """Retrain a finished run with other input settings, everything else equal, and bench it as an earlier report did.
 
-Issue 27's comparison of the input encoding, the voxel pooling and the class weights (``--class-balance``) on fitted
-splats, and issue 31's learning check of a 3D-loss subset (``--loss-gaussians``): the run's config.json is read back
+Issue 27's comparison of the input encoding, the voxel pooling, the class weights (``--class-balance``) and the
+voxel size (``--voxel-size``) on fitted splats, and issue 31's learning check of a 3D-loss subset (``--loss-gaussians``): the run's config.json is read back
 through ``config_from_dict``, only the named settings change, and the bench uses the report's own BenchConfig (same
 dataset, splits, classes, views), so the two reports differ only by the setting.
 
@@ -31,6 +31,7 @@ def main() -> int:
     parser.add_argument("--input-encoding", choices=("raw", "robust"), default=None)
     parser.add_argument("--pool-weighting", choices=("mean", "opacity"), default=None)
     parser.add_argument("--epochs", type=int, default=None, help="override the run's epochs (a quick check)")
+    parser.add_argument("--voxel-size", type=float, default=None, help="voxel edge (m) of the network's finest level")
     parser.add_argument("--loss-gaussians", type=int, default=None,
                         help="Gaussians per scene in the 3D-to-text loss (DataConfig.loss_gaussians)")
     parser.add_argument("--class-balance", type=float, default=None,
@@ -45,7 +46,7 @@ def main() -> int:
 
     saved = config_from_dict(TrainConfig, json.loads((args.run / "config.json").read_text())["train"])
     changes = {k: v for k, v in (("input_encoding", args.input_encoding), ("pool_weighting", args.pool_weighting),
-                                 ("epochs", args.epochs)) if v is not None}
+                                 ("epochs", args.epochs), ("voxel_size", args.voxel_size)) if v is not None}
     config = dataclasses.replace(saved, out=args.out / "run", progress=False, **changes)
     if args.loss_gaussians is not None:
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, loss_gaussians=args.loss_gaussians))
