@@ -1,10 +1,10 @@
 """Retrain a finished run with other input settings, everything else equal, and bench it as an earlier report did.
 
 Issue 27's comparison of the input encoding, the voxel pooling, the class weights (``--class-balance``) and the
-voxel size (``--voxel-size``) on fitted splats, and issue 31's learning check of a 3D-loss subset (``--loss-
-gaussians``): the run's config.json is read back through ``config_from_dict``, only the named settings change, and
-the bench uses the report's own BenchConfig (same dataset, splits, classes, views), so the two reports differ only
-by the setting.
+voxel size (``--voxel-size``) on fitted splats, and issue 31's learning check of a 3D-loss subset
+(``--loss-gaussians``): the run's config.json is read back through ``config_from_dict``, only the named settings
+change, and the bench uses the report's own BenchConfig (same dataset, splits, classes, views), so the two reports
+differ only by the setting.
 
     .venv/bin/python benchmarks/retrain_variant.py --run out/suite-fit20/runs/full \\
         --report out/suite-fit20/reports/table1-02.json --out out/variants/raw-mean \\
