@@ -9,8 +9,8 @@ No comparison sort anywhere:
    parallel over chunks (per-chunk digit histograms, an exclusive prefix sum digit-major then chunk-major, a
    scatter) and moving 8 bytes per element; runs of equal sorted bits are then ordered by their packed words (the
    key bits below the sorted ones, then the position; short insertion sorts in cache), and only words that share
-   every packed key bit by the full key. LSD radix sorting is stable, so equal depths keep index order, exactly as the former
-   ``argsort(kind="stable")``.
+   every packed key bit by the full key. LSD radix sorting is stable, so equal depths keep index order, exactly as
+   the former ``argsort(kind="stable")``.
 2. Tile lists: the depth-sorted Gaussians are split into chunks; each chunk counts its intersections per tile
    (four corner updates of a 2D difference array per tile box, then a prefix sum), a prefix sum over (tile,
    chunk) gives every chunk its write cursor in every tile, and the chunks scatter in parallel. Chunk c's entries
@@ -28,7 +28,6 @@ from numba import prange
 
 from seggaussian.core.constants import TILE_SIZE
 from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
-from seggaussian.render.tile_buffers import TILE_ID_BUFFERS
 
 _JIT = dict(cache=True, nogil=True)
 
@@ -332,11 +331,10 @@ def _count_tiles(boxes, tiles_x, num_tiles, num_chunks):
     return counts
 
 
-@numba.njit(**_JIT)
-def _cursors(counts):
-    """CSR offsets [T + 1] of the per-chunk counts [chunks, T]; ``counts`` becomes each chunk's write cursor per
-    tile (chunk c's entries of a tile after chunk c - 1's)."""
-    num_chunks, num_tiles = counts.shape
+@numba.njit(parallel=True, **_JIT)
+def _scatter_tiles(order, boxes, counts, tiles_x, num_tiles):
+    """CSR offsets [T + 1] and ids [I]; ``counts`` becomes each chunk's write cursor per tile."""
+    num_chunks = counts.shape[0]
     offsets = np.empty(num_tiles + 1, np.int64)
     total = 0
     for t in range(num_tiles):
@@ -346,17 +344,12 @@ def _cursors(counts):
             counts[c, t] = total
             total += cnt
     offsets[num_tiles] = total
-    return offsets
-
-
-@numba.njit(parallel=True, **_JIT)
-def _scatter_tiles(order, boxes, cursors, tiles_x, ids):
-    """Fill ``ids`` [I]: every Gaussian of ``order`` at its chunk's cursor in each tile of its box."""
-    num_chunks = cursors.shape[0]
     m = order.shape[0]
+    ids = np.empty(total, np.int32)
     size = (m + num_chunks - 1) // num_chunks
     for c in prange(num_chunks):
-        _scatter_chunk(order, boxes, c * size, min(m, (c + 1) * size), tiles_x, cursors[c], ids)
+        _scatter_chunk(order, boxes, c * size, min(m, (c + 1) * size), tiles_x, counts[c], ids)
+    return offsets, ids
 
 
 def _num_chunks(n: int) -> int:
@@ -395,9 +388,7 @@ def bin_sorted(idx: np.ndarray, depths: np.ndarray, pixel_box: np.ndarray, tile_
         idx, boxes = run_parallel(_radix_sort, keys, idx, boxes, _num_chunks(idx.shape[0]), chunk=0)
     chunks = _num_chunks(idx.shape[0])
     counts = run_parallel(_count_tiles, boxes, tiles_x, num_tiles, chunks, chunk=0)
-    offsets = _cursors(counts)
-    ids = TILE_ID_BUFFERS.take(int(offsets[num_tiles]))
-    run_parallel(_scatter_tiles, idx, boxes, counts, tiles_x, ids, chunk=0)
+    offsets, ids = run_parallel(_scatter_tiles, idx, boxes, counts, tiles_x, num_tiles, chunk=0)
     return offsets, ids, idx
 
 
