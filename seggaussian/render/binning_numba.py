@@ -172,8 +172,12 @@ def _bit_length(x):
 
 
 @numba.njit(**_JIT)
-def _insertion_sort_packed(packed, start, end):
-    """Sort ``packed[start:end]`` ascending as uint64 (the values are distinct: each holds its position)."""
+def _sort_words(packed, start, end):
+    """Sort ``packed[start:end]`` ascending as uint64 (the words are distinct: each holds its position): insertion
+    sort when short, numpy's sort otherwise."""
+    if end - start > _INSERTION_MAX:
+        packed[start:end] = np.sort(packed[start:end])
+        return
     for i in range(start + 1, end):
         v = packed[i]
         j = i - 1
@@ -227,10 +231,7 @@ def _fix_runs_between(packed, keys, lo, hi, pos_bits, sorted_shift, dropped):
         end = _run_end(packed, start, hi, us)
         if end - start > 1:
             if sorted_shift > pos_bits:  # kept bits below the sorted ones: order by the whole word
-                if end - start <= _INSERTION_MAX:
-                    _insertion_sort_packed(packed, start, end)
-                else:
-                    packed[start:end] = np.sort(packed[start:end])
+                _sort_words(packed, start, end)
             if dropped:  # equal kept bits, positions ascending: the full key decides
                 s = start
                 while s < end:
