@@ -1,7 +1,7 @@
 """Retrain a finished run with other input settings, everything else equal, and bench it as an earlier report did.
 
 Issue 27's comparison of the input encoding, the voxel pooling, the class weights (``--class-balance``) and the
-voxel size (``--voxel-size``) on fitted splats, and issue 31's learning check of a 3D-loss subset
+voxel size (``--voxel-size``) and the Lovasz-softmax term (``--lovasz-weight``) on fitted splats, and issue 31's learning check of a 3D-loss subset
 (``--loss-gaussians``): the run's config.json is read back through ``config_from_dict``, only the named settings
 change, and the bench uses the report's own BenchConfig (same dataset, splits, classes, views), so the two reports
 differ only by the setting.
@@ -37,6 +37,8 @@ def main() -> int:
                         help="Gaussians per scene in the 3D-to-text loss (DataConfig.loss_gaussians)")
     parser.add_argument("--class-balance", type=float, default=None,
                         help="exponent of the class weights of the text cross-entropies (LossConfig.class_balance)")
+    parser.add_argument("--lovasz-weight", type=float, default=None,
+                        help="weight of the Lovasz-softmax term of the 3D-to-text loss (LossConfig.lovasz_weight)")
     args = parser.parse_args()
 
     from ovgaussian.bench.config import BenchConfig
@@ -55,6 +57,9 @@ def main() -> int:
     if args.class_balance is not None:
         config = dataclasses.replace(config, loss=dataclasses.replace(config.loss, class_balance=args.class_balance))
         changes["class_balance"] = args.class_balance
+    if args.lovasz_weight is not None:
+        config = dataclasses.replace(config, loss=dataclasses.replace(config.loss, lovasz_weight=args.lovasz_weight))
+        changes["lovasz_weight"] = args.lovasz_weight
     started = time.perf_counter()
     result = train(config)
     trained_s = time.perf_counter() - started

@@ -92,6 +92,10 @@ class LossConfig:
     class_balance: float = 0.0
     """Exponent p of the class weights n_c^-p of both text cross-entropies (n_c: the seen class's Gaussians in
     the training split; mean weight 1): 0 is the paper's plain loss, 0.5 lifts small objects against walls."""
+    lovasz_weight: float = 0.0
+    """Weight of the Lovasz-softmax term (an IoU surrogate, Berman et al. 2018) added to the 3D-to-text loss: each
+    class present in a scene pays the Lovasz extension of its 1 - IoU over the scene's labelled Gaussians. 0: the
+    paper's cross-entropy alone."""
     unlabelled_as_unseen: bool = False
     """Transductive zero-shot (self-training on the unlabelled parts of the training rooms, as ZS5Net, Bucher et al.
     2019): Gaussians and covered pixels of the training rooms without a seen-class label (unseen classes,

@@ -7,6 +7,10 @@
   partial-label term ``-log sum_u p_u`` over the unseen classes' columns (:func:`text_cross_entropy`).
 - Visual-semantic alignment: ``1 - cos(psi(M), teacher)`` averaged over valid pixels.
 - ``L = L_3d + L_2d + w * L_cosine``; ``no_3dt_align`` drops L_3d, ``no_vs_align`` drops L_cosine.
+- Optional IoU surrogate (``LossConfig.lovasz_weight``): the Lovasz-softmax loss (Berman, Rannen Triki and
+  Blaschko, CVPR 2018) of the 3D text logits, added to L_3d. It is the convex (Lovasz) extension of the Jaccard
+  loss ``1 - IoU`` of each class present in the scene's labels, so a false positive costs what it costs the
+  benchmark's mIoU (a class with few Gaussians pays for every row of another class it takes).
 
 Means (not the paper's sums) keep the loss scale independent of scene and image size. Every loss
 of an empty valid set is an exact 0 that stays attached to the graph (zero, finite gradients), never NaN.
@@ -118,6 +122,44 @@ def text_cross_entropy(
     return (mean * count + unlabelled_weight * partial) / (count + extra), count + extra
 
 
+def lovasz_jaccard_gradient(
+    foreground_sorted: torch.Tensor,  # [C, P] float, 1 where the row belongs to the class, rows by decreasing error
+) -> torch.Tensor:  # [C, P]
+    """Increments ``J(first i rows) - J(first i - 1 rows)`` of the Jaccard loss ``J(M) = |M| / |F u M|`` of each
+    class when the first ``i`` rows (by decreasing error) are the mispredicted set ``M``; ``F`` is the class's
+    foreground. The Lovasz extension of ``J`` at errors ``e`` is ``sum_i e_(i) * increment_i``."""
+    total = foreground_sorted.sum(dim=1, keepdim=True)  # |F|
+    missed = foreground_sorted.cumsum(dim=1)  # |M n F| of each prefix
+    taken = (1.0 - foreground_sorted).cumsum(dim=1)  # |M \ F| of each prefix
+    jaccard = 1.0 - (total - missed) / (total + taken)  # |M| / |F u M|; the denominator is >= 1 after row 0
+    return torch.cat([jaccard[:, :1], jaccard[:, 1:] - jaccard[:, :-1]], dim=1)
+
+
+def lovasz_softmax(
+    logits: torch.Tensor,  # [P, C]
+    labels: torch.Tensor,  # [P] int, class index in 0..C-1 or IGNORE_LABEL
+) -> torch.Tensor:  # scalar
+    """Lovasz-softmax loss of the labelled rows: the mean, over the classes present among them, of the Lovasz
+    extension of the class's Jaccard loss at the errors ``|[label == c] - softmax(logits)_c|``. Exact 0 (attached
+    to the graph) without a labelled row. For one-hot probabilities it equals the mean of ``1 - IoU``."""
+    labels = labels.long()
+    valid = labels != IGNORE_LABEL
+    if not bool(valid.any()):
+        return logits.sum() * 0.0
+    chosen = labels[valid]
+    num_classes = logits.shape[1]
+    if int(chosen.min()) < 0 or int(chosen.max()) >= num_classes:
+        raise ValueError(f"labels must be in 0..{num_classes - 1} or IGNORE_LABEL, got range "
+                         f"{int(chosen.min())}..{int(chosen.max())}")
+    probs = torch.softmax(logits[valid], dim=1)  # [R, C]
+    present = torch.unique(chosen)  # [K]
+    foreground = (chosen[None, :] == present[:, None]).to(probs.dtype)  # [K, R]
+    errors = (foreground - probs.T[present]).abs()  # [K, R]
+    errors_sorted, order = torch.sort(errors, dim=1, descending=True)
+    increments = lovasz_jaccard_gradient(foreground.gather(1, order))
+    return (errors_sorted * increments).sum(dim=1).mean()
+
+
 def masked_cosine_loss(
     predicted: torch.Tensor,  # [P, D] psi(M)
     target: torch.Tensor,  # [P, D] teacher features
@@ -176,6 +218,37 @@ def reference_text_cross_entropy(logits: list[list[float]], labels: list[int], w
         elif unlabelled_columns is not None:
             terms.append(-unlabelled_weight * math.log(sum(math.exp(row[c]) for c in unlabelled_columns) / total))
     return sum(terms) / len(terms) if terms else 0.0
+
+
+def reference_lovasz_softmax(logits: list[list[float]], labels: list[int]) -> float:
+    """:func:`lovasz_softmax` in float64 Python from the definitions: per present class, the Lovasz extension
+    ``sum_i m_(i) (J({first i}) - J({first i - 1}))`` with the Jaccard loss ``J(M) = |M| / |F u M|`` evaluated on
+    Python sets of row indices (ties in the errors keep row order, as a stable descending sort)."""
+    rows = [(row, label) for row, label in zip(logits, labels) if label != IGNORE_LABEL]
+    if not rows:
+        return 0.0
+    probs = []
+    for row, _ in rows:
+        top = max(row)
+        exps = [math.exp(x - top) for x in row]
+        probs.append([e / sum(exps) for e in exps])
+    losses = []
+    for c in sorted({label for _, label in rows}):
+        foreground = {i for i, (_, label) in enumerate(rows) if label == c}
+        errors = [abs((1.0 if i in foreground else 0.0) - probs[i][c]) for i in range(len(rows))]
+        order = sorted(range(len(rows)), key=lambda i: -errors[i])
+
+        def jaccard(mispredicted: set) -> float:
+            union = foreground | mispredicted
+            return len(mispredicted) / len(union) if union else 0.0
+
+        total, previous = 0.0, 0.0
+        for i in range(len(order)):
+            current = jaccard(set(order[:i + 1]))
+            total += errors[order[i]] * (current - previous)
+            previous = current
+        losses.append(total)
+    return sum(losses) / len(losses)
 
 
 def reference_cosine_loss(predicted: list[list[float]], target: list[list[float]], valid: list[bool]) -> float:

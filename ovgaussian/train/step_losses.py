@@ -18,7 +18,8 @@ import torch
 from ovgaussian.model import network as model
 from ovgaussian.data.training_data import SceneSample
 from ovgaussian.train.losses import (
-    COSINE_NORM_EPS, combine_losses, compute_text_logits, masked_cosine_loss, normalize_rows, text_cross_entropy,
+    COSINE_NORM_EPS, combine_losses, compute_text_logits, lovasz_softmax, masked_cosine_loss, normalize_rows,
+    text_cross_entropy,
 )
 from ovgaussian.run.config import TrainConfig
 from seggaussian.core.constants import IGNORE_LABEL
@@ -155,6 +156,9 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
             semantic3, labels3 = semantic_3d[labelled], labels[labelled]
         text_3d = text_cross_entropy_3d(net.phi, semantic3, labels3, text_embeddings, temperature, class_weights,
                                         unlabelled_columns, unlabelled_weight)
+        if config.loss.lovasz_weight > 0 and text_3d[1] > 0:
+            lovasz = lovasz_softmax(decoded_text_logits(net.phi, semantic3, text_embeddings, temperature), labels3)
+            text_3d = (text_3d[0] + config.loss.lovasz_weight * lovasz, text_3d[1])
     pixel_weights = sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)

@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from ovgaussian.train.losses import (
-    combine_losses, compute_text_logits, masked_cosine_loss, masked_cross_entropy, partial_label_nll,
-    reference_cosine_loss, reference_cross_entropy, reference_text_cross_entropy, text_cross_entropy,
+    combine_losses, compute_text_logits, lovasz_softmax, masked_cosine_loss, masked_cross_entropy,
+    partial_label_nll, reference_cosine_loss, reference_cross_entropy, reference_lovasz_softmax,
+    reference_text_cross_entropy, text_cross_entropy,
 )
 from seggaussian.core.constants import IGNORE_LABEL
 
@@ -170,3 +171,52 @@ def test_text_cross_entropy_without_unlabelled_columns_is_the_masked_one_bitwise
     e, ce = text_cross_entropy(logits[::3], labels[::3], weights, torch.tensor([4, 5]), 2.0)
     assert ce == 10
     assert float(e) == pytest.approx(2.0 * float(partial_label_nll(logits[::3], torch.tensor([4, 5])).mean()), rel=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_lovasz_softmax_matches_reference_forward_and_backward(seed):
+    generator = torch.Generator().manual_seed(seed)
+    rows, classes = 23, 5
+    logits = (torch.randn(rows, classes, generator=generator, dtype=torch.float64) * 2).requires_grad_(True)
+    labels = torch.randint(0, classes - 1, (rows,), generator=generator)  # the last class is never present
+    labels[torch.rand(rows, generator=generator) < 0.2] = IGNORE_LABEL
+    loss = lovasz_softmax(logits, labels)
+    expected = reference_lovasz_softmax(logits.tolist(), labels.tolist())
+    assert float(loss) == pytest.approx(expected, rel=1e-12, abs=1e-14)
+    (gradient,) = torch.autograd.grad(loss, logits)
+    step = 1e-6
+    for r in range(rows):
+        for c in range(classes):
+            plus, minus = logits.detach().clone(), logits.detach().clone()
+            plus[r, c] += step
+            minus[r, c] -= step
+            numeric = (reference_lovasz_softmax(plus.tolist(), labels.tolist())
+                       - reference_lovasz_softmax(minus.tolist(), labels.tolist())) / (2 * step)
+            assert float(gradient[r, c]) == pytest.approx(numeric, abs=1e-6), (r, c)
+    assert bool((gradient[labels == IGNORE_LABEL] == 0).all())
+
+
+def test_lovasz_softmax_of_one_hot_predictions_is_one_minus_iou():
+    predicted = torch.tensor([0, 0, 1, 1, 1, 2, 0, 2])
+    labels = torch.tensor([0, 1, 1, 1, 0, 0, IGNORE_LABEL, 1])
+    logits = torch.nn.functional.one_hot(predicted, 4).double() * 200.0  # softmax is one-hot to 1e-80
+    # present classes 0 and 1: class 0 predicted on rows 0, 1 (row 6 is ignored), true on rows 0, 4, 5 -> IoU 1/4;
+    # class 1 predicted on rows 2, 3, 4, true on rows 1, 2, 3, 7 -> IoU 2/5. Class 2 is predicted but not present.
+    expected = ((1 - 1 / 4) + (1 - 2 / 5)) / 2
+    assert float(lovasz_softmax(logits, labels)) == pytest.approx(expected, abs=1e-12)
+    perfect = torch.nn.functional.one_hot(torch.where(labels == IGNORE_LABEL, 3, labels), 4).double() * 200.0
+    assert float(lovasz_softmax(perfect, labels)) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_lovasz_softmax_empty_extreme_and_bad_labels():
+    logits = torch.randn(4, 3, requires_grad=True)
+    empty = lovasz_softmax(logits, torch.full((4,), IGNORE_LABEL))
+    assert float(empty) == 0.0
+    (gradient,) = torch.autograd.grad(empty, logits)
+    assert bool((gradient == 0).all())
+    extreme = torch.tensor([[1e4, -1e4, 0.0], [-3e38, 3e38, 0.0]], requires_grad=True)
+    loss = lovasz_softmax(extreme, torch.tensor([1, 1]))
+    loss.backward()
+    assert math.isfinite(float(loss)) and bool(torch.isfinite(extreme.grad).all())
+    with pytest.raises(ValueError, match="labels must be in"):
+        lovasz_softmax(torch.zeros(2, 3), torch.tensor([0, 3]))

@@ -512,6 +512,30 @@ def test_training_with_the_teacher_caches_features_and_aligns(scenes, tmp_path):
     assert loaded.checkpoint == result.checkpoint and len(loaded.seen_class_ids) == 16 and not loaded.net.training
 
 
+def test_lovasz_weight_adds_the_scene_s_lovasz_softmax_to_the_3d_term(scenes, tmp_path):
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.losses import lovasz_softmax
+    from ovgaussian.train.step_losses import batch_losses, decoded_text_logits, network_inputs
+
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
+    samples = [data.sample(s, np.random.default_rng(i)) for i, s in enumerate(("scene00", "scene01"))]
+    torch.manual_seed(0)
+    net = build_network(tiny_model_config(12)).eval()
+    plain = batch_losses(net, samples, text_stub(), tiny_config(tmp_path, 1), False, "cpu")
+    config = tiny_config(tmp_path, 1, loss=LossConfig(temperature=0.1, lovasz_weight=0.5))
+    with_lovasz = batch_losses(net, samples, text_stub(), config, False, "cpu")
+    semantic = net(*network_inputs(samples, "cpu"))
+    start = 0
+    for sample, a, b in zip(samples, plain, with_lovasz):
+        rows = semantic[start:start + len(sample.means)]
+        start += len(sample.means)
+        expected = lovasz_softmax(decoded_text_logits(net.phi, rows, text_stub(), 0.1), sample.labels)
+        assert 0 < float(expected) < 1
+        assert float(b.text_3d) == pytest.approx(float(a.text_3d) + 0.5 * float(expected), rel=1e-5)
+        assert float(b.text_2d) == float(a.text_2d) and b.count_3d == a.count_3d
+
+
 def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkeypatch):
     """Adapter and 3D text loss in row chunks under activation checkpointing (the paper-scale memory
     bound) give the values and gradients of the one-piece computation."""
