@@ -54,6 +54,46 @@ def test_fast_projection_matches_torch():
         assert torch.allclose(a, b, rtol=1e-10, atol=1e-10 * float(a.abs().max()))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fast_projection_matches_torch_across_blocks(dtype):
+    """The kernels work in blocks of _LANE_BLOCK Gaussians staged as columns: several blocks and a partial last
+    one, with degenerate rows at block edges, give the reference's outputs and gradients row for row."""
+    from seggaussian.render.projection_numba import _LANE_BLOCK
+
+    n = 2 * _LANE_BLOCK + 217
+    scene = random_scene(n, 11, dtype=dtype, spread=1.5)
+    for start in (0, _LANE_BLOCK - 3, 2 * _LANE_BLOCK + 200):  # degenerate rows at block edges
+        scene["log_scales"][start] = -math.inf
+        scene["log_scales"][start + 1, 2] = 200.0
+        scene["quats"][start + 2] = 0.0
+    ref, ref_grads = project_with_grads(project_gaussians, scene)
+    fast, fast_grads = project_with_grads(project_gaussians_fast, scene)
+    ref, fast = ref._replace(**{k: getattr(ref, k).detach() for k in ("means2d", "conics", "depths", "view_dirs")}), \
+        fast._replace(**{k: getattr(fast, k).detach() for k in ("means2d", "conics", "depths", "view_dirs")})
+    assert 0 < int(ref.valid.sum()) < n
+    assert torch.equal(ref.valid, fast.valid)
+    assert torch.equal(ref.pixel_box[ref.valid], fast.pixel_box[fast.valid])
+    assert bool((fast.pixel_box[~fast.valid] == torch.tensor([0, 0, -1, -1])).all())
+    tolerance = 1e-12 if dtype == torch.float64 else 1e-6  # float32 gradients are rounded to float32
+    for name in ("means2d", "conics", "depths", "view_dirs"):
+        assert torch.allclose(getattr(ref, name), getattr(fast, name), rtol=1e-12, atol=1e-12), name
+    for a, b in zip(ref_grads, fast_grads):
+        assert torch.isfinite(b).all()
+        assert torch.allclose(a, b, rtol=tolerance, atol=tolerance * float(a.abs().max()))
+
+
+def test_polynomial_exp_matches_math_exp_over_the_clamped_range():
+    from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX
+    from seggaussian.render.projection import LOG_SCALE_MIN
+    from seggaussian.render.projection_numba import _exp_scale
+
+    xs = [LOG_SCALE_MIN, LOG_SCALE_FLOAT32_MAX, 0.0, -1e-300, 1e-300]
+    xs += [LOG_SCALE_MIN + (LOG_SCALE_FLOAT32_MAX - LOG_SCALE_MIN) * k / 9973 for k in range(9974)]
+    worst = max(abs(_exp_scale(x) / math.exp(x) - 1.0) for x in xs)
+    assert worst < 1e-13, worst
+    assert _exp_scale(0.0) == 1.0
+
+
 def test_fast_projection_gradcheck():
     scene = random_scene(6, 5, dtype=torch.float64, spread=0.4)
     scene["means"][0] = torch.tensor([2.4, 0.0, 0.0], dtype=torch.float64)  # beyond the Jacobian clamp
