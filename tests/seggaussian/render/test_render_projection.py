@@ -58,7 +58,7 @@ def test_fast_projection_matches_torch():
 def test_fast_projection_matches_torch_across_blocks(dtype):
     """The kernels work in blocks of _LANE_BLOCK Gaussians staged as columns: several blocks and a partial last
     one, with degenerate rows at block edges, give the reference's outputs and gradients row for row."""
-    from seggaussian.render.projection_numba import _LANE_BLOCK
+    from seggaussian.render.projection_lanes import LANE_BLOCK as _LANE_BLOCK
 
     n = 2 * _LANE_BLOCK + 217
     scene = random_scene(n, 11, dtype=dtype, spread=1.5)
@@ -85,7 +85,7 @@ def test_fast_projection_matches_torch_across_blocks(dtype):
 def test_polynomial_exp_matches_math_exp_over_the_clamped_range():
     from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX
     from seggaussian.render.projection import LOG_SCALE_MIN
-    from seggaussian.render.projection_numba import _exp_scale
+    from seggaussian.render.projection_lanes import _exp_scale
 
     xs = [LOG_SCALE_MIN, LOG_SCALE_FLOAT32_MAX, 0.0, -1e-300, 1e-300]
     xs += [LOG_SCALE_MIN + (LOG_SCALE_FLOAT32_MAX - LOG_SCALE_MIN) * k / 9973 for k in range(9974)]
