@@ -19,6 +19,7 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "predictor", "--predictor", type=click.Choice(["model", "majority", "nearest-colour"]),
                default="model", show_default=True)
 @config_option(BenchConfig, "prompt_ensemble", "--prompt-ensemble", is_flag=True)
+@config_option(BenchConfig, "class_offsets", "--class-offsets", is_flag=True)
 @config_option(BenchConfig, "generative", "--generative", is_flag=True)
 @config_option(BenchConfig, "stacking_run", "--stacking-run", type=click.Path(path_type=Path, file_okay=False),
                default=None)
@@ -39,7 +40,7 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(dataset, run, checkpoint, predictor, prompt_ensemble, generative, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
+def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets, generative, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
             out, label, verify, device, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
     from ovgaussian.bench.evaluate import run_bench, table1_header, table1_row
@@ -50,7 +51,8 @@ def command(dataset, run, checkpoint, predictor, prompt_ensemble, generative, st
     if predictor == "model" and run is None:
         raise click.UsageError("--run is required with --predictor model")
     config = BenchConfig(dataset=dataset, run=run, checkpoint=checkpoint, predictor=predictor,
-                         prompt_ensemble=prompt_ensemble, generative=generative, stacking_run=stacking_run,
+                         prompt_ensemble=prompt_ensemble, class_offsets=class_offsets, generative=generative,
+                         stacking_run=stacking_run,
                          metrics=metrics,
                          dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,
                          max_scenes=max_scenes, progress=progress and not as_json, verify=verify, device=device)

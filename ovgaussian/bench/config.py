@@ -39,6 +39,8 @@ class BenchConfig:
     """Open vocabulary: embed each class name under several prompt templates, averaged (ovgaussian.text.prompt_ensemble)."""
     stacking_run: Optional[Path] = None
     """Open vocabulary, calibrated stacking: a run trained with --holdout-classes; gamma is chosen with it on the train split (never on unseen labels), recorded in the report, and subtracted from the seen classes' scores (ovgaussian.openvocab.calibration)."""
+    class_offsets: bool = False
+    """Per-class score offsets: chosen on the train split to maximize its mIoU (training classes only, unseen labels never read), recorded in the report, and added to the model's scores before the argmax (ovgaussian.openvocab.class_offsets). Not with stacking_run."""
     generative: bool = False
     """Open vocabulary, generative zero-shot synthesis: a generator learns text embedding -> feature on the seen classes of the train split, synthesizes unseen-class features, and a classifier retrained on real seen + synthetic unseen features scores (ovgaussian.openvocab.feature_synthesis)."""
     synthesis: SynthesisConfig = field(default_factory=SynthesisConfig)

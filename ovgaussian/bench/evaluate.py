@@ -39,6 +39,7 @@ from ovgaussian.bench.config import (
 )
 from ovgaussian.bench.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
 from ovgaussian.openvocab.calibration import Calibration, StackedPredictor, calibrate
+from ovgaussian.openvocab.class_offsets import OffsetPredictor, fit_offsets
 from ovgaussian.run.checkpoint import CONFIG_NAME, read_json
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.openvocab.feature_synthesis import fit_generative_predictor
@@ -397,6 +398,15 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
             predictor, record = fit_generative_predictor(predictor, train_scenes, benchmark_vocabulary(config.num_classes),
                                                          training_vocabulary(config.num_classes), config.synthesis)
             description["generative"] = record
+        if config.class_offsets:
+            if config.stacking_run is not None:
+                raise ValueError("bench: --class-offsets and --stacking-run together are not supported (gamma is "
+                                 "chosen on scores without offsets)")
+            offsets = fit_offsets(predictor, _train_scenes(config), training_vocabulary(config.num_classes))
+            predictor = OffsetPredictor(predictor, offsets)
+            description["class_offsets"] = {"split": "train", "protocol": "training classes only (unseen labels "
+                                            "unread); coordinate ascent of the train split's pooled mIoU",
+                                            **offsets.as_dict()}
         if config.stacking_run is not None:
             calibration = calibrate_stacking(config, templates)
             predictor = StackedPredictor(predictor, calibration.gamma)
