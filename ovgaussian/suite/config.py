@@ -110,6 +110,8 @@ TABLE1_ROWS = (
     Table1Row("transductive (unlabelled as unseen)", run="transductive"),
     Table1Row("control: full trained and scored on oracle Gaussians", run="full-oracle", scored_on="oracle"),
     Table1Row("full (fitted splats), scored on oracle Gaussians", run="full", scored_on="oracle"),
+    Table1Row("full + class offsets", run="full", options=(("class_offsets", True),)),
+    Table1Row("control + class offsets", run="full-oracle", options=(("class_offsets", True),), scored_on="oracle"),
 )
 
 #: Table 2 of the paper at K = 20, top to bottom.

@@ -218,14 +218,21 @@ def test_a_rerun_keeps_the_times_of_the_invocations_before_it(tmp_path):
 def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the_share_is_checked():
     control = [r for r in TABLE1_ROWS if r.scored_on == "oracle"]
     trained = {spec.name: spec.trained_on for spec in RUNS}
-    assert sorted(trained[r.run] for r in control) == ["oracle", "splats"]  # the control and the full run on oracle
+    # the controls (plain and with class offsets) and the full run on oracle
+    assert sorted(trained[r.run] for r in control) == ["oracle", "oracle", "splats"]
     assert trained["full-oracle"] == "oracle" and trained["full"] == "splats"
     assert S.table1_rows(SuiteConfig(splats="oracle")) == tuple(r for r in TABLE1_ROWS if r.scored_on == "splats")
     assert S.table1_rows(SuiteConfig()) == TABLE1_ROWS
-    reports = {"full": payload({k: 0.45 for k in ALL}), "control": payload({k: 0.48 for k in ALL})}
-    (name, (ok, detail)), = S.control_checks(reports, "full", ["control"], "fit").items()
+    pairs = S.control_pairs(TABLE1_ROWS, trained)
+    assert pairs == [("OVGaussian (full)", "control: full trained and scored on oracle Gaussians"),
+                     ("full + class offsets", "control + class offsets")]  # each method against its own control
+    reports = {"full": payload({k: 0.45 for k in ALL}), "control": payload({k: 0.48 for k in ALL}),
+               "full + offsets": payload({k: 0.40 for k in ALL}), "control + offsets": payload({k: 0.50 for k in ALL})}
+    result = S.control_checks(reports, [("full", "control"), ("full + offsets", "control + offsets")], "fit")
+    (name, (ok, detail)), (name2, (ok2, detail2)) = result.items()
     assert ok and "94 %" in detail and "fitted 45.0" in detail
+    assert not ok2 and "80 %" in detail2 and name2 == f"{name} (full + offsets)"
     reports["full"] = payload({k: 0.40 for k in ALL})
-    assert not S.control_checks(reports, "full", ["control"], "fit")[name][0]
-    assert S.control_checks(reports, "full", ["control"], "oracle") == {}  # an oracle profile has no such check
+    assert not S.control_checks(reports, [("full", "control")], "fit")[name][0]
+    assert S.control_checks(reports, [("full", "control")], "oracle") == {}  # an oracle profile has no such check
     assert SuiteConfig().splats == "fit" and not SuiteConfig().ablation
