@@ -104,6 +104,8 @@ def evaluate_sh(
     zero-fills a whole ``[N, K, 3]`` gradient per coefficient; as one broadcast product and sum it still makes
     several ``[N, K, 3]`` temporaries.
     """
+    if degree == 0:  # the basis is one constant: no direction, no contraction
+        return sh[:, 0] * sh_basis(torch.zeros(1, 3, dtype=sh.dtype, device=sh.device), 0)[0, 0]
     basis = sh_basis(dirs.to(sh.dtype), degree)  # [N, k]
     if sh.device.type != "cpu":
         k = basis.shape[1]
