@@ -120,9 +120,47 @@ LANE_FIELDS = 24
 
 
 @numba.njit(inline="always", **_JIT)
-def stage_gaussians(lane, means, quats, log_scales, c0_, c1_, c2_, lo, count):
-    """Columns ``_RX.._L2`` of ``lane``: rows ``lo .. lo + count`` of the inputs as float64, means relative to the
-    camera centre."""
+def _unit_quat(q0, q1, q2, q3):
+    """``(w, x, y, z, 1 / |q|, ok)``: ``q / |q|``, or the identity rotation where ``|q|`` is below QUAT_NORM_EPS."""
+    q_norm2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
+    ok = q_norm2 > QUAT_NORM_EPS * QUAT_NORM_EPS
+    inv = 1.0 / math.sqrt(_select(ok, q_norm2, 1.0))
+    return (_select(ok, q0 * inv, 1.0), _select(ok, q1 * inv, 0.0), _select(ok, q2 * inv, 0.0),
+            _select(ok, q3 * inv, 0.0), inv, ok)
+
+
+@numba.njit(inline="always", **_JIT)
+def _screen_covariance(w, rq, s0, s1, s2, x, y, inv_z, fx, fy, lxn, lxp, lyn, lyp):
+    """The EWA chain of one Gaussian: ``M = W Rq S`` (row-major 9-tuple), the Jacobian entries ``(j00, j02, j11,
+    j12)`` at the clamped ``(uc, vc)``, ``T = J M`` (6-tuple) and ``cov2d - dilation = (a0, b, c0)``; also the
+    unclamped ``(u, v)``."""
+    wr = _matmul3(w, rq)  # W Rq
+    m = (wr[0] * s0, wr[1] * s1, wr[2] * s2, wr[3] * s0, wr[4] * s1, wr[5] * s2, wr[6] * s0, wr[7] * s1, wr[8] * s2)
+    u, v = x * inv_z, y * inv_z
+    uc = min(max(u, -lxn), lxp)
+    vc = min(max(v, -lyn), lyp)
+    j00, j02 = fx * inv_z, -fx * uc * inv_z
+    j11, j12 = fy * inv_z, -fy * vc * inv_z
+    t = (j00 * m[0] + j02 * m[6], j00 * m[1] + j02 * m[7], j00 * m[2] + j02 * m[8],
+         j11 * m[3] + j12 * m[6], j11 * m[4] + j12 * m[7], j11 * m[5] + j12 * m[8])
+    a0 = t[0] * t[0] + t[1] * t[1] + t[2] * t[2]
+    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
+    c0 = t[3] * t[3] + t[4] * t[4] + t[5] * t[5]
+    return m, (j00, j02, j11, j12), (uc, vc), (u, v), t, (a0, b, c0)
+
+
+@numba.njit(inline="always", **_JIT)
+def open_block(block, fields, means, quats, log_scales, centre):
+    """``(lane, lo, count)`` of block ``block``: a scratch array of ``fields`` columns whose columns ``_RX.._L2`` hold
+    rows ``lo .. lo + count`` of the inputs as float64, means relative to the camera centre (the last block's unused
+    lanes compute on zeros)."""
+    total = means.shape[0]
+    lane = np.empty(fields * LANE_BLOCK, np.float64)
+    lo = np.uint64(block * LANE_BLOCK)
+    count = np.uint64(min(total - block * LANE_BLOCK, LANE_BLOCK))
+    if count < _LB:
+        lane[:] = 0.0
+    c0_, c1_, c2_ = centre[0], centre[1], centre[2]
     for i in range(count):
         n = lo + i
         lane[_RX * _LB + i] = _f64(means[n, 0]) - c0_
@@ -135,6 +173,7 @@ def stage_gaussians(lane, means, quats, log_scales, c0_, c1_, c2_, lo, count):
         lane[_L0 * _LB + i] = _f64(log_scales[n, 0])
         lane[_L1 * _LB + i] = _f64(log_scales[n, 1])
         lane[_L2 * _LB + i] = _f64(log_scales[n, 2])
+    return lane, lo, count
 
 
 @numba.njit(**_JIT)
@@ -163,32 +202,15 @@ def project_lanes(lane, params):
         z = w[6] * rx + w[7] * ry + w[8] * rz
         in_depth = (z > NEAR_PLANE) & (z < FAR_PLANE)
         lane[_DEPTH * _LB + i] = _select(in_depth, z, 0.0)
-        q0, q1, q2, q3 = lane[_Q0 * _LB + i], lane[_Q1 * _LB + i], lane[_Q2 * _LB + i], lane[_Q3 * _LB + i]
-        q_norm2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
-        q_ok = q_norm2 > QUAT_NORM_EPS * QUAT_NORM_EPS
-        q_inv = 1.0 / math.sqrt(_select(q_ok, q_norm2, 1.0))
-        wr = _matmul3(w, _rotmat(_select(q_ok, q0 * q_inv, 1.0), _select(q_ok, q1 * q_inv, 0.0),
-                                 _select(q_ok, q2 * q_inv, 0.0), _select(q_ok, q3 * q_inv, 0.0)))  # W Rq
+        qw, qx, qy, qz, _, _ = _unit_quat(lane[_Q0 * _LB + i], lane[_Q1 * _LB + i], lane[_Q2 * _LB + i],
+                                          lane[_Q3 * _LB + i])
         s0 = _exp_scale(_clamp_log_scale(lane[_L0 * _LB + i]))
         s1 = _exp_scale(_clamp_log_scale(lane[_L1 * _LB + i]))
         s2 = _exp_scale(_clamp_log_scale(lane[_L2 * _LB + i]))
-        m00, m01, m02 = wr[0] * s0, wr[1] * s1, wr[2] * s2  # M = W Rq S
-        m10, m11, m12 = wr[3] * s0, wr[4] * s1, wr[5] * s2
-        m20, m21, m22 = wr[6] * s0, wr[7] * s1, wr[8] * s2
-        inv_z = 1.0 / _select(in_depth, z, 1.0)
-        u, v = x * inv_z, y * inv_z
-        uc = min(max(u, -lxn), lxp)
-        vc = min(max(v, -lyn), lyp)
-        j00, j02 = fx * inv_z, -fx * uc * inv_z
-        j11, j12 = fy * inv_z, -fy * vc * inv_z
-        # T = J M  (2 x 3); cov2d = T T^T
-        t00, t01, t02 = j00 * m00 + j02 * m20, j00 * m01 + j02 * m21, j00 * m02 + j02 * m22
-        t10, t11, t12 = j11 * m10 + j12 * m20, j11 * m11 + j12 * m21, j11 * m12 + j12 * m22
-        a0 = t00 * t00 + t01 * t01 + t02 * t02
-        b = t00 * t10 + t01 * t11 + t02 * t12
-        c0 = t10 * t10 + t11 * t11 + t12 * t12
+        _, _, _, (u, v), t, (a0, b, c0) = _screen_covariance(
+            w, _rotmat(qw, qx, qy, qz), s0, s1, s2, x, y, 1.0 / _select(in_depth, z, 1.0), fx, fy, lxn, lxp, lyn, lyp)
         a, c = a0 + COV2D_DILATION, c0 + COV2D_DILATION
-        det = _robust_det(t00, t01, t02, t10, t11, t12, a0, c0)
+        det = _robust_det(t[0], t[1], t[2], t[3], t[4], t[5], a0, c0)
         mx, my = fx * u + cx, fy * v + cy
         ok = (in_depth & math.isfinite(det) & math.isfinite(a) & math.isfinite(c) & (det > 0.0)
               & (abs(mx) < MAX_SCREEN_COORD) & (abs(my) < MAX_SCREEN_COORD))
@@ -250,12 +272,8 @@ def project_backward_lanes(lane, params):
         y = w[3] * rx + w[4] * ry + w[5] * rz
         z = w[6] * rx + w[7] * ry + w[8] * rz
         in_depth = (z > NEAR_PLANE) & (z < FAR_PLANE)
-        q0, q1, q2, q3 = lane[_Q0 * _LB + i], lane[_Q1 * _LB + i], lane[_Q2 * _LB + i], lane[_Q3 * _LB + i]
-        q_norm2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
-        q_ok = q_norm2 > QUAT_NORM_EPS * QUAT_NORM_EPS
-        qinv = 1.0 / math.sqrt(_select(q_ok, q_norm2, 1.0))
-        qw, qx = _select(q_ok, q0 * qinv, 1.0), _select(q_ok, q1 * qinv, 0.0)
-        qy, qz = _select(q_ok, q2 * qinv, 0.0), _select(q_ok, q3 * qinv, 0.0)
+        qw, qx, qy, qz, qinv, q_ok = _unit_quat(lane[_Q0 * _LB + i], lane[_Q1 * _LB + i], lane[_Q2 * _LB + i],
+                                                lane[_Q3 * _LB + i])
         rq = _rotmat(qw, qx, qy, qz)
         l0, l1, l2 = lane[_L0 * _LB + i], lane[_L1 * _LB + i], lane[_L2 * _LB + i]
         s0 = _exp_scale(_clamp_log_scale(l0))
@@ -264,24 +282,13 @@ def project_backward_lanes(lane, params):
         in0 = (l0 >= LOG_SCALE_MIN) & (l0 <= LOG_SCALE_FLOAT32_MAX)
         in1 = (l1 >= LOG_SCALE_MIN) & (l1 <= LOG_SCALE_FLOAT32_MAX)
         in2 = (l2 >= LOG_SCALE_MIN) & (l2 <= LOG_SCALE_FLOAT32_MAX)
-        wr = _matmul3(w, rq)  # W Rq
-        m00, m01, m02 = wr[0] * s0, wr[1] * s1, wr[2] * s2  # M = W Rq S
-        m10, m11, m12 = wr[3] * s0, wr[4] * s1, wr[5] * s2
-        m20, m21, m22 = wr[6] * s0, wr[7] * s1, wr[8] * s2
         inv_z = 1.0 / _select(ok, z, 1.0)  # a valid Gaussian is in depth
-        u, v = x * inv_z, y * inv_z
+        m, (j00, j02, j11, j12), (uc, vc), (u, v), t, (a0, b, c0) = _screen_covariance(
+            w, rq, s0, s1, s2, x, y, inv_z, fx, fy, lxn, lxp, lyn, lyp)
+        m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
+        t00, t01, t02, t10, t11, t12 = t
         u_free = 1.0 if (u >= -lxn) & (u <= lxp) else 0.0
         v_free = 1.0 if (v >= -lyn) & (v <= lyp) else 0.0
-        uc = min(max(u, -lxn), lxp)
-        vc = min(max(v, -lyn), lyp)
-        j00, j02 = fx * inv_z, -fx * uc * inv_z
-        j11, j12 = fy * inv_z, -fy * vc * inv_z
-        # T = J M (rows t0, t1); cov2d = T T^T + dilation
-        t00, t01, t02 = j00 * m00 + j02 * m20, j00 * m01 + j02 * m21, j00 * m02 + j02 * m22
-        t10, t11, t12 = j11 * m10 + j12 * m20, j11 * m11 + j12 * m21, j11 * m12 + j12 * m22
-        a0 = t00 * t00 + t01 * t01 + t02 * t02
-        b = t00 * t10 + t01 * t11 + t02 * t12
-        c0 = t10 * t10 + t11 * t11 + t12 * t12
         a, c = a0 + COV2D_DILATION, c0 + COV2D_DILATION
         det = _robust_det(t00, t01, t02, t10, t11, t12, a0, c0)
         # conic = (c, -b, a) / det with det in the Cauchy-Binet form: differentiate that form directly

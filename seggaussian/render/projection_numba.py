@@ -17,7 +17,7 @@ from seggaussian.render.projection import Projection, camera_centre
 from seggaussian.render.projection_lanes import (
     _BOK, _CA, _CB, _CC, _DEPTH, _DL0, _DL1, _DL2, _DM0, _DM1, _DM2, _DQ0, _DQ1, _DQ2, _DQ3, _GC0, _GC1, _GC2,
     _GD0, _GD1, _GD2, _GM0, _GM1, _GZ, _LB, _MX, _MY, _OK, _U0, _U1, _V0, _V1, _VD0, _VD1, _VD2, BACKWARD_FIELDS,
-    LANE_BLOCK, LANE_FIELDS, _f64, forward_params, project_backward_lanes, project_lanes, stage_gaussians,
+    LANE_BLOCK, LANE_FIELDS, _f64, forward_params, open_block, project_backward_lanes, project_lanes,
 )
 from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
 
@@ -30,15 +30,8 @@ def _project_forward(means, quats, log_scales, centre, params,
     """Parallel over blocks of ``LANE_BLOCK`` Gaussians: each block's inputs are copied into float64 columns, projected
     by :func:`project_lanes` on SIMD lanes, and its outputs copied back row-wise. No temporary array but the block's
     scratch columns."""
-    total = means.shape[0]
-    c0_, c1_, c2_ = centre[0], centre[1], centre[2]
-    for blk in prange((total + LANE_BLOCK - 1) // LANE_BLOCK):
-        lane = np.empty(LANE_FIELDS * LANE_BLOCK, np.float64)
-        lo = np.uint64(blk * LANE_BLOCK)
-        count = np.uint64(min(total - blk * LANE_BLOCK, LANE_BLOCK))
-        if count < _LB:  # the last block's unused lanes compute on zeros
-            lane[:] = 0.0
-        stage_gaussians(lane, means, quats, log_scales, c0_, c1_, c2_, lo, count)
+    for blk in prange((means.shape[0] + LANE_BLOCK - 1) // LANE_BLOCK):
+        lane, lo, count = open_block(blk, LANE_FIELDS, means, quats, log_scales, centre)
         project_lanes(lane, params)
         for i in range(count):
             n = lo + i
@@ -63,15 +56,8 @@ def _project_backward(means, quats, log_scales, centre, params, valid, g_means2d
                       d_means, d_quats, d_log_scales):
     """Chain rule of ``_project_forward``, in the forward's blocks: inputs and output gradients staged as columns,
     :func:`project_backward_lanes` on SIMD lanes, the input gradients copied back row-wise."""
-    total = means.shape[0]
-    c0_, c1_, c2_ = centre[0], centre[1], centre[2]
-    for blk in prange((total + LANE_BLOCK - 1) // LANE_BLOCK):
-        lane = np.empty(BACKWARD_FIELDS * LANE_BLOCK, np.float64)
-        lo = np.uint64(blk * LANE_BLOCK)
-        count = np.uint64(min(total - blk * LANE_BLOCK, LANE_BLOCK))
-        if count < _LB:  # the last block's unused lanes compute on zeros
-            lane[:] = 0.0
-        stage_gaussians(lane, means, quats, log_scales, c0_, c1_, c2_, lo, count)
+    for blk in prange((means.shape[0] + LANE_BLOCK - 1) // LANE_BLOCK):
+        lane, lo, count = open_block(blk, BACKWARD_FIELDS, means, quats, log_scales, centre)
         for i in range(count):
             n = lo + i
             lane[_BOK * _LB + i] = 1.0 if valid[n] else 0.0
