@@ -22,7 +22,7 @@ from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from ovgaussian.metrics import per_class_iou
+from ovgaussian.metrics import scores_from_confusion
 from ovgaussian.openvocab.calibration import calibration_samples
 from ovgaussian.text.vocabulary import Vocabulary
 from seggaussian.core.constants import UNSEEN_CLASSES, read_class_names
@@ -63,13 +63,13 @@ class ClassOffsets(NamedTuple):
 
 
 def pooled_miou(counts: np.ndarray) -> float:
-    """Mean IoU over the classes with a non-empty union in ``[K, K+1]`` confusion counts (0 when none)."""
-    iou = per_class_iou(counts)
-    iou = iou[np.isfinite(iou)]
-    return float(iou.mean()) if iou.size else 0.0
+    """The bench's mIoU of ``[K, K+1]`` confusion counts (``scores_from_confusion``), 0 when no class is scored."""
+    return scores_from_confusion(counts).miou or 0.0
 
 
 def _counts(labels: np.ndarray, predicted: np.ndarray, num: int) -> np.ndarray:
+    """``metrics.confusion_matrix`` without its per-call label checks: the search calls it thousands of times on
+    labels checked once and predictions that are column indices by construction."""
     counts = np.bincount(labels * num + predicted, minlength=num * num).reshape(num, num)
     return np.concatenate([counts, np.zeros((num, 1), np.int64)], axis=1)  # no "none" predictions here
 
