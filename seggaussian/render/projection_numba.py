@@ -23,6 +23,10 @@ from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
+# The copies between rows and columns below are written out field by field. A generic helper looping over an array's
+# columns (``rows.shape[1]``, a run-time width) was measured slower at 1M: kernel forward 22-27 against 20-22 ms,
+# backward 33-39 against 29-37 ms (alternated, scratch timing).
+
 
 @numba.njit(parallel=True, **_JIT)
 def _project_forward(means, quats, log_scales, centre, params,
