@@ -164,15 +164,14 @@ def run(args) -> dict:
     import numpy as np
     import torch
 
-    from seggaussian.util.allocator import settings as allocator_settings
-
-    from ovgaussian.run.checkpoint import build_network
-    from ovgaussian.data.training_data import TrainingData
     from ovgaussian.data.scene_source import InMemorySource
-    from ovgaussian.train.loop import make_model_config
+    from ovgaussian.data.training_data import TrainingData
+    from ovgaussian.run.checkpoint import build_network
     from ovgaussian.run.config import DataConfig, TrainConfig
-    from ovgaussian.train.step_losses import batch_losses
     from ovgaussian.text.vocabulary import training_vocabulary
+    from ovgaussian.train.loop import make_model_config
+    from ovgaussian.train.step_losses import batch_losses
+    from seggaussian.util.allocator import settings as allocator_settings
 
     t_setup = time.perf_counter()
     config = TrainConfig(model_preset=args.preset,
