@@ -79,6 +79,20 @@ def test_the_cache_folder_follows_every_numba_module_and_only_those(tmp_path):
     assert kernel_source_digest(tmp_path) != before
 
 
+def test_the_default_folder_is_named_by_this_installation_s_kernels():
+    """Without a root, the digest covers this installation's kernel modules (it once looked one folder too deep,
+    found none, and named every version's kernels by the digest of nothing: stale kernels after an update)."""
+    import hashlib
+
+    from seggaussian.util.numba_cache import kernel_modules, kernel_source_digest, numba_cache_dir, source_root
+
+    modules = kernel_modules(source_root())
+    assert {"seggaussian.render.binning_numba", "seggaussian.render.projection_lanes"} <= set(modules)
+    digest = kernel_source_digest(source_root())
+    assert digest != hashlib.sha256().hexdigest()[:len(digest)]
+    assert numba_cache_dir().name == digest
+
+
 def test_an_updated_helper_module_is_never_served_from_a_stale_cache(tmp_path):
     from seggaussian.util.numba_cache import kernel_source_digest
 

@@ -55,9 +55,14 @@ def user_cache_root() -> Path:
     return Path(xdg) if xdg else Path.home() / ".cache"
 
 
+def source_root() -> Path:
+    """The folder holding the ``seggaussian`` and ``ovgaussian`` packages (the checkout, or site-packages)."""
+    return Path(__file__).resolve().parents[2]  # <root>/seggaussian/util/numba_cache.py
+
+
 def numba_cache_dir(root: Path | None = None) -> Path:
     """The cache folder for the kernels of the source tree (or installation) at ``root``."""
-    root = Path(__file__).resolve().parent.parent if root is None else Path(root)
+    root = source_root() if root is None else Path(root)
     return user_cache_root() / "seggaussian" / "numba" / kernel_source_digest(root)
 
 
