@@ -160,11 +160,14 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
         proj = proj_fn()
         opac = torch.sigmoid(scene["opacity_logits"])
         binning_s = _time(lambda: bin_gaussians(proj, width, height, opac), repeats)
+        binning_box_s = _time(lambda: bin_gaussians(proj, width, height, opac, ellipse_cull=False), repeats)
         binning_argsort_s = _time(lambda: bin_gaussians_argsort(proj, width, height, opac), max(1, repeats // 2))
         bins = bin_gaussians(proj, width, height, opac)
+        bins_box = bin_gaussians(proj, width, height, opac, ellipse_cull=False)
         colors = torch.cat([sh_to_colors(scene["sh"], proj.view_dirs).float(), proj.depths.float()[:, None]], 1)
         m2, cn = proj.means2d.float(), proj.conics.float()
         blend_s = _time(lambda: blend_fast(m2, cn, opac, colors, bins), repeats)
+        blend_box_s = _time(lambda: blend_fast(m2, cn, opac, colors, bins_box), repeats)
 
     def blend_bwd():  # blending backward alone (forward excluded from the time)
         leaves = [x.clone().requires_grad_(True) for x in (m2, cn, opac, colors)]
@@ -193,6 +196,7 @@ def bench_large_child(num: int, width: int, height: int, repeats: int) -> dict:
     return {"num_gaussians": num, "width": width, "height": height, "forward_s": total, "forward_cpu_s": cpu["forward"],
             "forward_backward_s": total_grad, "forward_backward_cpu_s": cpu["forward_backward"],
             "projection_s": projection_s, "binning_s": binning_s, "binning_argsort_s": binning_argsort_s,
+            "binning_box_s": binning_box_s, "blend_box_s": blend_box_s, "intersections_box": bins_box.num_intersections,
             "blend_s": blend_s, "blend_backward_s": blend_backward_s, "projection_backward_s": projection_backward_s,
             "intersections": bins.num_intersections, "peak_rss_gb": peak_kb / 1024**2,
             "threads": torch.get_num_threads(), "load_average_1min": os.getloadavg()[0],
@@ -258,6 +262,8 @@ def write_markdown(path: Path, small: dict, large: dict | None, command: str) ->
             f" ms), blending {large['blend_s'] * 1e3:.0f} ms, blending backward {large['blend_backward_s'] * 1e3:.0f} ms,"
             f" projection backward {large['projection_backward_s'] * 1e3:.0f} ms; {large['intersections']:,} tile "
             "intersections",
+            f"- without the ellipse cull (whole boxes, same run): binning {large['binning_box_s'] * 1e3:.0f} ms, blending "
+            f"{large['blend_box_s'] * 1e3:.0f} ms, {large['intersections_box']:,} tile intersections",
             f"- peak RSS of the process: **{large['peak_rss_gb']:.2f} GB** (target <= 4 GB); load average "
             f"{large['load_average_1min']:.1f} at the end of the subprocess",
             "",

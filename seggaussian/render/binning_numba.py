@@ -12,12 +12,18 @@ No comparison sort anywhere:
    every packed key bit by the full key. LSD radix sorting is stable, so equal depths keep index order, exactly as
    the former ``argsort(kind="stable")``.
 2. Tile lists: the depth-sorted Gaussians are split into chunks; each chunk counts its intersections per tile
-   (four corner updates of a 2D difference array per tile box, then a prefix sum), a prefix sum over (tile,
-   chunk) gives every chunk its write cursor in every tile, and the chunks scatter in parallel. Chunk c's entries
-   of a tile precede chunk c + 1's and keep their order within the chunk, so every tile's list is in depth order
-   with no per-tile sort.
+   (four corner updates of a 2D difference array per box, or per tile row of a box the ellipse cull trimmed, then a
+   2D prefix sum), a prefix sum over (tile, chunk) gives every chunk its write cursor in every tile, and the chunks scatter in parallel. Chunk c's
+   entries of a tile precede chunk c + 1's and keep their order within the chunk, so every tile's list is in depth
+   order with no per-tile sort.
 
-Integer arithmetic only: the result is independent of the thread count.
+Ellipse culling (``bin_sorted`` given the 2D means, conics and opacities): a Gaussian goes only to the tiles of its
+box that its blending ellipse reaches (``ellipse_cull``: the box shrunk to the ellipse, and up to ``MAX_TRIM`` tiles
+trimmed on each side of its first ``TRIM_ROWS`` tile rows, packed into the box word). A dropped (Gaussian, tile)
+pair blends at no pixel of the tile, so images, blend weights and gradients are those of the whole boxes, with fewer
+pairs to store and walk.
+
+The result is independent of the thread count: integer arithmetic, and per-Gaussian float64 in the cull.
 """
 
 from __future__ import annotations
@@ -27,6 +33,19 @@ import numpy as np
 from numba import prange
 
 from seggaussian.core.constants import TILE_SIZE
+from seggaussian.render.ellipse_cull import (
+    LANE_BLOCK,
+    LANE_FIELDS,
+    TRIM_ROWS,
+    TRIMS,
+    TX0,
+    TX1,
+    TY0,
+    TY1,
+    cull_lanes,
+    cull_radius2,
+    stage,
+)
 from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
 
 _JIT = dict(cache=True, nogil=True)
@@ -41,16 +60,17 @@ _ALL = np.uint64(0xFFFFFFFFFFFFFFFF)
 _ABS = np.uint64(0x7FFFFFFFFFFFFFFF)
 _INF_BITS = np.uint64(0x7FF0000000000000)
 _ZERO = np.uint64(0)
+_EMPTY_U64 = np.empty(0, np.uint64)
+_EMPTY_F32 = np.empty(0, np.float32)
 #: Radix passes cover at least this many top bits of the key range (more for more keys: log2(n) + 2).
 _MIN_TOP_BITS = 16
 #: Runs of equal top bits up to this long are ordered by insertion sort, longer ones by a merge sort.
 _INSERTION_MAX = 32
-#: Tile boxes are packed as four 16-bit coordinates.
-MAX_TILES_PER_SIDE = 1 << 16
+#: Tile boxes are packed as four 12-bit coordinates and 16 bits of row trims (``_pack_box``): fewer tiles per side
+#: than this (images up to 65,520 pixels wide and high).
+MAX_TILES_PER_SIDE = (1 << 12) - 1
 #: Work chunks per thread in the sort and binning kernels (a few, so that uneven chunks balance).
 CHUNKS_PER_THREAD = 4
-#: Bands of tile rows per thread in the former fill (``fill_tile_lists``; a few, for load balance).
-BANDS_PER_THREAD = 2
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -62,9 +82,47 @@ def _boxes_and_keys(idx, pixel_box, tile_size, depth_bits):
     for j in prange(n):
         g = idx[j]
         boxes[j] = _pack_box(pixel_box[g, 0] // tile_size, pixel_box[g, 1] // tile_size,
-                             pixel_box[g, 2] // tile_size, pixel_box[g, 3] // tile_size)
+                             pixel_box[g, 2] // tile_size, pixel_box[g, 3] // tile_size, 0)
         keys[j] = _depth_key(depth_bits[g])
     return boxes, keys
+
+
+@numba.njit(parallel=True, **_JIT)
+def _culled_boxes_and_keys(idx, pixel_box, means2d, conics, opacities, depth_bits):
+    """``_boxes_and_keys`` with the ellipse cull: the packed tile boxes shrunk to each blending ellipse with their
+    row trims (``ellipse_cull.cull_lanes``, blocks of LANE_BLOCK Gaussians), and the depth keys. ``opacities`` empty:
+    the 3-sigma ellipse alone."""
+    n = idx.shape[0]
+    boxes = np.empty(n, np.uint64)
+    keys = np.empty(n, np.uint64)
+    lb = np.uint64(LANE_BLOCK)
+    with_opacity = opacities.shape[0] > 0
+    for block in prange((n + LANE_BLOCK - 1) // LANE_BLOCK):
+        lane = np.empty(LANE_FIELDS * LANE_BLOCK, np.float64)
+        lo = np.uint64(block * LANE_BLOCK)
+        count = np.uint64(min(n - block * LANE_BLOCK, LANE_BLOCK))
+        if count < lb:
+            lane[:] = 0.0  # unused lanes compute on zeros (a degenerate conic: kept boxes, never read)
+        for i in range(count):
+            g = idx[lo + i]
+            stage(lane, i, pixel_box[g, 0], pixel_box[g, 1], pixel_box[g, 2], pixel_box[g, 3], means2d[g, 0],
+                  means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2],
+                  cull_radius2(np.float64(opacities[g]) if with_opacity else -1.0))
+        cull_lanes(lane)
+        for i in range(count):
+            boxes[lo + i] = _pack_box(np.int64(lane[TX0 * lb + i]), np.int64(lane[TY0 * lb + i]),
+                                      np.int64(lane[TX1 * lb + i]), np.int64(lane[TY1 * lb + i]),
+                                      np.int64(lane[TRIMS * lb + i]))
+            keys[lo + i] = _depth_key(depth_bits[idx[lo + i]])
+    return boxes, keys
+
+
+@numba.njit(inline="always", **_JIT)
+def _row_span(trims, k, tx0, tx1):
+    """Inclusive tile columns ``(first, last)`` of the box's k-th tile row after its trims (empty: first > last).
+    No branch: rows from TRIM_ROWS on shift the 16 trim bits out."""
+    b = (trims >> (4 * min(k, TRIM_ROWS))) & 15
+    return tx0 + (b & 3), tx1 - (b >> 2)
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -91,17 +149,19 @@ def _depth_key(bits):
 
 
 @numba.njit(inline="always", **_JIT)
-def _pack_box(tx0, ty0, tx1, ty1):
-    """Inclusive tile box (each coordinate < 2^16) as one uint64."""
-    return (np.uint64(tx0) | (np.uint64(ty0) << np.uint64(16)) | (np.uint64(tx1) << np.uint64(32))
-            | (np.uint64(ty1) << np.uint64(48)))
+def _pack_box(tx0, ty0, tx1, ty1, trims):
+    """Inclusive tile box (each coordinate < 2^12) and its 16 bits of row trims (row k's left trim in bits 4k..4k+1,
+    its right trim in 4k+2..4k+3; 0: the whole row) as one uint64."""
+    return (np.uint64(tx0) | (np.uint64(ty0) << np.uint64(12)) | (np.uint64(tx1) << np.uint64(24))
+            | (np.uint64(ty1) << np.uint64(36)) | (np.uint64(trims) << np.uint64(48)))
 
 
 @numba.njit(inline="always", **_JIT)
 def _unpack_box(b):
-    m = np.uint64(0xFFFF)
-    return (np.int64(b & m), np.int64((b >> np.uint64(16)) & m), np.int64((b >> np.uint64(32)) & m),
-            np.int64(b >> np.uint64(48)))
+    """``(tx0, ty0, tx1, ty1, trims)`` of a packed box (int64)."""
+    m = np.uint64(0xFFF)
+    return (np.int64(b & m), np.int64((b >> np.uint64(12)) & m), np.int64((b >> np.uint64(24)) & m),
+            np.int64((b >> np.uint64(36)) & m), np.int64(b >> np.uint64(48)))
 
 
 # The per-chunk loops are plain (non-parallel) functions called from the prange bodies: LLVM optimizes them as
@@ -127,19 +187,32 @@ def _digit_scatter(keys, lo, hi, shift, cursor, keys_out):
 
 @numba.njit(**_JIT)
 def _count_chunk(boxes, lo, hi, tiles_x, counts):
-    """Intersections per tile of the boxes ``lo:hi``: four corner updates of a 2D difference array per box (no
-    loop over the box's tiles, whose varying trip counts mispredict), then a 2D prefix sum."""
+    """Intersections per tile of the boxes ``lo:hi`` (with their row trims):
+    four corner updates of a 2D difference array per untrimmed box, two per tile row of a trimmed one (no loop over
+    a row's tiles, whose varying trip counts mispredict), then a 2D prefix sum."""
     tiles_y = counts.shape[0] // tiles_x
     stride = tiles_x + 1
     diff = np.zeros((tiles_y + 1) * stride, np.int64)
     for j in range(lo, hi):
-        tx0, ty0, tx1, ty1 = _unpack_box(boxes[j])
-        r0 = ty0 * stride
-        r1 = (ty1 + 1) * stride
-        diff[r0 + tx0] += 1
-        diff[r0 + tx1 + 1] -= 1
-        diff[r1 + tx0] -= 1
-        diff[r1 + tx1 + 1] += 1
+        tx0, ty0, tx1, ty1, tr = _unpack_box(boxes[j])
+        if tr == 0:
+            if ty0 <= ty1:
+                r0 = ty0 * stride
+                r1 = (ty1 + 1) * stride
+                diff[r0 + tx0] += 1
+                diff[r0 + tx1 + 1] -= 1
+                diff[r1 + tx0] -= 1
+                diff[r1 + tx1 + 1] += 1
+            continue
+        for ty in range(ty0, ty1 + 1):  # a row's span [a, b]: +1 at (ty, a) and below it -1, the same at b + 1
+            a, b = _row_span(tr, ty - ty0, tx0, tx1)
+            if a <= b:
+                r0 = ty * stride
+                r1 = r0 + stride
+                diff[r0 + a] += 1
+                diff[r0 + b + 1] -= 1
+                diff[r1 + a] -= 1
+                diff[r1 + b + 1] += 1
     for ty in range(tiles_y):
         run = 0
         for tx in range(tiles_x):
@@ -152,10 +225,11 @@ def _count_chunk(boxes, lo, hi, tiles_x, counts):
 def _scatter_chunk(order, boxes, lo, hi, tiles_x, cursor, ids):
     for j in range(lo, hi):
         g = np.int32(order[j])
-        tx0, ty0, tx1, ty1 = _unpack_box(boxes[j])
+        tx0, ty0, tx1, ty1, tr = _unpack_box(boxes[j])
         for ty in range(ty0, ty1 + 1):
             row = ty * tiles_x
-            for tx in range(tx0, tx1 + 1):
+            a, b = (tx0, tx1) if tr == 0 else _row_span(tr, ty - ty0, tx0, tx1)
+            for tx in range(a, b + 1):
                 t = row + tx
                 p = cursor[t]
                 cursor[t] = p + 1
@@ -364,84 +438,44 @@ def depth_order(idx: np.ndarray, depths: np.ndarray) -> np.ndarray:
         return idx.copy()
     depth_bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
     keys = run_parallel(_depth_keys, idx, depth_bits, chunk=GAUSSIANS_PER_CHUNK)
-    order, _ = run_parallel(_radix_sort, keys, idx, np.empty(0, np.uint64), _num_chunks(idx.shape[0]), chunk=0)
+    order, _ = run_parallel(_radix_sort, keys, idx, _EMPTY_U64, _num_chunks(idx.shape[0]), chunk=0)
     return order
 
 
 def bin_sorted(idx: np.ndarray, depths: np.ndarray, pixel_box: np.ndarray, tile_size: int, tiles_x: int,
-               tiles_y: int):
+               tiles_y: int, means2d: np.ndarray | None = None, conics: np.ndarray | None = None,
+               opacities: np.ndarray | None = None):
     """CSR tile lists of the Gaussians ``idx`` (ascending), each tile's list by increasing depth (ties: index).
 
-    Every Gaussian goes to every tile its inclusive pixel box ``(u0, v0, u1, v1)`` touches. The packed tile boxes
-    ride along in the depth sort, so no step reads ``pixel_box`` in depth (random) order.
+    Without ``means2d`` and ``conics`` every Gaussian goes to every tile its inclusive pixel box ``(u0, v0, u1, v1)``
+    touches. With them (``[N, 2]``, ``[N, 3]`` float64, and optionally ``opacities`` ``[N]``), only to the tiles of
+    that box its blending ellipse reaches (the module's "Ellipse culling"). The packed tile boxes ride along in the
+    depth sort, so no step reads ``pixel_box`` in depth (random) order.
     Returns (offsets [T + 1] int64, ids [I] int32, order [M] int64: the Gaussians by depth).
     """
     num_tiles = tiles_x * tiles_y
     if max(tiles_x, tiles_y) > MAX_TILES_PER_SIDE:
         raise ValueError(f"bin_sorted: at most {MAX_TILES_PER_SIDE} tiles per side, got {tiles_x} x {tiles_y}")
+    if (means2d is None) != (conics is None) or (opacities is not None and means2d is None):
+        raise ValueError("bin_sorted: give means2d and conics together (and opacities only with them)")
+    if means2d is not None and tile_size != TILE_SIZE:
+        raise ValueError(f"bin_sorted: the ellipse cull needs tile_size {TILE_SIZE}, got {tile_size}")
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     if idx.shape[0] == 0:
         return np.zeros(num_tiles + 1, np.int64), np.zeros(0, np.int32), idx
     pixel_box = np.ascontiguousarray(pixel_box, dtype=np.int64)
     depth_bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
-    boxes, keys = run_parallel(_boxes_and_keys, idx, pixel_box, tile_size, depth_bits, chunk=GAUSSIANS_PER_CHUNK)
+    if means2d is None:
+        boxes, keys = run_parallel(_boxes_and_keys, idx, pixel_box, tile_size, depth_bits, chunk=GAUSSIANS_PER_CHUNK)
+    else:
+        boxes, keys = run_parallel(
+            _culled_boxes_and_keys, idx, pixel_box, np.ascontiguousarray(means2d, dtype=np.float64),
+            np.ascontiguousarray(conics, dtype=np.float64),
+            _EMPTY_F32 if opacities is None else np.ascontiguousarray(opacities, dtype=np.float32), depth_bits,
+            chunk=max(1, GAUSSIANS_PER_CHUNK // LANE_BLOCK))
     if idx.shape[0] > 1:
         idx, boxes = run_parallel(_radix_sort, keys, idx, boxes, _num_chunks(idx.shape[0]), chunk=0)
     chunks = _num_chunks(idx.shape[0])
     counts = run_parallel(_count_tiles, boxes, tiles_x, num_tiles, chunks, chunk=0)
     offsets, ids = run_parallel(_scatter_tiles, idx, boxes, counts, tiles_x, num_tiles, chunk=0)
     return offsets, ids, idx
-
-
-# The former binning (a fill by bands of tile rows after a stable argsort): ``tiles.bin_gaussians_argsort``, the
-# reference the tests compare the radix path against and the benchmark's "before".
-
-
-@numba.njit(parallel=True, **_JIT)
-def _gather_tile_boxes(order, pixel_box, tile_size):
-    """Tile boxes of the Gaussians in ``order`` (one random read per Gaussian, in parallel)."""
-    boxes = np.empty((order.shape[0], 4), np.int32)
-    for j in prange(order.shape[0]):
-        g = order[j]
-        for k in range(4):
-            boxes[j, k] = pixel_box[g, k] // tile_size
-    return boxes
-
-
-@numba.njit(parallel=True, **_JIT)
-def _fill_sorted(order, boxes, tiles_x, tiles_y, num_bands):
-    """Counting sort into tiles, parallel over bands of tile rows (each band owns its tiles: no races,
-    and every tile receives its Gaussians in ``order``, as a serial fill would)."""
-    num_tiles = tiles_x * tiles_y
-    band_rows = (tiles_y + num_bands - 1) // num_bands
-    counts = np.zeros(num_tiles + 1, np.int64)
-    for band in prange(num_bands):
-        r0 = band * band_rows
-        r1 = min(tiles_y, r0 + band_rows) - 1
-        for j in range(order.shape[0]):
-            for ty in range(max(boxes[j, 1], r0), min(boxes[j, 3], r1) + 1):
-                for tx in range(boxes[j, 0], boxes[j, 2] + 1):
-                    counts[ty * tiles_x + tx + 1] += 1
-    for t in range(num_tiles):
-        counts[t + 1] += counts[t]
-    cursor = counts[:-1].copy()
-    ids = np.empty(counts[num_tiles], np.int32)
-    for band in prange(num_bands):
-        r0 = band * band_rows
-        r1 = min(tiles_y, r0 + band_rows) - 1
-        for j in range(order.shape[0]):
-            g = order[j]
-            for ty in range(max(boxes[j, 1], r0), min(boxes[j, 3], r1) + 1):
-                for tx in range(boxes[j, 0], boxes[j, 2] + 1):
-                    t = ty * tiles_x + tx
-                    ids[cursor[t]] = g
-                    cursor[t] += 1
-    return counts, ids
-
-
-def fill_tile_lists(order: np.ndarray, pixel_box: np.ndarray, tiles_x: int, tiles_y: int):
-    """CSR tile lists: Gaussians visited in ``order`` (front to back) appended to every tile their
-    inclusive pixel box ``(u0, v0, u1, v1)`` touches. Returns (offsets [T + 1] int64, ids [I] int32)."""
-    boxes = run_parallel(_gather_tile_boxes, order, pixel_box, TILE_SIZE, chunk=GAUSSIANS_PER_CHUNK)
-    num_bands = min(tiles_y, BANDS_PER_THREAD * numba.get_num_threads())
-    return run_parallel(_fill_sorted, order, boxes, tiles_x, tiles_y, num_bands, chunk=1)

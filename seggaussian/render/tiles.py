@@ -3,7 +3,11 @@
 ``bin_gaussians`` sorts by depth with a parallel radix sort and fills the tiles with a parallel counting sort
 (``binning_numba``); ``bin_gaussians_argsort`` is the former path (a stable ``argsort`` and a fill by bands of
 tile rows), kept as the reference the tests compare against and as the benchmark's "before". Both give the
-same lists: valid Gaussians by increasing depth, equal depths in index order.
+same lists when ``bin_gaussians`` fills whole boxes (``ellipse_cull=False``): valid Gaussians by increasing depth,
+equal depths in index order. By default ``bin_gaussians`` leaves out the tiles of a box that the Gaussian's blending
+ellipse misses (``binning_numba``, "Ellipse culling"): each tile's list is then that list less Gaussians that blend
+at none of its pixels, which changes no image, weight or gradient; ``tiles_reached_reference`` is the brute-force
+check of which tiles a Gaussian can blend in.
 """
 
 from __future__ import annotations
@@ -11,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from seggaussian.core.constants import ALPHA_MIN, TILE_SIZE
-from seggaussian.render.binning_numba import bin_sorted, fill_tile_lists
+from seggaussian.render.binning_fill import fill_tile_lists
+from seggaussian.render.binning_numba import bin_sorted
 from seggaussian.render.projection import Projection
 from seggaussian.render.results import TileBins
 
@@ -36,13 +41,19 @@ def bin_gaussians(
     width: int,
     height: int,
     opacities=None,  # [N] optional: Gaussians with opacity < ALPHA_MIN can never blend and are skipped
+    ellipse_cull: bool = True,
 ) -> TileBins:
-    """Sort the valid Gaussians by depth (stable) and append each to every tile its pixel box touches."""
+    """Sort the valid Gaussians by depth (stable) and append each to the tiles of its pixel box: those its blending
+    ellipse reaches (opacity-aware when ``opacities`` are given), or every one with ``ellipse_cull=False``."""
     tiles_x, tiles_y = _tile_grid(width, height)
     idx = _selected(projection, opacities)
+    means2d = conics = opac = None
+    if ellipse_cull:
+        means2d, conics = projection.means2d.detach().cpu().numpy(), projection.conics.detach().cpu().numpy()
+        opac = None if opacities is None else opacities.detach().cpu().numpy()
     offsets, ids, _ = bin_sorted(
         idx, projection.depths.detach().cpu().numpy(), projection.pixel_box.detach().cpu().numpy(), TILE_SIZE,
-        tiles_x, tiles_y)
+        tiles_x, tiles_y, means2d, conics, opac)
     return TileBins(width, height, tiles_x, tiles_y, offsets, ids, _box_rows(projection))
 
 
