@@ -191,9 +191,7 @@ def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: T
         starts = torch.tensor([0] + [len(s.means) for s in samples]).cumsum(0)
         wanted = torch.cat([rows + start for rows, start in zip(scene_rows, starts.tolist())])
         semantic, counts = net(means, attributes, batch_index, rows=wanted.to(device)), [len(r) for r in scene_rows]
-    terms, start = [], 0
-    for sample, rows, n in zip(samples, scene_rows, counts):
-        terms.append(scene_losses(net, semantic[start:start + n], sample, text_embeddings, config, use_teacher,
-                                  class_weights, unlabelled_columns, rows))
-        start += n
-    return terms
+    # torch.split, not slicing: each slice's gradient would be a zero-filled copy of the whole batch (SliceBackward)
+    return [scene_losses(net, scene_semantic, sample, text_embeddings, config, use_teacher, class_weights,
+                         unlabelled_columns, rows)
+            for sample, rows, scene_semantic in zip(samples, scene_rows, torch.split(semantic, counts))]

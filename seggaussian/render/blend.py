@@ -102,23 +102,66 @@ def compute_blend_weights(
         return blend_weights_fast(means2d, conics, opacities, bins, top_k)
 
 
-def render_features(
-    blend: BlendWeights,
-    features: Tensor,  # [N, D]
-) -> Tensor:  # [H, W, D]
-    """``M = W S``: blend per-Gaussian features with fixed weights; exact, differentiable in ``features``."""
+def _check_features(blend: BlendWeights, features: Tensor) -> None:
     if features.ndim != 2:
         raise ValueError(f"render_features: features has shape {tuple(features.shape)}, expected (N, D)")
     ids = blend.ids
-    used = ids >= 0
-    if used.any() and int(ids.max()) >= features.shape[0]:
+    if bool((ids >= 0).any()) and int(ids.max()) >= features.shape[0]:
         raise ValueError(
             f"render_features: blend weights refer to Gaussian {int(ids.max())} "
             f"but features has {features.shape[0]} rows"
         )
-    safe_ids = ids.clamp_min(0)
-    w = (blend.weights * used).to(features.dtype)
-    out = torch.zeros(*ids.shape[:2], features.shape[1], dtype=features.dtype, device=features.device)
-    for k in range(ids.shape[2]):  # one [H, W, D] gather per slot keeps memory at O(H W D)
+
+
+def _slot_sum(safe_ids: Tensor, w: Tensor, features: Tensor) -> Tensor:  # [H, W, K], [H, W, K], [N, D] -> [H, W, D]
+    """``sum_k w[..., k] features[safe_ids[..., k]]``, slot by slot (one [H, W, D] gather per slot keeps memory at
+    O(H W D))."""
+    out = torch.zeros(*safe_ids.shape[:2], features.shape[1], dtype=features.dtype, device=features.device)
+    for k in range(safe_ids.shape[2]):
         out = out + w[..., k, None] * features[safe_ids[..., k]]
     return out
+
+
+class _RenderFeatures(torch.autograd.Function):
+    """``M = W S`` with the gradient of ``S`` accumulated into one ``[N, D]`` buffer (``index_add_`` per slot).
+
+    Autograd through :func:`_slot_sum` gives each slot's gather its own zero-filled ``[N, D]`` gradient (K of them:
+    16 x 64 MB per million Gaussians with 16-wide features) and then sums them. The forward is the same slot loop.
+    """
+
+    @staticmethod
+    def forward(ctx, features: Tensor, safe_ids: Tensor, w: Tensor) -> Tensor:
+        ctx.save_for_backward(safe_ids, w)
+        ctx.num_rows = features.shape[0]
+        return _slot_sum(safe_ids, w, features)
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        safe_ids, w = ctx.saved_tensors
+        dim = grad_out.shape[-1]
+        flat = grad_out.reshape(-1, dim)
+        grad = torch.zeros(ctx.num_rows, dim, dtype=grad_out.dtype, device=grad_out.device)
+        for k in range(safe_ids.shape[2]):
+            grad.index_add_(0, safe_ids[..., k].reshape(-1), w[..., k].reshape(-1, 1) * flat)
+        return grad, None, None
+
+
+def render_features(
+    blend: BlendWeights,
+    features: Tensor,  # [N, D]
+) -> Tensor:  # [H, W, D]
+    """``M = W S``: blend per-Gaussian features with fixed weights; exact, differentiable in ``features`` (and in
+    ``blend.weights`` through :func:`render_features_reference` when those require a gradient)."""
+    _check_features(blend, features)
+    if blend.weights.requires_grad:
+        return render_features_reference(blend, features)
+    used = blend.ids >= 0
+    w = (blend.weights * used).to(features.dtype)
+    return _RenderFeatures.apply(features, blend.ids.clamp_min(0), w)
+
+
+def render_features_reference(blend: BlendWeights, features: Tensor) -> Tensor:  # [H, W, D]
+    """:func:`render_features` through autograd's own gathers: the reference its gradient is tested against."""
+    _check_features(blend, features)
+    used = blend.ids >= 0
+    return _slot_sum(blend.ids.clamp_min(0), (blend.weights * used).to(features.dtype), features)
