@@ -18,6 +18,9 @@ after are returned in ``ClassOffsets`` and written into the bench report.
 
 from __future__ import annotations
 
+import json
+import math
+from pathlib import Path
 from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
@@ -140,6 +143,28 @@ class OffsetPredictor:
         scores = np.asarray(self.inner.classify(vectors, class_ids), dtype=np.float32)
         shift = np.array([self.offsets.get(self._names[int(i)], 0.0) for i in class_ids], np.float32)
         return scores + shift[None, :]
+
+
+def read_class_offsets(path) -> dict[str, float]:
+    """``{class name: offset}`` recorded in a bench report (``predictor.class_offsets`` of the JSON that
+    ``ovgaussian bench --class-offsets`` writes); a one-line ValueError naming the file and field otherwise."""
+    path = Path(path)
+    try:
+        report = json.loads(path.read_text())
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read the bench report ({err.strerror or err})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: not a JSON bench report ({err})") from None
+    record = report.get("predictor", {}).get("class_offsets") if isinstance(report, dict) else None
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: no predictor.class_offsets (a report of `ovgaussian bench --class-offsets`)")
+    names, offsets = record.get("names"), record.get("offsets")
+    if not (isinstance(names, list) and isinstance(offsets, list) and len(names) == len(offsets)
+            and all(isinstance(n, str) for n in names)):
+        raise ValueError(f"{path}: predictor.class_offsets needs lists 'names' and 'offsets' of one length")
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in offsets):
+        raise ValueError(f"{path}: predictor.class_offsets.offsets must be finite numbers")
+    return {name: float(value) for name, value in zip(names, offsets)}
 
 
 def reference_fit_class_offsets(scores: Sequence[Sequence[float]], labels: Sequence[int], grid: Sequence[float]

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from ovgaussian.openvocab.calibration import stack_scores
+from ovgaussian.openvocab.class_offsets import read_class_offsets
 from ovgaussian.run.checkpoint import load_trained_model
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.model.network import gaussian_attributes
@@ -238,16 +239,21 @@ def paint_gaussians(gaussians, labels: np.ndarray, colours: np.ndarray, mode: st
 
 
 def label_gaussians(predictor: ModelPredictor, gaussians, config: PredictConfig, cameras=(),
-                    functions=None) -> PredictResult:
-    """Label every Gaussian against ``config.vocabulary``; render label maps for ``cameras``."""
+                    functions=None, class_offsets: "dict[str, float] | None" = None) -> PredictResult:
+    """Label every Gaussian against ``config.vocabulary``; render label maps for ``cameras``. ``class_offsets``
+    (``{name: offset}``, ``read_class_offsets``) are added to the scores of those names."""
     names = tuple(config.vocabulary)
     if not names:
         raise ValueError("predict: empty vocabulary")
+    if class_offsets and config.stacking_gamma > 0:
+        raise ValueError("predict: class offsets and a stacking gamma together are not supported (the bench fits "
+                         "the offsets on scores without stacking)")
     vectors = predictor.encode_gaussians(gaussians)
     trained = np.array([n in predictor.trained_names for n in names])  # seen classes: lowered by stacking's gamma
+    shift = np.array([(class_offsets or {}).get(n, 0.0) for n in names], np.float32)
 
     def scores(v: np.ndarray) -> np.ndarray:
-        return stack_scores(predictor.score_names(v, names), trained, config.stacking_gamma)
+        return stack_scores(predictor.score_names(v, names), trained, config.stacking_gamma) + shift[None, :]
 
     labels = argmax_labels(scores, vectors, config.chunk_rows)
     if config.color_by == "semantic":
@@ -316,11 +322,12 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
     if out_format != "ply" and config.color_by == "semantic" and config.colour_mode == "rgb":
         raise ValueError(f"{out}: --colours rgb puts the class colours in PLY properties, which a {out_format} "
                          "file cannot hold; use --colours f_dc or both, or a .ply output")
+    offsets = read_class_offsets(config.class_offsets) if config.class_offsets is not None else None
     gaussians, report, in_format = read_gaussians(scene_path, on_invalid=config.on_invalid)
     if predictor is None:
         predictor = load_model_predictor(config.run, config.checkpoint, device=config.device,
                                          prompt_templates=PROMPT_TEMPLATES if config.prompt_ensemble else ())
-    result = label_gaussians(predictor, gaussians, config, cameras)
+    result = label_gaussians(predictor, gaussians, config, cameras, class_offsets=offsets)
     # the vocabulary goes into the header so the file explains its own labels
     comments = tuple(f"ovgaussian semantic {i} = {name}" for i, name in enumerate(result.vocabulary))
     write_gaussians(out, result.gaussians, out_format, spz_version=config.spz_version,
@@ -343,6 +350,9 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
         "num_gaussians": int(len(gaussians)),
         "validation": getattr(report, "_asdict", lambda: str(report))() if report is not None else None,
         "vocabulary": list(result.vocabulary),
+        "class_offsets": None if offsets is None else {"report": str(config.class_offsets),
+                                                       "applied": {n: offsets[n] for n in result.vocabulary
+                                                                   if n in offsets}},
         "counts": result.counts,
         "shares": result.shares,
         "colours": {n: class_colours(len(result.vocabulary))[i].tolist() for i, n in enumerate(result.vocabulary)},

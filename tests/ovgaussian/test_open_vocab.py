@@ -233,6 +233,49 @@ def test_predict_stacking_gamma_lowers_the_trained_names_only():
     assert set(plain.labels.tolist()) == {0} and set(stacked.labels.tolist()) == {2}
 
 
+def test_predict_adds_the_class_offsets_of_a_bench_report(tmp_path):
+    """``--class-offsets REPORT``: the offsets a bench recorded move the scores of those names (others keep 0); a
+    report without them, a broken file and offsets with a stacking gamma are refused in one line."""
+    import json
+
+    from ovgaussian.openvocab.class_offsets import read_class_offsets
+    from ovgaussian.predict.config import PredictConfig
+    from ovgaussian.predict.query import label_gaussians
+    from seggaussian.core.gaussians import Gaussians
+
+    class Stub:
+        trained_names = frozenset({"chair", "table"})
+
+        def encode_gaussians(self, gaussians):
+            return np.zeros((len(gaussians), 3), np.float32)
+
+        def score_names(self, vectors, names):  # chair 0.5, table 0.1, sofa 0.4 for every Gaussian
+            return np.tile(np.array([[0.5, 0.1, 0.4]], np.float32), (len(vectors), 1))
+
+    report = tmp_path / "bench-K20.json"
+    report.write_text(json.dumps({"predictor": {"kind": "model", "class_offsets": {
+        "names": ["chair", "sofa", "lamp"], "offsets": [-0.05, 0.2, 1.0], "train_miou_before": 0.3}}}))
+    offsets = read_class_offsets(report)
+    assert offsets == {"chair": -0.05, "sofa": 0.2, "lamp": 1.0}
+    n = 4
+    gaussians = Gaussians.from_arrays(np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3)),
+                                      np.zeros(n), np.zeros((n, 1, 3)))
+    names = ("chair", "table", "sofa")
+    plain = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names))
+    moved = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names), class_offsets=offsets)
+    assert set(plain.labels.tolist()) == {0} and set(moved.labels.tolist()) == {2}  # 0.45 < 0.6: sofa
+    with pytest.raises(ValueError, match="stacking gamma"):
+        label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names, stacking_gamma=0.1), class_offsets=offsets)
+    (tmp_path / "plain.json").write_text(json.dumps({"predictor": {"kind": "model"}}))
+    (tmp_path / "broken.json").write_text("{")
+    (tmp_path / "nan.json").write_text('{"predictor": {"class_offsets": {"names": ["a"], "offsets": [NaN]}}}')
+    for name, message in (("plain.json", "no predictor.class_offsets"), ("broken.json", "not a JSON"),
+                          ("nan.json", "finite"), ("missing.json", "cannot read")):
+        with pytest.raises(ValueError, match=message) as err:
+            read_class_offsets(tmp_path / name)
+        assert str(tmp_path / name) in str(err.value) and "\n" not in str(err.value)
+
+
 def test_bench_scores_each_method_and_records_the_calibration(tmp_path):
     """End to end on shards: a run, a calibration run with a held-out class, bench with stacking + generative."""
     from click.testing import CliRunner
