@@ -99,7 +99,8 @@ def bench_scene(name: str, scene, viewmat, K, repeats: int) -> dict:
 def markdown(rows: list[dict], command: str, notes: list[str]) -> str:
     lines = ["# Ellipse culling of tile boxes against whole boxes", "", f"Command: `{command}`", "",
              f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {WIDTH}x{HEIGHT}, load average "
-             f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end; medians of wall ms, the modes alternated.",
+             f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end; medians of wall ms, the modes "
+             "alternated.",
              "", *notes, "",
              "| scene | Gaussians | tile pairs (box -> cull) | binning | blend forward | blend forward + backward | "
              "bin + blend f+b | same image |",
@@ -111,8 +112,8 @@ def markdown(rows: list[dict], command: str, notes: list[str]) -> str:
         total_cull = r["binning_cull_ms"] + r["blend_fwd_bwd_cull_ms"]
         lines.append(f"| {r['scene']} | {r['gaussians']:,} | {r['pairs_box']:,} -> {r['pairs_cull']:,} "
                      f"({r['pairs_cull'] / r['pairs_box'] - 1:+.0%}) | {pair('binning')} | {pair('blend')} | "
-                     f"{pair('blend_fwd_bwd')} | {total_box:.1f} -> {total_cull:.1f} ({total_cull / total_box - 1:+.0%})"
-                     f" | {'yes' if r['same_image'] else '**no**'} |")
+                     f"{pair('blend_fwd_bwd')} | {total_box:.1f} -> {total_cull:.1f} "
+                     f"({total_cull / total_box - 1:+.0%}) | {'yes' if r['same_image'] else '**no**'} |")
     return "\n".join(lines) + "\n"
 
 

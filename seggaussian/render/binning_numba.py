@@ -13,9 +13,9 @@ No comparison sort anywhere:
    the former ``argsort(kind="stable")``.
 2. Tile lists: the depth-sorted Gaussians are split into chunks; each chunk counts its intersections per tile
    (four corner updates of a 2D difference array per box, or per tile row of a box the ellipse cull trimmed, then a
-   2D prefix sum), a prefix sum over (tile, chunk) gives every chunk its write cursor in every tile, and the chunks scatter in parallel. Chunk c's
-   entries of a tile precede chunk c + 1's and keep their order within the chunk, so every tile's list is in depth
-   order with no per-tile sort.
+   2D prefix sum), a prefix sum over (tile, chunk) gives every chunk its write cursor in every tile, and the chunks
+   scatter in parallel. Chunk c's entries of a tile precede chunk c + 1's and keep their order within the chunk, so
+   every tile's list is in depth order with no per-tile sort.
 
 Ellipse culling (``bin_sorted`` given the 2D means, conics and opacities): a Gaussian goes only to the tiles of its
 box that its blending ellipse reaches (``ellipse_cull``: the box shrunk to the ellipse, and up to ``MAX_TRIM`` tiles
@@ -66,8 +66,8 @@ _EMPTY_F32 = np.empty(0, np.float32)
 _MIN_TOP_BITS = 16
 #: Runs of equal top bits up to this long are ordered by insertion sort, longer ones by a merge sort.
 _INSERTION_MAX = 32
-#: Tile boxes are packed as four 12-bit coordinates and 16 bits of row trims (``_pack_box``): fewer tiles per side
-#: than this (images up to 65,520 pixels wide and high).
+#: Tile boxes are packed as four 12-bit coordinates and 16 bits of row trims (``_pack_box``): at most this many
+#: tiles per side (images up to 65,520 pixels wide and high; an empty box's first row is its last plus one).
 MAX_TILES_PER_SIDE = (1 << 12) - 1
 #: Work chunks per thread in the sort and binning kernels (a few, so that uneven chunks balance).
 CHUNKS_PER_THREAD = 4
