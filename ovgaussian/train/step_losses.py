@@ -117,6 +117,29 @@ def text_cross_entropy_3d(
     return (total * 0.0, 0) if count == 0 else (total / count, count)
 
 
+def text_and_lovasz_3d(
+    phi,
+    semantic: "torch.Tensor",  # [N, S]
+    labels: "torch.Tensor",  # [N]
+    text_embeddings: "torch.Tensor",  # [C, D]
+    temperature: float,
+    lovasz_weight: float,
+    class_weights: "torch.Tensor | None" = None,
+    unlabelled_columns: "torch.Tensor | None" = None,
+    unlabelled_weight: float = 1.0,
+) -> tuple["torch.Tensor", int]:
+    """:func:`text_cross_entropy_3d` plus ``lovasz_weight`` x the Lovasz-softmax of the same logits: the ``[N, C]``
+    logits are decoded once, in row chunks under activation checkpointing (phi's hidden rows never held whole, as
+    in the cross-entropy alone), and both terms read them. The Lovasz term is skipped where nothing is counted."""
+    chunks = model.checkpointed_rows(lambda rows: decoded_text_logits(phi, rows, text_embeddings, temperature),
+                                     semantic)
+    logits = chunks[0] if len(chunks) == 1 else torch.cat(chunks)
+    mean, count = text_cross_entropy(logits, labels, class_weights, unlabelled_columns, unlabelled_weight)
+    if count == 0:
+        return logits.sum() * 0.0, 0
+    return mean + lovasz_weight * lovasz_softmax(logits, labels), count
+
+
 def needed_rows(sample: SceneSample) -> "torch.Tensor | None":
     """``[R]`` increasing rows of the Gaussians a step needs of this scene when it draws a 3D-loss subset
     (``sample.loss_rows``): the subset and every contributor of the sampled pixels; None without a subset."""
@@ -154,11 +177,13 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
         if unlabelled_columns is None:
             labelled = labels != IGNORE_LABEL
             semantic3, labels3 = semantic_3d[labelled], labels[labelled]
-        text_3d = text_cross_entropy_3d(net.phi, semantic3, labels3, text_embeddings, temperature, class_weights,
-                                        unlabelled_columns, unlabelled_weight)
-        if config.loss.lovasz_weight > 0 and text_3d[1] > 0:
-            lovasz = lovasz_softmax(decoded_text_logits(net.phi, semantic3, text_embeddings, temperature), labels3)
-            text_3d = (text_3d[0] + config.loss.lovasz_weight * lovasz, text_3d[1])
+        if config.loss.lovasz_weight > 0:
+            text_3d = text_and_lovasz_3d(net.phi, semantic3, labels3, text_embeddings, temperature,
+                                         config.loss.lovasz_weight, class_weights, unlabelled_columns,
+                                         unlabelled_weight)
+        else:
+            text_3d = text_cross_entropy_3d(net.phi, semantic3, labels3, text_embeddings, temperature, class_weights,
+                                            unlabelled_columns, unlabelled_weight)
     pixel_weights = sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)

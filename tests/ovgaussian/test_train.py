@@ -536,9 +536,13 @@ def test_lovasz_weight_adds_the_scene_s_lovasz_softmax_to_the_3d_term(scenes, tm
         assert float(b.text_2d) == float(a.text_2d) and b.count_3d == a.count_3d
 
 
-def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkeypatch):
+@pytest.mark.parametrize("lovasz_weight", [0.0, 0.5])
+def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkeypatch, lovasz_weight):
     """Adapter and 3D text loss in row chunks under activation checkpointing (the paper-scale memory
-    bound) give the values and gradients of the one-piece computation."""
+    bound) give the values and gradients of the one-piece computation; with a Lovasz term too, whose logits are
+    the same chunks'."""
+    from dataclasses import replace
+
     from ovgaussian.run.checkpoint import build_network
     import ovgaussian.model.network as model_module
     from ovgaussian.train.step_losses import batch_losses
@@ -547,6 +551,7 @@ def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkey
     data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
     samples = [data.sample(s, np.random.default_rng(i)) for i, s in enumerate(("scene00", "scene01"))]
     config = tiny_config(Path("unused"), 1)
+    config = replace(config, loss=replace(config.loss, lovasz_weight=lovasz_weight))
 
     def loss_and_grads():
         net = build_network(tiny_model_config(12)).train()
