@@ -210,26 +210,35 @@ def test_mmd2_matches_the_pairwise_reference_forward_and_backward(case):
         assert (fast > 1.0).all()
 
 
+class _ScoreStub:
+    """A predictor for ``label_gaussians``: trained on chair and table; every Gaussian scores chair 0.5, table 0.1,
+    sofa 0.4 (names in that order)."""
+
+    trained_names = frozenset({"chair", "table"})
+
+    def encode_gaussians(self, gaussians):
+        return np.zeros((len(gaussians), 3), np.float32)
+
+    def score_names(self, vectors, names):
+        return np.tile(np.array([[0.5, 0.1, 0.4]], np.float32), (len(vectors), 1))
+
+
+def _four_gaussians():
+    from seggaussian.core.gaussians import Gaussians
+
+    n = 4
+    return Gaussians.from_arrays(np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3)), np.zeros(n),
+                                 np.zeros((n, 1, 3)))
+
+
 def test_predict_stacking_gamma_lowers_the_trained_names_only():
     from ovgaussian.predict.query import label_gaussians
     from ovgaussian.predict.config import PredictConfig
-    from seggaussian.core.gaussians import Gaussians
 
-    class Stub:
-        trained_names = frozenset({"chair", "table"})
-
-        def encode_gaussians(self, gaussians):
-            return np.zeros((len(gaussians), 3), np.float32)
-
-        def score_names(self, vectors, names):  # chair 0.5, table 0.1, sofa 0.4 for every Gaussian
-            return np.tile(np.array([[0.5, 0.1, 0.4]], np.float32), (len(vectors), 1))
-
-    n = 4
-    gaussians = Gaussians.from_arrays(np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3)),
-                                      np.zeros(n), np.zeros((n, 1, 3)))
+    gaussians = _four_gaussians()
     names = ("chair", "table", "sofa")
-    plain = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names))
-    stacked = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names, stacking_gamma=0.2))
+    plain = label_gaussians(_ScoreStub(), gaussians, PredictConfig(vocabulary=names))
+    stacked = label_gaussians(_ScoreStub(), gaussians, PredictConfig(vocabulary=names, stacking_gamma=0.2))
     assert set(plain.labels.tolist()) == {0} and set(stacked.labels.tolist()) == {2}
 
 
@@ -241,31 +250,19 @@ def test_predict_adds_the_class_offsets_of_a_bench_report(tmp_path):
     from ovgaussian.openvocab.class_offsets import read_class_offsets
     from ovgaussian.predict.config import PredictConfig
     from ovgaussian.predict.query import label_gaussians
-    from seggaussian.core.gaussians import Gaussians
-
-    class Stub:
-        trained_names = frozenset({"chair", "table"})
-
-        def encode_gaussians(self, gaussians):
-            return np.zeros((len(gaussians), 3), np.float32)
-
-        def score_names(self, vectors, names):  # chair 0.5, table 0.1, sofa 0.4 for every Gaussian
-            return np.tile(np.array([[0.5, 0.1, 0.4]], np.float32), (len(vectors), 1))
 
     report = tmp_path / "bench-K20.json"
     report.write_text(json.dumps({"predictor": {"kind": "model", "class_offsets": {
         "names": ["chair", "sofa", "lamp"], "offsets": [-0.05, 0.2, 1.0], "train_miou_before": 0.3}}}))
     offsets = read_class_offsets(report)
     assert offsets == {"chair": -0.05, "sofa": 0.2, "lamp": 1.0}
-    n = 4
-    gaussians = Gaussians.from_arrays(np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3)),
-                                      np.zeros(n), np.zeros((n, 1, 3)))
+    gaussians = _four_gaussians()
     names = ("chair", "table", "sofa")
-    plain = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names))
-    moved = label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names), class_offsets=offsets)
+    plain = label_gaussians(_ScoreStub(), gaussians, PredictConfig(vocabulary=names))
+    moved = label_gaussians(_ScoreStub(), gaussians, PredictConfig(vocabulary=names), class_offsets=offsets)
     assert set(plain.labels.tolist()) == {0} and set(moved.labels.tolist()) == {2}  # 0.45 < 0.6: sofa
     with pytest.raises(ValueError, match="stacking gamma"):
-        label_gaussians(Stub(), gaussians, PredictConfig(vocabulary=names, stacking_gamma=0.1), class_offsets=offsets)
+        label_gaussians(_ScoreStub(), gaussians, PredictConfig(vocabulary=names, stacking_gamma=0.1), class_offsets=offsets)
     (tmp_path / "plain.json").write_text(json.dumps({"predictor": {"kind": "model"}}))
     (tmp_path / "broken.json").write_text("{")
     (tmp_path / "nan.json").write_text('{"predictor": {"class_offsets": {"names": ["a"], "offsets": [NaN]}}}')
