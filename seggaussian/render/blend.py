@@ -102,15 +102,19 @@ def compute_blend_weights(
         return blend_weights_fast(means2d, conics, opacities, bins, top_k)
 
 
-def _check_features(blend: BlendWeights, features: Tensor) -> None:
+def _slot_inputs(blend: BlendWeights, features: Tensor) -> tuple[Tensor, Tensor]:
+    """``(safe_ids, w)`` [H, W, K] of ``render_features``: ids with -1 read as row 0, weights zero in unused slots (in
+    ``features``' dtype), after checking ``features`` against the ids."""
     if features.ndim != 2:
         raise ValueError(f"render_features: features has shape {tuple(features.shape)}, expected (N, D)")
     ids = blend.ids
-    if bool((ids >= 0).any()) and int(ids.max()) >= features.shape[0]:
+    used = ids >= 0
+    if bool(used.any()) and int(ids.max()) >= features.shape[0]:
         raise ValueError(
             f"render_features: blend weights refer to Gaussian {int(ids.max())} "
             f"but features has {features.shape[0]} rows"
         )
+    return ids.clamp_min(0), (blend.weights * used).to(features.dtype)
 
 
 def _slot_sum(safe_ids: Tensor, w: Tensor, features: Tensor) -> Tensor:  # [H, W, K], [H, W, K], [N, D] -> [H, W, D]
@@ -151,17 +155,14 @@ def render_features(
     features: Tensor,  # [N, D]
 ) -> Tensor:  # [H, W, D]
     """``M = W S``: blend per-Gaussian features with fixed weights; exact, differentiable in ``features`` (and in
-    ``blend.weights`` through :func:`render_features_reference` when those require a gradient)."""
-    _check_features(blend, features)
+    ``blend.weights`` through autograd's own gathers, as :func:`render_features_reference`, when those require a
+    gradient)."""
+    safe_ids, w = _slot_inputs(blend, features)
     if blend.weights.requires_grad:
-        return render_features_reference(blend, features)
-    used = blend.ids >= 0
-    w = (blend.weights * used).to(features.dtype)
-    return _RenderFeatures.apply(features, blend.ids.clamp_min(0), w)
+        return _slot_sum(safe_ids, w, features)
+    return _RenderFeatures.apply(features, safe_ids, w)
 
 
 def render_features_reference(blend: BlendWeights, features: Tensor) -> Tensor:  # [H, W, D]
     """:func:`render_features` through autograd's own gathers: the reference its gradient is tested against."""
-    _check_features(blend, features)
-    used = blend.ids >= 0
-    return _slot_sum(blend.ids.clamp_min(0), (blend.weights * used).to(features.dtype), features)
+    return _slot_sum(*_slot_inputs(blend, features), features)
