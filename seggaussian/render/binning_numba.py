@@ -34,7 +34,6 @@ from numba import prange
 
 from seggaussian.core.constants import TILE_SIZE
 from seggaussian.render.ellipse_cull import (
-    LANE_BLOCK,
     LANE_FIELDS,
     TRIM_ROWS,
     TRIMS,
@@ -47,6 +46,7 @@ from seggaussian.render.ellipse_cull import (
     stage,
 )
 from seggaussian.render.parallel import GAUSSIANS_PER_CHUNK, run_parallel
+from seggaussian.render.projection_lanes import LANE_BLOCK, new_block
 
 _JIT = dict(cache=True, nogil=True)
 
@@ -98,11 +98,7 @@ def _culled_boxes_and_keys(idx, pixel_box, means2d, conics, opacities, depth_bit
     lb = np.uint64(LANE_BLOCK)
     with_opacity = opacities.shape[0] > 0
     for block in prange((n + LANE_BLOCK - 1) // LANE_BLOCK):
-        lane = np.empty(LANE_FIELDS * LANE_BLOCK, np.float64)
-        lo = np.uint64(block * LANE_BLOCK)
-        count = np.uint64(min(n - block * LANE_BLOCK, LANE_BLOCK))
-        if count < lb:
-            lane[:] = 0.0  # unused lanes compute on zeros (a degenerate conic: kept boxes, never read)
+        lane, lo, count = new_block(block, LANE_FIELDS, n)  # unused lanes: a degenerate conic, never read
         for i in range(count):
             g = idx[lo + i]
             stage(lane, i, pixel_box[g, 0], pixel_box[g, 1], pixel_box[g, 2], pixel_box[g, 3], means2d[g, 0],

@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from seggaussian.core.constants import ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE
+from seggaussian.render.projection_lanes import _LB, _select
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -43,9 +44,7 @@ _CUTOFF2 = RADIUS_SIGMAS * RADIUS_SIGMAS
 _INV_TILE = 1.0 / TILE_SIZE
 assert TILE_SIZE & (TILE_SIZE - 1) == 0, "tile indices are exact products by 1 / TILE_SIZE"
 
-#: Gaussians per block (15 float64 columns: 7.5 KB of scratch, within L1).
-LANE_BLOCK = 64
-_LB = np.uint64(LANE_BLOCK)
+# Blocks of LANE_BLOCK Gaussians as in the projection (15 float64 columns: 7.5 KB of scratch, within L1).
 # scratch columns: inputs (pixel box, centre, conic, cut-off), then outputs (tile box, trims)
 _U0, _V0, _U1, _V1, _MX, _MY, _CA, _CB, _CC, _R2 = (np.uint64(k) for k in range(10))
 TX0, TY0, TX1, TY1, TRIMS = (np.uint64(k) for k in range(10, 15))
@@ -65,12 +64,6 @@ def cull_radius2(opacity):
     if 0.0 <= opacity < OPACITY_FULL_RADIUS:
         r2 = 2.0 * math.log(max(opacity, ALPHA_MIN) * (1.0 / ALPHA_MIN))
     return r2 * (1.0 + CULL_REL_MARGIN) + CULL_ABS_MARGIN
-
-
-@numba.njit(inline="always", **_JIT)
-def _select(condition, a, b):
-    """``a if condition else b`` as one select instruction (both sides computed: no branch to block SIMD)."""
-    return a if condition else b
 
 
 @numba.njit(inline="always", **_JIT)

@@ -140,16 +140,23 @@ def _screen_covariance(w, rq, s0, s1, s2, x, y, inv_z, fx, fy, lxn, lxp, lyn, ly
 
 
 @numba.njit(inline="always", **_JIT)
-def open_block(block, fields, means, quats, log_scales, centre):
-    """``(lane, lo, count)`` of block ``block``: a scratch array of ``fields`` columns whose columns ``_RX.._L2`` hold
-    rows ``lo .. lo + count`` of the inputs as float64, means relative to the camera centre (the last block's unused
-    lanes compute on zeros)."""
-    total = means.shape[0]
+def new_block(block, fields, total):
+    """``(lane, lo, count)`` of block ``block`` of ``total`` rows: a float64 scratch array of ``fields`` columns of
+    LANE_BLOCK, the first row ``lo`` and the rows ``count`` (uint64). The last block's unused lanes hold zeros, so
+    they compute on zeros."""
     lane = np.empty(fields * LANE_BLOCK, np.float64)
     lo = np.uint64(block * LANE_BLOCK)
     count = np.uint64(min(total - block * LANE_BLOCK, LANE_BLOCK))
     if count < _LB:
         lane[:] = 0.0
+    return lane, lo, count
+
+
+@numba.njit(inline="always", **_JIT)
+def open_block(block, fields, means, quats, log_scales, centre):
+    """``new_block`` whose columns ``_RX.._L2`` hold rows ``lo .. lo + count`` of the inputs as float64, means relative
+    to the camera centre."""
+    lane, lo, count = new_block(block, fields, means.shape[0])
     c0_, c1_, c2_ = centre[0], centre[1], centre[2]
     for i in range(count):
         n = lo + i
