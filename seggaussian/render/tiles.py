@@ -6,8 +6,8 @@ tile rows), kept as the reference the tests compare against and as the benchmark
 same lists when ``bin_gaussians`` fills whole boxes (``ellipse_cull=False``): valid Gaussians by increasing depth,
 equal depths in index order. By default ``bin_gaussians`` leaves out the tiles of a box that the Gaussian's blending
 ellipse misses (``binning_numba``, "Ellipse culling"): each tile's list is then that list less Gaussians that blend
-at none of its pixels, which changes no image, weight or gradient; ``tiles_reached_reference`` is the brute-force
-check of which tiles a Gaussian can blend in.
+at none of its pixels, which changes no image, weight or gradient; ``ellipse_cull.tiles_reached_reference`` is the
+brute-force check of which tiles a Gaussian can blend in.
 """
 
 from __future__ import annotations
