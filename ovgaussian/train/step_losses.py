@@ -17,9 +17,10 @@ import torch
 
 from ovgaussian.model import network as model
 from ovgaussian.data.training_data import SceneSample
+from ovgaussian.train.eager_rows import eager_row_sum
+from ovgaussian.train.gram_logits import GramTerms, gram_terms, gram_text_logits
 from ovgaussian.train.losses import (
-    COSINE_NORM_EPS, combine_losses, compute_text_logits, lovasz_softmax, masked_cosine_loss, normalize_rows,
-    text_cross_entropy,
+    combine_losses, compute_text_logits, lovasz_softmax, masked_cosine_loss, text_cross_entropy,
 )
 from ovgaussian.run.config import TrainConfig
 from seggaussian.core.constants import IGNORE_LABEL
@@ -71,26 +72,21 @@ def decoded_text_logits(
     text_embeddings: "torch.Tensor",  # [C, D]
     temperature: float,
 ) -> "torch.Tensor":  # [N, C]
-    """``compute_text_logits(phi(semantic), text_embeddings, temperature)`` without phi's ``[N, D]`` output.
+    """``compute_text_logits(phi(semantic), text_embeddings, temperature)`` without phi's ``[N, D]`` output: the Gram
+    form of ``ovgaussian.train.gram_logits`` for ``phi = Linear o ReLU o Linear``; any other ``phi`` takes the
+    direct expression (the reference)."""
+    return _text_logits_fn(phi, text_embeddings, temperature)(semantic)
 
-    For ``phi = Linear(W2, b2) o ReLU o Linear``, with ``h`` the ``[N, H]`` hidden rows and ``t`` the unit text
-    rows: ``phi(s) . t = h (W2^T t^T) + b2 . t`` and ``|phi(s)|^2 = h G h^T + 2 h (W2^T b2) + |b2|^2`` with
-    ``G = W2^T W2 [H, H]``: ``H (H + C)`` multiply-adds per row instead of ``H D`` (128 x 144 vs 128 x 384),
-    and no ``[N, D]`` activation. Any other ``phi`` takes the direct expression (the reference).
-    """
-    layers = list(phi) if isinstance(phi, torch.nn.Sequential) else []
-    if not (len(layers) == 3 and isinstance(layers[0], torch.nn.Linear) and isinstance(layers[1], torch.nn.ReLU)
-            and isinstance(layers[2], torch.nn.Linear) and layers[2].bias is not None):
-        return compute_text_logits(phi(semantic), text_embeddings, temperature)
+
+def _text_logits_fn(phi, text_embeddings: "torch.Tensor", temperature: float):
+    """``rows [n, S] -> [n, C]`` logits of :func:`decoded_text_logits`, with the Gram terms built once (outside any
+    checkpointed chunk: the chunks share them and their small products are not recomputed)."""
     if temperature <= 0:
         raise ValueError(f"temperature must be positive, got {temperature}")
-    hidden = layers[1](layers[0](semantic))  # [N, H]
-    w2, b2 = layers[2].weight, layers[2].bias  # [D, H], [D]
-    text = normalize_rows(text_embeddings)  # [C, D]
-    dots = hidden @ (w2.T @ text.T) + (text @ b2)[None, :]  # [N, C]
-    squared = ((hidden @ (w2.T @ w2)) * hidden).sum(1) + 2.0 * (hidden @ (w2.T @ b2)) + b2.square().sum()
-    norms = squared.clamp_min(0.0).sqrt().clamp_min(COSINE_NORM_EPS)
-    return dots / norms[:, None] / temperature
+    terms = gram_terms(phi, text_embeddings)
+    if terms is None:
+        return lambda rows: compute_text_logits(phi(rows), text_embeddings, temperature)
+    return lambda rows: gram_text_logits(rows, terms, temperature)
 
 
 def text_cross_entropy_3d(
@@ -104,16 +100,28 @@ def text_cross_entropy_3d(
     unlabelled_weight: float = 1.0,
 ) -> tuple["torch.Tensor", int]:
     """3D-to-text cross-entropy (mean over the rows, count): ``text_cross_entropy`` of
-    ``compute_text_logits(phi(semantic))``, over row chunks under activation checkpointing
-    (``ovgaussian.model.network.checkpointed_rows``): phi's ``[N, D]`` output is never held whole."""
-    def chunk_sum(rows, rows_labels):
-        mean, count = text_cross_entropy(decoded_text_logits(phi, rows, text_embeddings, temperature), rows_labels,
-                                         class_weights, unlabelled_columns, unlabelled_weight)
-        return mean * count
-
+    ``compute_text_logits(phi(semantic))``, summed over row chunks so that phi's activations are never held whole:
+    for the Gram-form decoder (``ovgaussian.train.gram_logits``) each chunk's gradients are taken in the forward
+    (``ovgaussian.train.eager_rows``: one forward per chunk), for any other ``phi`` under activation checkpointing
+    (``ovgaussian.model.network.checkpointed_rows``)."""
+    if temperature <= 0:
+        raise ValueError(f"temperature must be positive, got {temperature}")
     count = int((labels != IGNORE_LABEL).sum()) if unlabelled_columns is None else int(labels.shape[0])
-    sums = model.checkpointed_rows(chunk_sum, semantic, labels)  # through the module: tests patch it
-    total = sum(sums)
+    terms = gram_terms(phi, text_embeddings)
+
+    def chunk_sum(logits, rows_labels):
+        mean, chunk_count = text_cross_entropy(logits, rows_labels, class_weights, unlabelled_columns,
+                                               unlabelled_weight)
+        return mean * chunk_count
+
+    if terms is not None:
+        total = eager_row_sum(lambda rows, rows_labels, *t: chunk_sum(
+            gram_text_logits(rows, GramTerms(*t), temperature), rows_labels), (semantic, labels), tuple(terms))
+    else:
+        sums = model.checkpointed_rows(  # through the module: tests patch it
+            lambda rows, rows_labels: chunk_sum(compute_text_logits(phi(rows), text_embeddings, temperature),
+                                                rows_labels), semantic, labels)
+        total = sum(sums)
     return (total * 0.0, 0) if count == 0 else (total / count, count)
 
 
@@ -131,8 +139,7 @@ def text_and_lovasz_3d(
     """:func:`text_cross_entropy_3d` plus ``lovasz_weight`` x the Lovasz-softmax of the same logits: the ``[N, C]``
     logits are decoded once, in row chunks under activation checkpointing (phi's hidden rows never held whole, as
     in the cross-entropy alone), and both terms read them. The Lovasz term is skipped where nothing is counted."""
-    chunks = model.checkpointed_rows(lambda rows: decoded_text_logits(phi, rows, text_embeddings, temperature),
-                                     semantic)
+    chunks = model.checkpointed_rows(_text_logits_fn(phi, text_embeddings, temperature), semantic)
     logits = chunks[0] if len(chunks) == 1 else torch.cat(chunks)
     mean, count = text_cross_entropy(logits, labels, class_weights, unlabelled_columns, unlabelled_weight)
     if count == 0:

@@ -538,9 +538,9 @@ def test_lovasz_weight_adds_the_scene_s_lovasz_softmax_to_the_3d_term(scenes, tm
 
 @pytest.mark.parametrize("lovasz_weight", [0.0, 0.5])
 def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkeypatch, lovasz_weight):
-    """Adapter and 3D text loss in row chunks under activation checkpointing (the paper-scale memory
-    bound) give the values and gradients of the one-piece computation; with a Lovasz term too, whose logits are
-    the same chunks'."""
+    """Adapter and 3D text loss in row chunks (the paper-scale memory bound: the adapter and, with a Lovasz term,
+    the logits under activation checkpointing; the text loss alone with its gradients taken chunk by chunk in the
+    forward) give the values and gradients of the one-piece computation."""
     from dataclasses import replace
 
     from ovgaussian.run.checkpoint import build_network
@@ -569,9 +569,21 @@ def test_checkpointed_chunks_equal_the_whole_forward_and_backward(scenes, monkey
         calls.append(len(out))
         return out
 
+    import ovgaussian.train.step_losses as step_losses_module
+
+    real_eager = step_losses_module.eager_row_sum
+    eager_chunks = []
+
+    def eager_counting(fn, rows, params):
+        eager_chunks.append(-(-rows[0].shape[0] // 37))
+        return real_eager(fn, rows, params, chunk_rows=37, min_rows=0)
+
     monkeypatch.setattr(model_module, "checkpointed_rows", counting)
+    monkeypatch.setattr(step_losses_module, "eager_row_sum", eager_counting)
     chunk_loss, chunk_grads = loss_and_grads()
     assert calls and min(calls) > 1
+    # the 3D text loss alone takes its chunks' gradients in the forward (eager_row_sum); with Lovasz it checkpoints
+    assert (min(eager_chunks) > 1) if lovasz_weight == 0 else not eager_chunks
     torch.testing.assert_close(chunk_loss, whole_loss, rtol=1e-5, atol=1e-6)
     assert chunk_grads.keys() == whole_grads.keys()
     for name, grad in whole_grads.items():
