@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ovgaussian.model.config import NUM_GAUSSIAN_ATTRIBUTES, OVGaussianNetConfig
+from ovgaussian.model.token_attention import token_attention
 from ovgaussian.sparse import (
     DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxelize_points,
 )
@@ -281,9 +282,10 @@ class VoxelToPointAdapter(nn.Module):
 
         Same function as :meth:`forward_reference`, arranged for speed: the per-group token embeddings
         are one GEMM by their block-diagonal weight, and the attention over the ``T`` tokens (``d = 4``
-        channels per head) is elementwise products and sums over ``[N, T, H, d]`` instead of
-        ``einsum``, which becomes millions of tiny batched matmuls plus layout copies (less
-        CPU per 1,000,000 Gaussians, forward + backward, measured 1.1-1.4x; ``benchmarks/results/paper_scale.md``).
+        channels per head) is one loop over the rows, forward and backward
+        (``ovgaussian.model.token_attention``), instead of ``einsum``, which becomes millions of tiny batched
+        matmuls plus layout copies (elementwise torch products were 1.1-1.4x less CPU than ``einsum`` per 1,000,000
+        Gaussians, ``benchmarks/results/paper_scale.md``; the row loop is measured in BENCHMARKS.md).
         """
         n = attributes.shape[0]
         weight = torch.block_diag(*[embed.weight for embed in self.token_embed])  # [T * A_tok, A]
@@ -291,11 +293,10 @@ class VoxelToPointAdapter(nn.Module):
         t, h = len(self.token_embed), self.heads
         tokens = F.linear(attributes, weight, bias).view(n, t, weight.shape[0] // t)  # [N, T, A_tok]
         d = tokens.shape[2] // h
-        q = self.query(voxel_features).view(n, 1, h, d)  # [N, 1, H, d]
+        q = self.query(voxel_features).view(n, h, d)  # [N, H, d]
         k = self.key(tokens).view(n, t, h, d)  # [N, T, H, d]
         v = self.value(tokens).view(n, t, h, d)
-        weights = torch.softmax((k * q).sum(-1) / math.sqrt(d), dim=1)  # [N, T, H]
-        attended = (weights[..., None] * v).sum(1).reshape(n, h * d)  # [N, H * d]
+        attended = token_attention(q, k, v).reshape(n, h * d)  # [N, H * d]
         m = self.out(attended)
         return self.mlp(torch.cat([m, voxel_features], dim=1)) + voxel_features
 
