@@ -11,9 +11,11 @@ Phases (wall seconds, timed by wrapping the library functions in this process on
     blend       blend weights at the sampled pixels (projection, tile binning, pixel kernel)
     voxelize    ovgaussian.sparse.voxelize_points
     kernel_maps submanifold / downsample maps and their gather plans (built once per step: new voxels)
-    network     the rest of the network forward (sparse U-Net, adapter)
+    network     the rest of the network forward (sparse U-Net, adapter; on the eager path the U-Net only)
     render      M = W S at the sampled pixels
-    losses      decoders phi / psi and the three losses
+    losses      decoders phi / psi and the three losses; on the eager path (ovgaussian.train.eager_adapter, from
+                1,000,000 rows) also the adapter, run with the 3D text loss per row chunk and their gradients taken
+                there, so part of what was backward is counted here: compare steps, not this phase
     backward    loss.backward()
     optimizer   SGD step
 
@@ -158,6 +160,7 @@ def instrument(timer: PhaseTimer, data, net) -> None:
     data.pixel_blend_weights = timer.wrap("blend", data.pixel_blend_weights)
     data.sample = timer.wrap("sample", data.sample)
     net.forward = timer.wrap("network", net.forward)
+    net.voxel_stage = timer.wrap("network", net.voxel_stage)  # the eager path calls it alone (then the adapter)
 
 
 def run(args) -> dict:

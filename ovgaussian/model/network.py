@@ -371,6 +371,14 @@ class OVGaussianNet(nn.Module):
             return None
         return attributes[:, 3].detach().clamp_min(POOL_MIN_WEIGHT)
 
+    def voxel_stage(self, means: Tensor, attributes: Tensor, batch_index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The stage before the per-Gaussian one: ``(voxel_features [M, S], point_to_voxel [N], network inputs
+        [N, A])`` (inputs checked and encoded, voxelized, the sparse U-Net)."""
+        attributes = self.prepare_inputs(means, attributes, batch_index)
+        vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
+                              weights=self.pool_weights(attributes))
+        return self.backbone(vox.voxels), vox.point_to_voxel, attributes
+
     def forward(
         self,
         means: Tensor,  # [N, 3] world positions, metres
@@ -380,11 +388,7 @@ class OVGaussianNet(nn.Module):
     ) -> Tensor:
         """Semantic vectors ``[N, semantic_width]`` (``[R, semantic_width]`` of ``rows``, in their order: the
         voxels still pool every Gaussian, only the per-Gaussian stage is restricted)."""
-        attributes = self.prepare_inputs(means, attributes, batch_index)
-        vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
-                              weights=self.pool_weights(attributes))
-        voxel_features = self.backbone(vox.voxels)  # [M, S]
-        point_to_voxel = vox.point_to_voxel
+        voxel_features, point_to_voxel, attributes = self.voxel_stage(means, attributes, batch_index)
         if rows is not None:
             point_to_voxel, attributes = point_to_voxel[rows], attributes[rows]
         per_gaussian = voxel_features[point_to_voxel]  # [N or R, S]

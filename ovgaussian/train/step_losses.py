@@ -17,6 +17,7 @@ import torch
 
 from ovgaussian.model import network as model
 from ovgaussian.data.training_data import SceneSample
+from ovgaussian.train.eager_adapter import semantic_with_row_loss
 from ovgaussian.train.eager_rows import eager_row_sum
 from ovgaussian.train.gram_logits import GramTerms, gram_terms, gram_text_logits
 from ovgaussian.train.losses import (
@@ -158,13 +159,15 @@ def needed_rows(sample: SceneSample) -> "torch.Tensor | None":
 
 def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embeddings: "torch.Tensor",
                  config: TrainConfig, use_teacher: bool, class_weights: "torch.Tensor | None" = None,
-                 unlabelled_columns: "torch.Tensor | None" = None, rows: "torch.Tensor | None" = None):
+                 unlabelled_columns: "torch.Tensor | None" = None, rows: "torch.Tensor | None" = None,
+                 text_3d: "tuple[torch.Tensor, int] | None" = None):
     """:class:`ovgaussian.train.losses.LossTerms` of one scene from its semantic vectors ``[N, S]``; with
     ``unlabelled_columns`` ``[U]`` (the unseen classes' rows of ``text_embeddings``) the unlabelled Gaussians and
     covered pixels take the partial-label term.
 
     ``rows`` (:func:`needed_rows`): ``semantic`` is ``[R, S]``, the vectors of those rows only; the 3D term then
-    covers ``sample.loss_rows`` and the pixels read their contributors through ``rows``."""
+    covers ``sample.loss_rows`` and the pixels read their contributors through ``rows``. ``text_3d``: the 3D term
+    (mean, count) already computed (:func:`batch_losses`' eager path), used as is."""
     device = semantic.device
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = sample.labels.to(device)
@@ -177,7 +180,9 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
         if sample.loss_rows is not None:
             loss_rows = sample.loss_rows.to(device)
             semantic_3d, labels = semantic[position[loss_rows]], labels[loss_rows]
-    if config.loss.no_3dt_align:
+    if text_3d is not None:
+        pass
+    elif config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     else:
         semantic3, labels3 = semantic_3d, labels  # transductive: every Gaussian takes a term
@@ -216,6 +221,9 @@ def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: T
     ``DataConfig.loss_gaussians``, the per-Gaussian stages run on :func:`needed_rows` only)."""
     means, attributes, batch_index = network_inputs(samples, device)
     scene_rows = [needed_rows(sample) for sample in samples]
+    if all(rows is None for rows in scene_rows) and _eager_text_3d(net, config, text_embeddings, means.shape[0]):
+        return _eager_batch_losses(net, samples, means, attributes, batch_index, text_embeddings, config, use_teacher,
+                                   class_weights, unlabelled_columns)
     if all(rows is None for rows in scene_rows):
         semantic, counts = net(means, attributes, batch_index), [len(sample.means) for sample in samples]
     else:
@@ -227,3 +235,42 @@ def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: T
     return [scene_losses(net, scene_semantic, sample, text_embeddings, config, use_teacher, class_weights,
                          unlabelled_columns, rows)
             for sample, rows, scene_semantic in zip(samples, scene_rows, torch.split(semantic, counts))]
+
+
+def _eager_text_3d(net, config: TrainConfig, text_embeddings: "torch.Tensor", num_rows: int) -> bool:
+    """Whether :func:`batch_losses` takes the eager path (``ovgaussian.train.eager_adapter``): gradients recorded,
+    more rows than ``model.CHECKPOINT_MIN_ROWS`` (where the adapter would be checkpointed), an adapter, a 3D text
+    term that is a sum over rows (no Lovasz) and the Gram-form decoder."""
+    return (torch.is_grad_enabled() and num_rows > model.CHECKPOINT_MIN_ROWS and net.config.use_adapter
+            and not config.loss.no_3dt_align and config.loss.lovasz_weight == 0
+            and gram_terms(net.phi, text_embeddings) is not None)
+
+
+def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embeddings, config: TrainConfig,
+                        use_teacher: bool, class_weights, unlabelled_columns) -> list:
+    """:func:`batch_losses` with the adapter and the 3D text cross-entropy in one pass over row chunks, each chunk's
+    gradients taken in its forward (``ovgaussian.train.eager_adapter``); the same terms as the one-piece path."""
+    temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
+    device = means.device
+    labels = torch.cat([s.labels for s in samples]).to(device)
+    transductive = unlabelled_columns is not None
+
+    def row_loss(rows_semantic, rows_labels, *terms):
+        if not transductive:  # the labelled rows only, as scene_losses' semantic_3d[labelled]
+            keep = rows_labels != IGNORE_LABEL
+            rows_semantic, rows_labels = rows_semantic[keep], rows_labels[keep]
+        logits = gram_text_logits(rows_semantic, GramTerms(*terms), temperature)
+        mean, count = text_cross_entropy(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
+        return mean * count
+
+    semantic, sums = semantic_with_row_loss(net, means, attributes, batch_index, len(samples), row_loss, (labels,),
+                                            tuple(gram_terms(net.phi, text_embeddings)))
+    counts = [len(sample.means) for sample in samples]
+    terms = []
+    for b, (sample, scene_semantic) in enumerate(zip(samples, torch.split(semantic, counts))):
+        scene_labels = sample.labels
+        count = int(scene_labels.shape[0]) if transductive else int((scene_labels != IGNORE_LABEL).sum())
+        text_3d = (sums[b] * 0.0, 0) if count == 0 else (sums[b] / count, count)
+        terms.append(scene_losses(net, scene_semantic, sample, text_embeddings, config, use_teacher, class_weights,
+                                  unlabelled_columns, None, text_3d))
+    return terms

@@ -958,3 +958,52 @@ def test_a_3d_loss_subset_as_large_as_the_scene_changes_nothing(scenes, tmp_path
         torch.testing.assert_close(a.total, b.total, rtol=1e-5, atol=1e-6)
     for name in want_grads:
         torch.testing.assert_close(got_grads[name], want_grads[name], rtol=1e-4, atol=1e-6, msg=name)
+
+
+@pytest.mark.parametrize("mode", ["plain", "class-weights", "transductive"])
+def test_eager_adapter_and_text_loss_equal_the_one_piece_step(scenes, tmp_path, monkeypatch, mode):
+    """batch_losses' eager path (adapter and 3D text loss per row chunk, gradients taken in the forward, the adapter
+    recomputed for the rendered rows only: ovgaussian.train.eager_adapter), forced on a tiny batch with 37-row chunks,
+    gives the loss terms and every parameter's gradient of the one-piece step (net(...) then the losses)."""
+    from ovgaussian.run.checkpoint import build_network
+    import ovgaussian.model.network as model_module
+    import ovgaussian.train.step_losses as step_losses_module
+    from ovgaussian.train.step_losses import batch_losses
+
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
+    samples = [data.sample(s, np.random.default_rng(i)) for i, s in enumerate(("scene00", "scene01"))]
+    config, text, kwargs = tiny_config(tmp_path, 1), text_stub(16), {}
+    if mode == "class-weights":
+        kwargs["class_weights"] = torch.linspace(0.5, 2.0, 16)
+    if mode == "transductive":
+        config, text, kwargs = transductive_config(tmp_path), text_stub(20), {"unlabelled_columns": torch.arange(16, 20)}
+
+    def step():
+        net = build_network(tiny_model_config(12)).train()
+        terms = batch_losses(net, samples, text, config, True, "cpu", **kwargs)
+        loss = sum(t.total for t in terms)
+        loss.backward()
+        return ([(float(t.total), t.count_3d, t.count_2d) for t in terms],
+                {n: p.grad.clone() for n, p in net.named_parameters() if p.grad is not None})
+
+    whole_terms, whole_grads = step()
+    eager_calls = []
+    real = step_losses_module.semantic_with_row_loss
+
+    def counting(*args, **kw):
+        eager_calls.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(model_module, "CHECKPOINT_MIN_ROWS", 0)
+    monkeypatch.setattr(model_module, "CHECKPOINT_ROWS", 37)
+    monkeypatch.setattr(step_losses_module, "semantic_with_row_loss", counting)
+    eager_terms, eager_grads = step()
+    assert eager_calls == [1]
+    for (a_total, a3, a2), (b_total, b3, b2) in zip(eager_terms, whole_terms):
+        assert (a3, a2) == (b3, b2) and a3 > 0
+        assert a_total == pytest.approx(b_total, rel=1e-5, abs=1e-6)
+    assert eager_grads.keys() == whole_grads.keys()
+    for name, grad in whole_grads.items():
+        scale = float(grad.abs().max())
+        torch.testing.assert_close(eager_grads[name], grad, rtol=1e-4, atol=1e-6 + 1e-5 * scale, msg=name)

@@ -1,0 +1,162 @@
+"""The per-Gaussian stage and a per-row loss on its output in one pass over row chunks, gradients taken in the forward.
+
+At the paper's scale (3 x 1,000,000 Gaussians) the adapter runs in row chunks under activation checkpointing, so each
+chunk's adapter forward ran twice (once for the values, again in backward to rebuild its graph), and the 3D text loss
+on its output took another pass. :func:`semantic_with_row_loss` runs, per chunk of one scene's rows, the adapter and
+the row loss with their graph, and takes that chunk's gradients with respect to its voxel features and the
+parameters right away (as ``ovgaussian.train.eager_rows`` does for the loss alone). It returns the semantic vectors
+(for rendering) and the per-scene loss sums. Their backward:
+
+- the loss sums' part is the stored gradients times each scene's incoming scalar (exact: linear);
+- the semantic vectors' part (the 2D losses, through ``M = W S``) reaches only the rows that contribute to a sampled
+  pixel: the adapter is recomputed with its graph for those rows alone (a few percent of a scene's Gaussians);
+- both land on the voxel features through the gather of the Gaussians' voxels (an index-add), and on the parameters.
+
+Every adapter forward over all rows happens once, and its backward once; the recomputation covers the rendered
+rows only. Peak memory is a chunk's graph plus one gradient the size of the per-Gaussian voxel features.
+The one-piece computation (``net(...)`` then the losses) is the reference; the tests compare values and every
+parameter's gradient.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from ovgaussian.model import network as model
+
+
+def semantic_with_row_loss(
+    net,  # ovgaussian.model.network.OVGaussianNet with an adapter
+    means: Tensor,  # [N, 3]
+    attributes: Tensor,  # [N, 11]
+    batch_index: Tensor,  # [N] non-decreasing scene index
+    num_scenes: int,
+    row_loss: Callable[..., Tensor],  # (semantic rows [n, S], *row tensor chunks, *loss params) -> scalar
+    row_tensors: tuple[Tensor, ...],  # [N, ...] each, chunked with the rows (e.g. labels)
+    loss_params: tuple[Tensor, ...],  # passed whole to every chunk (e.g. the decoder's Gram terms)
+    chunk_rows: int | None = None,
+) -> tuple[Tensor, Tensor]:  # semantic [N, S], loss sums [num_scenes]
+    """``(net(means, attributes, batch_index), sums)`` with ``sums[b]`` = the sum over scene ``b``'s row chunks of
+    ``row_loss`` (module docstring). Chunks of ``chunk_rows`` (default ``model.CHECKPOINT_ROWS``) never cross a
+    scene boundary."""
+    if not net.config.use_adapter:
+        raise ValueError("semantic_with_row_loss: the network has no adapter")
+    if attributes.requires_grad or means.requires_grad:
+        raise ValueError("semantic_with_row_loss: gradients of the Gaussians' attributes are not supported")
+    n = batch_index.shape[0]
+    if any(t.shape[0] != n for t in row_tensors):
+        raise ValueError("semantic_with_row_loss: row tensors must have one row per Gaussian")
+    if n > 1 and bool((batch_index[1:] < batch_index[:-1]).any()):
+        raise ValueError("semantic_with_row_loss: batch_index must be non-decreasing (scenes one after another)")
+    chunk_rows = model.CHECKPOINT_ROWS if chunk_rows is None else int(chunk_rows)
+    if chunk_rows < 1:
+        raise ValueError(f"semantic_with_row_loss: chunk_rows must be >= 1, got {chunk_rows}")
+    voxel_features, point_to_voxel, attributes = net.voxel_stage(means, attributes, batch_index)
+    counts = torch.bincount(batch_index.cpu(), minlength=num_scenes).tolist()
+    chunks, start = [], 0
+    for scene, count in enumerate(counts):
+        for s in range(start, start + count, chunk_rows):
+            chunks.append((s, min(s + chunk_rows, start + count), scene))
+        start += count
+    adapter_params = tuple(net.adapter.parameters())
+    meta = (net.adapter, row_loss, chunks, num_scenes, len(adapter_params), len(row_tensors), chunk_rows)
+    return _AdapterRowLoss.apply(meta, voxel_features, point_to_voxel, attributes, *adapter_params, *row_tensors,
+                                 *loss_params)
+
+
+def _add(total: Tensor | None, value: Tensor | None, scale: Tensor | float = 1.0) -> Tensor | None:
+    if value is None:
+        return total
+    return value * scale if total is None else total.add_(value * scale)
+
+
+class _AdapterRowLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, meta, voxel_features, point_to_voxel, attributes, *inputs):  # noqa: D102
+        adapter, row_loss, chunks, num_scenes, num_adapter, num_rows, _ = meta
+        adapter_params = inputs[:num_adapter]
+        row_tensors = inputs[num_adapter:num_adapter + num_rows]
+        needs = ctx.needs_input_grad[4:]
+        leaves = [p.detach().requires_grad_(need)
+                  for p, need in zip(inputs[num_adapter + num_rows:], needs[num_adapter + num_rows:])]
+        features = voxel_features.detach()
+        n = point_to_voxel.shape[0]
+        semantic = features.new_empty(n, adapter.mlp[-1].out_features)
+        row_grads = features.new_zeros(n, features.shape[1]) if ctx.needs_input_grad[1] else None
+        # per scene: gradients of its loss sum with respect to the adapter's parameters and the loss params
+        param_grads: list[list[Tensor | None]] = [[None] * len(inputs[:num_adapter] + tuple(leaves))
+                                                  for _ in range(num_scenes)]
+        sums = features.new_zeros(num_scenes)
+        with torch.enable_grad():
+            for start, end, scene in chunks:
+                per_gaussian = features[point_to_voxel[start:end]].requires_grad_(row_grads is not None)
+                rows_semantic = adapter(per_gaussian, attributes[start:end])
+                semantic[start:end] = rows_semantic.detach()
+                value = row_loss(rows_semantic, *(t[start:end] for t in row_tensors), *leaves)
+                wrt = [x for x in (per_gaussian, *adapter_params, *leaves) if x.requires_grad]
+                if not (wrt and value.requires_grad):
+                    sums[scene] += value.detach()
+                    continue
+                grads = iter(torch.autograd.grad(value, wrt, allow_unused=True))
+                if per_gaussian.requires_grad:
+                    g = next(grads)
+                    if g is not None:
+                        row_grads[start:end] = g
+                for i, p in enumerate((*adapter_params, *leaves)):
+                    if p.requires_grad:
+                        param_grads[scene][i] = _add(param_grads[scene][i], next(grads))
+                sums[scene] += value.detach()
+        ctx.save_for_backward(voxel_features, point_to_voxel, attributes)
+        ctx.meta, ctx.row_grads, ctx.param_grads = meta, row_grads, param_grads
+        ctx.param_needs = [p.requires_grad for p in (*adapter_params, *leaves)]
+        return semantic, sums
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_semantic, grad_sums):  # noqa: D102
+        voxel_features, point_to_voxel, attributes = ctx.saved_tensors
+        adapter, _, chunks, num_scenes, num_adapter, num_rows, chunk_rows = ctx.meta
+        row_grads, param_grads, ctx.row_grads, ctx.param_grads = ctx.row_grads, ctx.param_grads, None, None
+        adapter_params = tuple(adapter.parameters())
+        totals: list[Tensor | None] = [None] * len(ctx.param_needs)
+        for scene in range(num_scenes):
+            for i, g in enumerate(param_grads[scene]):
+                totals[i] = _add(totals[i], g, grad_sums[scene])
+        if row_grads is not None:
+            for start, end, scene in chunks:
+                row_grads[start:end] *= grad_sums[scene]
+        if grad_semantic is not None:  # the rows that reach a loss through the semantic vectors: recompute those
+            rendered = torch.nonzero(grad_semantic.ne(0).any(1))[:, 0]
+            wanted = [p for p in adapter_params if p.requires_grad]
+            for s in range(0, rendered.shape[0], chunk_rows):
+                rows = rendered[s:s + chunk_rows]
+                with torch.enable_grad():
+                    per_gaussian = voxel_features.detach()[point_to_voxel[rows]].requires_grad_(row_grads is not None)
+                    out = adapter(per_gaussian, attributes[rows])
+                    wrt = ([per_gaussian] if per_gaussian.requires_grad else []) + wanted
+                    grads = iter(torch.autograd.grad(out, wrt, grad_semantic[rows], allow_unused=True))
+                if per_gaussian.requires_grad:
+                    g = next(grads)
+                    if g is not None:
+                        row_grads.index_add_(0, rows, g)
+                for i, p in enumerate(adapter_params):
+                    if p.requires_grad:
+                        totals[i] = _add(totals[i], next(grads))
+        grad_features = None
+        if row_grads is not None:
+            grad_features = torch.zeros_like(voxel_features).index_add_(0, point_to_voxel, row_grads)
+        params = (*adapter_params, *([None] * (len(ctx.param_needs) - num_adapter)))
+        out = []
+        for i, need in enumerate(ctx.param_needs):
+            if not need:
+                out.append(None)
+            elif totals[i] is None:
+                ref = params[i] if params[i] is not None else None
+                out.append(torch.zeros_like(ref) if ref is not None else None)
+            else:
+                out.append(totals[i])
+        adapter_grads, loss_grads = out[:num_adapter], out[num_adapter:]
+        return (None, grad_features, None, None, *adapter_grads, *([None] * num_rows), *loss_grads)
