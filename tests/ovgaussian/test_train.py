@@ -116,6 +116,28 @@ def test_augmentation_maps_covariances_consistently(flip):
     assert np.all(np.linalg.det(moved.rotation_matrices()) > 0.99)
 
 
+@pytest.mark.parametrize("flip", [(1, 1), (-1, 1), (1, -1), (-1, -1)])
+@pytest.mark.parametrize("angle", [0.0, 0.7, np.pi, 5.9])
+def test_augmentation_quaternion_path_equals_the_rotation_matrix_reference(flip, angle):
+    """augment_gaussians (quaternion products) against augment_gaussians_reference (through [3, 3] matrices): the
+    same rotations (quaternions equal up to sign), means and log-scales, also for half turns and axis quaternions."""
+    from ovgaussian.data.augmentation import augment_gaussians_reference
+
+    rng = np.random.default_rng(2)
+    q = rng.normal(size=(500, 4))
+    q = np.concatenate([q, np.eye(4), -np.eye(4)])
+    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    means = rng.normal(size=(len(q), 3)).astype(np.float32)
+    log_scales = rng.normal(size=(len(q), 3)).astype(np.float32)
+    aug = Augmentation(0.8, angle, np.array([flip[0], flip[1], 1.0]))
+    fast, slow = augment_gaussians(means, q, log_scales, aug), augment_gaussians_reference(means, q, log_scales, aug)
+    np.testing.assert_array_equal(fast[0], slow[0])
+    np.testing.assert_allclose(fast[2], slow[2], rtol=0, atol=1e-6)
+    same_sign = np.abs(fast[1] - slow[1]).max(1)
+    flipped = np.abs(fast[1] + slow[1]).max(1)
+    assert np.minimum(same_sign, flipped).max() < 1e-6
+
+
 def test_rotmats_to_quats_roundtrip_including_half_turns():
     from seggaussian.core.rotations import quats_to_rotmats
 
