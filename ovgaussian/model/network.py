@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ovgaussian.model.config import NUM_GAUSSIAN_ATTRIBUTES, OVGaussianNetConfig
+from ovgaussian.model.narrow_linear import narrow_linear
 from ovgaussian.model.token_attention import token_attention
 from ovgaussian.sparse import (
     DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxelize_points,
@@ -291,7 +292,7 @@ class VoxelToPointAdapter(nn.Module):
         weight = torch.block_diag(*[embed.weight for embed in self.token_embed])  # [T * A_tok, A]
         bias = torch.cat([embed.bias for embed in self.token_embed])  # [T * A_tok]
         t, h = len(self.token_embed), self.heads
-        tokens = F.linear(attributes, weight, bias).view(n, t, weight.shape[0] // t)  # [N, T, A_tok]
+        tokens = narrow_linear(attributes, weight, bias).view(n, t, weight.shape[0] // t)  # [N, T, A_tok]
         d = tokens.shape[2] // h
         q = self.query(voxel_features).view(n, h, d)  # [N, H, d]
         k = self.key(tokens).view(n, t, h, d)  # [N, T, H, d]
