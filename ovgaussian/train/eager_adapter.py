@@ -137,6 +137,8 @@ class _AdapterRowLoss(torch.autograd.Function):
                     per_gaussian = voxel_features.detach()[point_to_voxel[rows]].requires_grad_(row_grads is not None)
                     out = adapter(per_gaussian, attributes[rows])
                     wrt = ([per_gaussian] if per_gaussian.requires_grad else []) + wanted
+                    if not wrt:
+                        break
                     grads = iter(torch.autograd.grad(out, wrt, grad_semantic[rows], allow_unused=True))
                 if per_gaussian.requires_grad:
                     g = next(grads)
@@ -148,15 +150,5 @@ class _AdapterRowLoss(torch.autograd.Function):
         grad_features = None
         if row_grads is not None:
             grad_features = torch.zeros_like(voxel_features).index_add_(0, point_to_voxel, row_grads)
-        params = (*adapter_params, *([None] * (len(ctx.param_needs) - num_adapter)))
-        out = []
-        for i, need in enumerate(ctx.param_needs):
-            if not need:
-                out.append(None)
-            elif totals[i] is None:
-                ref = params[i] if params[i] is not None else None
-                out.append(torch.zeros_like(ref) if ref is not None else None)
-            else:
-                out.append(totals[i])
-        adapter_grads, loss_grads = out[:num_adapter], out[num_adapter:]
-        return (None, grad_features, None, None, *adapter_grads, *([None] * num_rows), *loss_grads)
+        out = [total if need else None for total, need in zip(totals, ctx.param_needs)]  # None: a zero gradient
+        return (None, grad_features, None, None, *out[:num_adapter], *([None] * num_rows), *out[num_adapter:])

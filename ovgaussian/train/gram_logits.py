@@ -40,14 +40,19 @@ class GramTerms(NamedTuple):
     bias_square: Tensor  # [] |b2|^2
 
 
-def gram_terms(phi, text_embeddings: Tensor) -> GramTerms | None:  # text_embeddings [C, D]
-    """:class:`GramTerms` of ``phi`` (a ``Sequential(Linear, ReLU, Linear with bias)``) and the text rows (made
-    unit here); None for any other ``phi`` (callers then take the direct expression)."""
+def is_gram_decoder(phi) -> bool:
+    """Whether ``phi`` has the form the Gram terms need: ``Sequential(Linear, ReLU, Linear with bias)``."""
     layers = list(phi) if isinstance(phi, torch.nn.Sequential) else []
-    if not (len(layers) == 3 and isinstance(layers[0], torch.nn.Linear) and isinstance(layers[1], torch.nn.ReLU)
-            and isinstance(layers[2], torch.nn.Linear) and layers[2].bias is not None):
+    return (len(layers) == 3 and isinstance(layers[0], torch.nn.Linear) and isinstance(layers[1], torch.nn.ReLU)
+            and isinstance(layers[2], torch.nn.Linear) and layers[2].bias is not None)
+
+
+def gram_terms(phi, text_embeddings: Tensor) -> GramTerms | None:  # text_embeddings [C, D]
+    """:class:`GramTerms` of ``phi`` (:func:`is_gram_decoder`) and the text rows (made unit here); None for any other
+    ``phi`` (callers then take the direct expression)."""
+    if not is_gram_decoder(phi):
         return None
-    first, last = layers[0], layers[2]
+    first, last = phi[0], phi[2]
     b1 = first.bias if first.bias is not None else first.weight.new_zeros(first.weight.shape[0])
     w2, b2 = last.weight, last.bias  # [D, H], [D]
     text = normalize_rows(text_embeddings)  # [C, D]

@@ -19,7 +19,7 @@ from ovgaussian.model import network as model
 from ovgaussian.data.training_data import SceneSample
 from ovgaussian.train.eager_adapter import semantic_with_row_loss
 from ovgaussian.train.eager_rows import eager_row_sum
-from ovgaussian.train.gram_logits import GramTerms, gram_terms, gram_text_logits
+from ovgaussian.train.gram_logits import GramTerms, gram_terms, gram_text_logits, is_gram_decoder
 from ovgaussian.train.losses import (
     combine_losses, compute_text_logits, lovasz_softmax, masked_cosine_loss, text_cross_entropy,
 )
@@ -243,7 +243,7 @@ def _eager_text_3d(net, config: TrainConfig, text_embeddings: "torch.Tensor", nu
     term that is a sum over rows (no Lovasz) and the Gram-form decoder."""
     return (torch.is_grad_enabled() and num_rows > model.CHECKPOINT_MIN_ROWS and net.config.use_adapter
             and not config.loss.no_3dt_align and config.loss.lovasz_weight == 0
-            and gram_terms(net.phi, text_embeddings) is not None)
+            and is_gram_decoder(net.phi))
 
 
 def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embeddings, config: TrainConfig,

@@ -1029,3 +1029,31 @@ def test_eager_adapter_and_text_loss_equal_the_one_piece_step(scenes, tmp_path, 
     for name, grad in whole_grads.items():
         scale = float(grad.abs().max())
         torch.testing.assert_close(eager_grads[name], grad, rtol=1e-4, atol=1e-6 + 1e-5 * scale, msg=name)
+
+
+def test_eager_adapter_path_with_a_frozen_backbone_and_adapter(scenes, tmp_path, monkeypatch):
+    """With only the decoders trainable, the eager path (forced as above) gives the decoders' gradients of the
+    one-piece step and nothing else (no gradient to take through the adapter or the voxels)."""
+    from ovgaussian.run.checkpoint import build_network
+    import ovgaussian.model.network as model_module
+    from ovgaussian.train.step_losses import batch_losses
+
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=200), voc)
+    samples = [data.sample(s, np.random.default_rng(i)) for i, s in enumerate(("scene00", "scene01"))]
+
+    def step():
+        net = build_network(tiny_model_config(12)).train()
+        for name, p in net.named_parameters():
+            p.requires_grad_(name.startswith(("phi", "psi")))
+        loss = sum(t.total for t in batch_losses(net, samples, text_stub(), tiny_config(tmp_path, 1), True, "cpu"))
+        loss.backward()
+        return {n: p.grad.clone() for n, p in net.named_parameters() if p.grad is not None}
+
+    whole = step()
+    monkeypatch.setattr(model_module, "CHECKPOINT_MIN_ROWS", 0)
+    monkeypatch.setattr(model_module, "CHECKPOINT_ROWS", 37)
+    eager = step()
+    assert whole.keys() == eager.keys() and all(k.startswith("phi") or k.startswith("psi") for k in whole)
+    for name, grad in whole.items():
+        torch.testing.assert_close(eager[name], grad, rtol=1e-4, atol=1e-6 + 1e-5 * float(grad.abs().max()), msg=name)
