@@ -32,7 +32,7 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "min_alpha", "--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True)
 @config_option(BenchConfig, "max_views_per_scene", "--max-views", type=int, default=None)
 @config_option(BenchConfig, "max_scenes", "--max-scenes", type=int, default=None)
-@click.option("--out", "out", type=click.Path(path_type=Path, file_okay=False), default=None,
+@click.option("--out", "out", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="JSON report path (default: RUN/bench-K<classes>.json, or DATA/bench-<predictor>-K<classes>.json).")
 @click.option("--label", default=None, help="Row label of the printed table (default: the run folder or predictor).")
 @config_option(BenchConfig, "verify", "--verify", is_flag=True)

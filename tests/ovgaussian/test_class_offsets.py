@@ -124,3 +124,26 @@ def test_bench_fits_records_and_applies_the_offsets(tmp_path):
     assert report["row"]["2d_NVA"] is not None
     bad = CliRunner().invoke(main, common + ["--class-offsets", "--stacking-run", str(tmp_path / "run")])
     assert bad.exit_code != 0 and "not supported" in bad.output and "Traceback" not in bad.output
+
+
+def test_bench_out_is_a_file_path_a_rerun_replaces(tmp_path):
+    """``ovgaussian bench --out`` names the JSON report: a second run to the same path replaces it (make demo run
+    twice in one folder failed here with 'Directory ... is a file'); an existing folder is a one-line error."""
+    import json
+
+    from click.testing import CliRunner
+
+    from cli.ovgaussian_cli import main
+    from test_train import _write_shards, make_scene
+
+    data = tmp_path / "data"
+    _write_shards(data, [make_scene(s, per_box=20, views=2) for s in range(2)])
+    out = tmp_path / "bench.json"
+    common = ["bench", "--data", str(data), "--predictor", "majority", "--dim", "3d", "--no-progress"]
+    for _ in range(2):
+        result = CliRunner().invoke(main, common + ["--out", str(out)])
+        assert result.exit_code == 0, result.output
+        assert json.loads(out.read_text())["row"]
+    (tmp_path / "folder").mkdir()
+    bad = CliRunner().invoke(main, common + ["--out", str(tmp_path / "folder")])
+    assert bad.exit_code != 0 and "folder" in bad.output and "Traceback" not in bad.output
