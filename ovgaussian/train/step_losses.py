@@ -221,7 +221,7 @@ def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: T
     ``DataConfig.loss_gaussians``, the per-Gaussian stages run on :func:`needed_rows` only)."""
     means, attributes, batch_index = network_inputs(samples, device)
     scene_rows = [needed_rows(sample) for sample in samples]
-    if all(rows is None for rows in scene_rows) and _eager_text_3d(net, config, text_embeddings, means.shape[0]):
+    if all(rows is None for rows in scene_rows) and _eager_text_3d(net, config, text_embeddings, means, attributes):
         return _eager_batch_losses(net, samples, means, attributes, batch_index, text_embeddings, config, use_teacher,
                                    class_weights, unlabelled_columns)
     if all(rows is None for rows in scene_rows):
@@ -237,11 +237,14 @@ def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: T
             for sample, rows, scene_semantic in zip(samples, scene_rows, torch.split(semantic, counts))]
 
 
-def _eager_text_3d(net, config: TrainConfig, text_embeddings: "torch.Tensor", num_rows: int) -> bool:
-    """Whether :func:`batch_losses` takes the eager path (``ovgaussian.train.eager_adapter``): gradients recorded,
-    more rows than ``model.CHECKPOINT_MIN_ROWS`` (where the adapter would be checkpointed), an adapter, a 3D text
-    term that is a sum over rows (no Lovasz) and the Gram-form decoder."""
-    return (torch.is_grad_enabled() and num_rows > model.CHECKPOINT_MIN_ROWS and net.config.use_adapter
+def _eager_text_3d(net, config: TrainConfig, text_embeddings: "torch.Tensor", means: "torch.Tensor",
+                   attributes: "torch.Tensor") -> bool:
+    """Whether :func:`batch_losses` takes the eager path (``ovgaussian.train.eager_adapter``): gradients recorded
+    (for the network, not for the Gaussians' attributes), more rows than ``model.CHECKPOINT_MIN_ROWS`` (where the
+    adapter would be checkpointed), an adapter, a 3D text term that is a sum over rows (no Lovasz) and the Gram-form
+    decoder."""
+    return (torch.is_grad_enabled() and means.shape[0] > model.CHECKPOINT_MIN_ROWS and net.config.use_adapter
+            and not (means.requires_grad or attributes.requires_grad)
             and not config.loss.no_3dt_align and config.loss.lovasz_weight == 0
             and is_gram_decoder(net.phi))
 
