@@ -20,8 +20,12 @@ Phases (wall seconds, timed by wrapping the library functions in this process on
     optimizer   SGD step
 
 Budgets (exit status 1 when one is missed, with the figure printed; issue 31's goals on 2 cores): peak resident
-memory of the process <= --max-peak-gb (8), median step wall time <= --max-step-s (20 s), backward phase <=
---max-backward-ratio (2.5) times the network's forward phase.
+memory of the process <= --max-peak-gb (8), median step wall time <= --max-step-s (20 s), the sparse U-Net's
+backward <= --max-backward-ratio (2.5) times its forward. The U-Net is timed on its own: its forward by wrapping
+``net.backbone``, its backward from the moment its output's gradient arrives (a hook) to the end of
+``loss.backward()`` (nothing runs after it: the voxel inputs need no gradient). The phase ratio backward / network
+is printed too; from 1M rows it no longer compares like with like, as the eager path (``losses``) holds the
+adapter's backward.
 
 ``--device cuda`` runs the network and the losses on the GPU (as ``ovgaussian train --device cuda``); phases are
 then timed with ``torch.cuda.synchronize`` at their edges, and the JSON adds the GPU's peak allocated memory.
@@ -109,6 +113,8 @@ class PhaseTimer:
     def __init__(self, synchronize=None) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
         self._stack: list[list] = []
+        self.unet_forward = 0.0  # seconds in the sparse U-Net's forward this step (inside "network")
+        self.unet_backward_start: float | None = None  # when the U-Net output's gradient arrived in the backward
         self.synchronize = synchronize or (lambda: None)  # a GPU run waits for its kernels at each phase edge
 
     def wrap(self, phase: str, fn):
@@ -160,6 +166,22 @@ def instrument(timer: PhaseTimer, data, net) -> None:
     data.pixel_blend_weights = timer.wrap("blend", data.pixel_blend_weights)
     data.sample = timer.wrap("sample", data.sample)
     net.forward = timer.wrap("network", net.forward)
+    backbone_forward = net.backbone.forward
+
+    def timed_backbone(*args, **kwargs):  # the U-Net alone: its forward time, and a hook marking its backward's start
+        timer.synchronize()
+        start = time.perf_counter()
+        out = backbone_forward(*args, **kwargs)
+        timer.synchronize()
+        timer.unet_forward += time.perf_counter() - start
+        if out.requires_grad:
+            def mark(grad):
+                timer.synchronize()
+                timer.unet_backward_start = time.perf_counter()
+            out.register_hook(mark)
+        return out
+
+    net.backbone.forward = timed_backbone
     net.voxel_stage = timer.wrap("network", net.voxel_stage)  # the eager path calls it alone (then the adapter)
 
 
@@ -194,6 +216,7 @@ def run(args) -> dict:
     voxels = None
     for step in range(args.steps + 1):
         timer.seconds.clear()
+        timer.unet_forward, timer.unet_backward_start = 0.0, None
         t0, c0 = time.perf_counter(), time.process_time()
         samples = [data.sample(r.scene_id, np.random.default_rng([step, i])) for i, r in enumerate(records)]
         samples = [s._replace(teacher=torch.randn(len(s.pixels), 384)) for s in samples]
@@ -203,12 +226,15 @@ def run(args) -> dict:
             loss = sum(t.total for t in terms) / len(terms)
         with timer.measure("backward"):
             loss.backward()
+            timer.synchronize()
+            unet_backward = time.perf_counter() - (timer.unet_backward_start or time.perf_counter())
         with timer.measure("optimizer"):
             optimizer.step()
         timer.synchronize()
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         if step > 0 or args.steps == 0:
             steps.append({"wall_s": wall, "cpu_s": cpu, "voxels": getattr(timer, "voxels", None), "phases_s": {p: timer.seconds.get(p, 0.0) for p in PHASES},
+                          "unet_forward_s": timer.unet_forward, "unet_backward_s": unet_backward,
                           "loss": float(loss.detach())})
         print(f"step {step}{' (warm-up)' if step == 0 and args.steps else ''}: {getattr(timer, 'voxels', 0):,} voxels, "
               f"{wall:.1f} s wall, {cpu:.1f} s CPU, "
@@ -228,10 +254,14 @@ def run(args) -> dict:
         "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
         "phases_s_median": phases, "peak_rss_gb": peak_gb,
         "backward_over_network": phases["backward"] / max(phases["network"], 1e-9),
+        "unet_forward_s_median": statistics.median(s["unet_forward_s"] for s in steps),
+        "unet_backward_s_median": statistics.median(s["unet_backward_s"] for s in steps),
+        "unet_backward_over_forward": statistics.median(s["unet_backward_s"] / max(s["unet_forward_s"], 1e-9)
+                                                        for s in steps),
         "device": str(device), "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "peak_gpu_gb": torch.cuda.max_memory_allocated(device) / 1024**3 if device.type == "cuda" else None,
         "budgets": {"peak_rss_gb": args.max_peak_gb, "step_wall_s": args.max_step_s,
-                    "backward_over_network": args.max_backward_ratio},
+                    "unet_backward_over_forward": args.max_backward_ratio},
     }
 
 
@@ -299,7 +329,7 @@ def main() -> int:
     parser.add_argument("--max-peak-gb", type=float, default=8.0, help="budget: peak resident memory (issue 31)")
     parser.add_argument("--max-step-s", type=float, default=20.0, help="budget: median step wall time (issue 31)")
     parser.add_argument("--max-backward-ratio", type=float, default=2.5,
-                        help="budget: backward phase over the network's forward phase (issue 31)")
+                        help="budget: the sparse U-Net's backward over its forward (issue 31)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                         help="device of the network and the losses (sampling, blend weights and kernel maps stay "
                              "on the CPU, as in training)")
@@ -341,8 +371,11 @@ def main() -> int:
         failed.append(f"peak memory {result['peak_rss_gb']:.2f} GB > {args.max_peak_gb} GB")
     if result["step_wall_s_median"] > args.max_step_s:
         failed.append(f"step {result['step_wall_s_median']:.1f} s > {args.max_step_s} s")
-    if result["backward_over_network"] > args.max_backward_ratio:
-        failed.append(f"backward {result['backward_over_network']:.2f}x the network forward > {args.max_backward_ratio}x")
+    if result["unet_backward_over_forward"] > args.max_backward_ratio:
+        failed.append(f"U-Net backward {result['unet_backward_over_forward']:.2f}x its forward > {args.max_backward_ratio}x")
+    print(f"sparse U-Net: forward {result['unet_forward_s_median']:.2f} s, backward {result['unet_backward_s_median']:.2f} s "
+          f"({result['unet_backward_over_forward']:.2f}x); backward phase / network phase "
+          f"{result['backward_over_network']:.2f}x")
     status = "FAILED: " + "; ".join(failed) if failed else "within budget"
     print(f"paper step ({args.scenes} x {args.gaussians:,} Gaussians, {args.pixels:,} px, {args.preset}): "
           f"{result['step_wall_s_median']:.1f} s wall, {result['step_cpu_s_median']:.1f} s CPU, "
