@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from ovgaussian.model import network as model
+from ovgaussian.train.eager_rows import accumulate, gradients
 
 
 def semantic_with_row_loss(
@@ -67,12 +68,6 @@ def semantic_with_row_loss(
                                  *loss_params)
 
 
-def _add(total: Tensor | None, value: Tensor | None, scale: Tensor | float = 1.0) -> Tensor | None:
-    if value is None:
-        return total
-    return value * scale if total is None else total.add_(value * scale)
-
-
 class _AdapterRowLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, meta, voxel_features, point_to_voxel, attributes, *inputs):  # noqa: D102
@@ -87,8 +82,7 @@ class _AdapterRowLoss(torch.autograd.Function):
         semantic = features.new_empty(n, adapter.mlp[-1].out_features)
         row_grads = features.new_zeros(n, features.shape[1]) if ctx.needs_input_grad[1] else None
         # per scene: gradients of its loss sum with respect to the adapter's parameters and the loss params
-        param_grads: list[list[Tensor | None]] = [[None] * len(inputs[:num_adapter] + tuple(leaves))
-                                                  for _ in range(num_scenes)]
+        param_grads: list[list[Tensor | None]] = [[None] * (num_adapter + len(leaves)) for _ in range(num_scenes)]
         sums = features.new_zeros(num_scenes)
         with torch.enable_grad():
             for start, end, scene in chunks:
@@ -96,22 +90,14 @@ class _AdapterRowLoss(torch.autograd.Function):
                 rows_semantic = adapter(per_gaussian, attributes[start:end])
                 semantic[start:end] = rows_semantic.detach()
                 value = row_loss(rows_semantic, *(t[start:end] for t in row_tensors), *leaves)
-                wrt = [x for x in (per_gaussian, *adapter_params, *leaves) if x.requires_grad]
-                if not (wrt and value.requires_grad):
-                    sums[scene] += value.detach()
-                    continue
-                grads = iter(torch.autograd.grad(value, wrt, allow_unused=True))
-                if per_gaussian.requires_grad:
-                    g = next(grads)
-                    if g is not None:
-                        row_grads[start:end] = g
-                for i, p in enumerate((*adapter_params, *leaves)):
-                    if p.requires_grad:
-                        param_grads[scene][i] = _add(param_grads[scene][i], next(grads))
+                grads = gradients(value, (per_gaussian, *adapter_params, *leaves))
+                if grads[0] is not None:
+                    row_grads[start:end] = grads[0]
+                for i, g in enumerate(grads[1:]):
+                    param_grads[scene][i] = accumulate(param_grads[scene][i], g)
                 sums[scene] += value.detach()
         ctx.save_for_backward(voxel_features, point_to_voxel, attributes)
         ctx.meta, ctx.row_grads, ctx.param_grads = meta, row_grads, param_grads
-        ctx.param_needs = [p.requires_grad for p in (*adapter_params, *leaves)]
         return semantic, sums
 
     @staticmethod
@@ -121,34 +107,27 @@ class _AdapterRowLoss(torch.autograd.Function):
         adapter, _, chunks, num_scenes, num_adapter, num_rows, chunk_rows = ctx.meta
         row_grads, param_grads, ctx.row_grads, ctx.param_grads = ctx.row_grads, ctx.param_grads, None, None
         adapter_params = tuple(adapter.parameters())
-        totals: list[Tensor | None] = [None] * len(ctx.param_needs)
+        totals: list[Tensor | None] = [None] * len(param_grads[0])  # None: no gradient needed, or a zero one
         for scene in range(num_scenes):
             for i, g in enumerate(param_grads[scene]):
-                totals[i] = _add(totals[i], g, grad_sums[scene])
+                totals[i] = accumulate(totals[i], g, grad_sums[scene])
         if row_grads is not None:
             for start, end, scene in chunks:
                 row_grads[start:end] *= grad_sums[scene]
-        if grad_semantic is not None:  # the rows that reach a loss through the semantic vectors: recompute those
+        recompute = row_grads is not None or any(p.requires_grad for p in adapter_params)
+        if grad_semantic is not None and recompute:  # the rows that reach a loss through the semantic vectors
             rendered = torch.nonzero(grad_semantic.ne(0).any(1))[:, 0]
-            wanted = [p for p in adapter_params if p.requires_grad]
             for s in range(0, rendered.shape[0], chunk_rows):
                 rows = rendered[s:s + chunk_rows]
                 with torch.enable_grad():
                     per_gaussian = voxel_features.detach()[point_to_voxel[rows]].requires_grad_(row_grads is not None)
-                    out = adapter(per_gaussian, attributes[rows])
-                    wrt = ([per_gaussian] if per_gaussian.requires_grad else []) + wanted
-                    if not wrt:
-                        break
-                    grads = iter(torch.autograd.grad(out, wrt, grad_semantic[rows], allow_unused=True))
-                if per_gaussian.requires_grad:
-                    g = next(grads)
-                    if g is not None:
-                        row_grads.index_add_(0, rows, g)
-                for i, p in enumerate(adapter_params):
-                    if p.requires_grad:
-                        totals[i] = _add(totals[i], next(grads))
+                    grads = gradients(adapter(per_gaussian, attributes[rows]), (per_gaussian, *adapter_params),
+                                      grad_semantic[rows])
+                if grads[0] is not None:
+                    row_grads.index_add_(0, rows, grads[0])
+                for i, g in enumerate(grads[1:]):
+                    totals[i] = accumulate(totals[i], g)
         grad_features = None
         if row_grads is not None:
             grad_features = torch.zeros_like(voxel_features).index_add_(0, point_to_voxel, row_grads)
-        out = [total if need else None for total, need in zip(totals, ctx.param_needs)]  # None: a zero gradient
-        return (None, grad_features, None, None, *out[:num_adapter], *([None] * num_rows), *out[num_adapter:])
+        return (None, grad_features, None, None, *totals[:num_adapter], *([None] * num_rows), *totals[num_adapter:])

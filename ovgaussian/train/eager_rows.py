@@ -16,7 +16,7 @@ recorded gradients (``torch.no_grad``, evaluation), or for few rows, it is ``fn`
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -46,6 +46,25 @@ def eager_row_sum(
     return _EagerRowSum.apply(fn, chunk_rows, len(rows), *rows, *params)
 
 
+def gradients(value: Tensor, tensors: Sequence[Tensor], grad_output: Tensor | None = None) -> list[Tensor | None]:
+    """``d value / d t`` for each of ``tensors`` (``grad_output`` the incoming gradient of a non-scalar ``value``):
+    None where ``t`` needs no gradient or ``value`` does not depend on it; no autograd call when nothing needs one."""
+    wrt = [t for t in tensors if t.requires_grad]
+    if not (wrt and value.requires_grad):
+        return [None] * len(tensors)
+    found = iter(torch.autograd.grad(value, wrt, grad_output, allow_unused=True))
+    return [next(found) if t.requires_grad else None for t in tensors]
+
+
+def accumulate(total: Tensor | None, value: Tensor | None, scale: Tensor | None = None) -> Tensor | None:
+    """``total + scale * value`` in place in ``total`` (a new tensor when ``total`` is None; ``value`` None: no
+    change). ``value`` itself is never modified."""
+    if value is None:
+        return total
+    value = value * scale if scale is not None else (value.clone() if total is None else value)
+    return value if total is None else total.add_(value)
+
+
 class _EagerRowSum(torch.autograd.Function):
     @staticmethod
     def forward(ctx, fn, chunk_rows, num_rows_tensors, *inputs):  # noqa: D102
@@ -60,18 +79,12 @@ class _EagerRowSum(torch.autograd.Function):
             for start in range(0, rows[0].shape[0], chunk_rows):
                 parts = [t[start:start + chunk_rows].detach().requires_grad_(w) for t, w in zip(rows, wants_rows)]
                 value = fn(*parts, *leaves)
-                wrt = [x for x in (*parts, *leaves) if x.requires_grad]
-                grads = iter(torch.autograd.grad(value, wrt, allow_unused=True) if wrt and value.requires_grad
-                             else [None] * len(wrt))
-                for i, part in enumerate(parts):
+                grads = gradients(value, (*parts, *leaves))
+                for i, (part, g) in enumerate(zip(parts, grads)):
                     if part.requires_grad:
-                        g = next(grads)
                         row_grads[i].append(torch.zeros_like(part) if g is None else g)
-                for i, leaf in enumerate(leaves):
-                    if leaf.requires_grad:
-                        g = next(grads)
-                        if g is not None:
-                            param_grads[i] = g.clone() if param_grads[i] is None else param_grads[i].add_(g)
+                for i, g in enumerate(grads[len(parts):]):
+                    param_grads[i] = accumulate(param_grads[i], g)
                 value = value.detach()
                 total = value if total is None else total + value
         ctx.grads = [torch.cat(g) if w else None for g, w in zip(row_grads, wants_rows)] + [

@@ -82,9 +82,7 @@ def decoded_text_logits(
 def _text_logits_fn(phi, text_embeddings: "torch.Tensor", temperature: float):
     """``rows [n, S] -> [n, C]`` logits of :func:`decoded_text_logits`, with the Gram terms built once (outside any
     checkpointed chunk: the chunks share them and their small products are not recomputed)."""
-    if temperature <= 0:
-        raise ValueError(f"temperature must be positive, got {temperature}")
-    terms = gram_terms(phi, text_embeddings)
+    terms = gram_terms(phi, text_embeddings)  # the logits functions check the temperature
     if terms is None:
         return lambda rows: compute_text_logits(phi(rows), text_embeddings, temperature)
     return lambda rows: gram_text_logits(rows, terms, temperature)
@@ -105,15 +103,11 @@ def text_cross_entropy_3d(
     for the Gram-form decoder (``ovgaussian.train.gram_logits``) each chunk's gradients are taken in the forward
     (``ovgaussian.train.eager_rows``: one forward per chunk), for any other ``phi`` under activation checkpointing
     (``ovgaussian.model.network.checkpointed_rows``)."""
-    if temperature <= 0:
-        raise ValueError(f"temperature must be positive, got {temperature}")
-    count = int((labels != IGNORE_LABEL).sum()) if unlabelled_columns is None else int(labels.shape[0])
+    count = text_3d_count(labels, unlabelled_columns)
     terms = gram_terms(phi, text_embeddings)
 
     def chunk_sum(logits, rows_labels):
-        mean, chunk_count = text_cross_entropy(logits, rows_labels, class_weights, unlabelled_columns,
-                                               unlabelled_weight)
-        return mean * chunk_count
+        return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
 
     if terms is not None:
         total = eager_row_sum(lambda rows, rows_labels, *t: chunk_sum(
@@ -124,6 +118,17 @@ def text_cross_entropy_3d(
                                                 rows_labels), semantic, labels)
         total = sum(sums)
     return (total * 0.0, 0) if count == 0 else (total / count, count)
+
+
+def text_3d_count(labels: "torch.Tensor", unlabelled_columns: "torch.Tensor | None") -> int:
+    """Rows the 3D text term counts: the labelled ones, or every one in a transductive run (``unlabelled_columns``)."""
+    return int((labels != IGNORE_LABEL).sum()) if unlabelled_columns is None else int(labels.shape[0])
+
+
+def text_sum(logits, labels, class_weights=None, unlabelled_columns=None, unlabelled_weight: float = 1.0):
+    """``text_cross_entropy`` of the rows as a sum (mean x count), so that row chunks add up."""
+    mean, count = text_cross_entropy(logits, labels, class_weights, unlabelled_columns, unlabelled_weight)
+    return mean * count
 
 
 def text_and_lovasz_3d(
@@ -180,11 +185,9 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
         if sample.loss_rows is not None:
             loss_rows = sample.loss_rows.to(device)
             semantic_3d, labels = semantic[position[loss_rows]], labels[loss_rows]
-    if text_3d is not None:
-        pass
-    elif config.loss.no_3dt_align:
+    if text_3d is None and config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
-    else:
+    elif text_3d is None:
         semantic3, labels3 = semantic_3d, labels  # transductive: every Gaussian takes a term
         if unlabelled_columns is None:
             labelled = labels != IGNORE_LABEL
@@ -254,25 +257,21 @@ def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embed
     """:func:`batch_losses` with the adapter and the 3D text cross-entropy in one pass over row chunks, each chunk's
     gradients taken in its forward (``ovgaussian.train.eager_adapter``); the same terms as the one-piece path."""
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
-    device = means.device
-    labels = torch.cat([s.labels for s in samples]).to(device)
-    transductive = unlabelled_columns is not None
+    labels = torch.cat([s.labels for s in samples]).to(means.device)
 
     def row_loss(rows_semantic, rows_labels, *terms):
-        if not transductive:  # the labelled rows only, as scene_losses' semantic_3d[labelled]
+        if unlabelled_columns is None:  # the labelled rows only, as scene_losses' semantic_3d[labelled]
             keep = rows_labels != IGNORE_LABEL
             rows_semantic, rows_labels = rows_semantic[keep], rows_labels[keep]
         logits = gram_text_logits(rows_semantic, GramTerms(*terms), temperature)
-        mean, count = text_cross_entropy(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
-        return mean * count
+        return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
 
     semantic, sums = semantic_with_row_loss(net, means, attributes, batch_index, len(samples), row_loss, (labels,),
                                             tuple(gram_terms(net.phi, text_embeddings)))
     counts = [len(sample.means) for sample in samples]
     terms = []
     for b, (sample, scene_semantic) in enumerate(zip(samples, torch.split(semantic, counts))):
-        scene_labels = sample.labels
-        count = int(scene_labels.shape[0]) if transductive else int((scene_labels != IGNORE_LABEL).sum())
+        count = text_3d_count(sample.labels, unlabelled_columns)
         text_3d = (sums[b] * 0.0, 0) if count == 0 else (sums[b] / count, count)
         terms.append(scene_losses(net, scene_semantic, sample, text_embeddings, config, use_teacher, class_weights,
                                   unlabelled_columns, None, text_3d))
