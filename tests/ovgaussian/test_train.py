@@ -1051,9 +1051,16 @@ def test_eager_adapter_path_with_a_frozen_backbone_and_adapter(scenes, tmp_path,
         return {n: p.grad.clone() for n, p in net.named_parameters() if p.grad is not None}
 
     whole = step()
+    import ovgaussian.train.step_losses as step_losses_module
+
+    eager_calls = []
+    real = step_losses_module.semantic_with_row_loss
+    monkeypatch.setattr(step_losses_module, "semantic_with_row_loss",
+                        lambda *args, **kw: eager_calls.append(1) or real(*args, **kw))
     monkeypatch.setattr(model_module, "CHECKPOINT_MIN_ROWS", 0)
     monkeypatch.setattr(model_module, "CHECKPOINT_ROWS", 37)
     eager = step()
+    assert eager_calls == [1]  # the eager path ran
     assert whole.keys() == eager.keys() and all(k.startswith("phi") or k.startswith("psi") for k in whole)
     for name, grad in whole.items():
         torch.testing.assert_close(eager[name], grad, rtol=1e-4, atol=1e-6 + 1e-5 * float(grad.abs().max()), msg=name)
