@@ -62,7 +62,8 @@ POOL_MIN_WEIGHT = 1e-3
 #: per 1,000,000 Gaussians (one thread) forward + backward took adapter 11.8 -> 6.8 s CPU and 3D text
 #: loss 7.4 -> 5.4 s CPU against 262,144 rows; 8,192 and fewer rows were slower again (per-op overhead). The training
 #: step's eager paths (``ovgaussian.train.eager_rows``, ``eager_adapter``: gradients taken in the forward, no
-#: recomputation) use the same chunks and thresholds; 16,384-65,536 rows per chunk were within 5 % there (session 12).
+#: recomputation) use the same chunks and thresholds; 16,384 and 65,536 rows per chunk were 2 % and 6 % slower per
+#: row there (session 12).
 CHECKPOINT_ROWS = 1 << 15
 #: Fewer rows than this are not checkpointed at all: their activations take at most about 1.4 GB (adapter) and
 #: 2 GB (3D text loss), and recomputing them in backward costs about a third of those stages' backward (measured
