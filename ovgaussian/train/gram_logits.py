@@ -14,8 +14,8 @@ unit text rows ``t [C, D]``, the logits ``cos(phi(s), t) / T`` need only ``H``-w
 two ``[N, H] x [H, H]`` products (``h G``, and ``G``'s gradient ``h^T diag(dn2) h``) where autograd's graph of the
 same expression costs three (plus ``G^T`` times the product's gradient), and no elementwise pass is recorded.
 With ``ovgaussian.train.eager_rows`` (no recomputation) the 3D text loss costs those two per chunk; under activation
-checkpointing it was four. The autograd expression it replaces is kept as :func:`gram_text_logits_reference`; the tests compare both
-(and the direct ``compute_text_logits(phi(s))``), forward and backward, on degenerate rows too.
+checkpointing it was four. The autograd expression it replaces is kept as :func:`gram_text_logits_reference`; the
+tests compare both (and the direct ``compute_text_logits(phi(s))``), forward and backward, on degenerate rows too.
 """
 
 from __future__ import annotations
@@ -81,7 +81,8 @@ def gram_text_logits_reference(semantic: Tensor, terms: GramTerms, temperature: 
 
 class _GramTextLogits(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, semantic, w1, b1, gram, text_hidden, bias_hidden, text_bias, bias_square, temperature):  # noqa: D102
+    def forward(ctx, semantic, w1, b1, gram, text_hidden, bias_hidden, text_bias, bias_square,  # noqa: D102
+                temperature):
         hidden = torch.addmm(b1, semantic, w1.T).clamp_min_(0.0)  # [N, H] relu
         half_grad = (hidden @ gram).add_(bias_hidden)  # [N, H] h G + c: half of d n2 / dh (G symmetric)
         squared = (hidden * half_grad).sum(1).add_(hidden @ bias_hidden).add_(bias_square)  # h G h^T + 2 h c + bb
