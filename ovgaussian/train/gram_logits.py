@@ -14,8 +14,10 @@ unit text rows ``t [C, D]``, the logits ``cos(phi(s), t) / T`` need only ``H``-w
 two ``[N, H] x [H, H]`` products (``h G``, and ``G``'s gradient ``h^T diag(dn2) h``) where autograd's graph of the
 same expression costs three (plus ``G^T`` times the product's gradient), and no elementwise pass is recorded.
 With ``ovgaussian.train.eager_rows`` (no recomputation) the 3D text loss costs those two per chunk; under activation
-checkpointing it was four. The autograd expression it replaces is kept as :func:`gram_text_logits_reference`; the
-tests compare both (and the direct ``compute_text_logits(phi(s))``), forward and backward, on degenerate rows too.
+checkpointing it was four. On CPU float tensors the elementwise work between the products is one numba loop over the
+rows per direction (``ovgaussian.train.gram_rows``); elsewhere it is the torch expressions. The autograd expression
+it replaces is kept as :func:`gram_text_logits_reference`; the tests compare all three (and the direct
+``compute_text_logits(phi(s))``), forward and backward, on degenerate rows too.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ovgaussian.train import gram_rows
 from ovgaussian.train.losses import COSINE_NORM_EPS, normalize_rows
 
 
@@ -84,13 +87,29 @@ class _GramTextLogits(torch.autograd.Function):
     def forward(ctx, semantic, w1, b1, gram, text_hidden, bias_hidden, text_bias, bias_square,  # noqa: D102
                 temperature):
         hidden = torch.addmm(b1, semantic, w1.T).clamp_min_(0.0)  # [N, H] relu
-        half_grad = (hidden @ gram).add_(bias_hidden)  # [N, H] h G + c: half of d n2 / dh (G symmetric)
-        squared = (hidden * half_grad).sum(1).add_(hidden @ bias_hidden).add_(bias_square)  # h G h^T + 2 h c + bb
-        roots = squared.clamp_min(0.0).sqrt_()
-        scale = roots.clamp_min(COSINE_NORM_EPS).mul_(temperature).reciprocal_()  # 1 / (norm T)
-        logits = torch.addmm(text_bias, hidden, text_hidden).mul_(scale[:, None])
-        # the norm's gradient flows where both clamps pass it (as autograd's clamp_min: input >= bound)
-        live = (squared >= 0.0) & (roots >= COSINE_NORM_EPS)
+        fused = _fused_rows(hidden)
+        if fused:  # the row passes in one numba loop (ovgaussian.train.gram_rows)
+            half_grad = hidden @ gram  # [N, H] h G; + c in the loop
+            dots_c = hidden @ torch.cat([text_hidden, bias_hidden[:, None]], dim=1)  # [N, C + 1] h [A | c]
+            n, dtype = hidden.shape[0], hidden.numpy().dtype
+            logits, scale, roots = hidden.new_empty(n, text_hidden.shape[1]), hidden.new_empty(n), hidden.new_empty(n)
+            if n:
+                gram_rows.forward_rows(hidden.numpy(), half_grad.numpy(), dots_c.numpy(),
+                                       bias_hidden.detach().contiguous().numpy(),
+                                       text_bias.detach().contiguous().numpy(),
+                                       gram_rows.scalars(float(bias_square), dtype),
+                                       gram_rows.scalars(COSINE_NORM_EPS, dtype), gram_rows.scalars(temperature, dtype),
+                                       logits.numpy(), scale.numpy(), roots.numpy())
+            live = None
+        else:
+            half_grad = (hidden @ gram).add_(bias_hidden)  # [N, H] h G + c: half of d n2 / dh (G symmetric)
+            squared = (hidden * half_grad).sum(1).add_(hidden @ bias_hidden).add_(bias_square)  # h G h^T + 2 h c + bb
+            roots = squared.clamp_min(0.0).sqrt_()
+            scale = roots.clamp_min(COSINE_NORM_EPS).mul_(temperature).reciprocal_()  # 1 / (norm T)
+            logits = torch.addmm(text_bias, hidden, text_hidden).mul_(scale[:, None])
+            # the norm's gradient flows where both clamps pass it (as autograd's clamp_min: input >= bound)
+            live = (squared >= 0.0) & (roots >= COSINE_NORM_EPS)
+        ctx.fused = fused
         ctx.save_for_backward(semantic, w1, text_hidden, hidden, half_grad, logits, scale, roots, live)
         return logits
 
@@ -99,9 +118,14 @@ class _GramTextLogits(torch.autograd.Function):
         semantic, w1, text_hidden, hidden, half_grad, logits, scale, roots, live = ctx.saved_tensors
         need = ctx.needs_input_grad
         grad_logits = grad_logits.contiguous()
+        if ctx.fused and _fused_rows(grad_logits):
+            return _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, half_grad, logits, scale,
+                                   roots)
         grad_dots = grad_logits * scale[:, None]  # [N, C]
         # logit = dot / (norm T): d/dnorm = -logit / norm; norm = sqrt(n2): d/dn2 = 1 / (2 norm)
         grad_norm = (grad_logits * logits).sum(1).neg_() / roots.clamp_min(COSINE_NORM_EPS)
+        if live is None:  # fused forward, backward on another dtype: roots >= eps > 0 implies n2 > 0
+            live = roots >= COSINE_NORM_EPS
         grad_squared = torch.where(live, grad_norm / (2.0 * roots).clamp_min(COSINE_NORM_EPS), 0.0)  # [N]
         grad_gram = grad_bias_hidden = None
         if need[3] or need[5]:
@@ -119,3 +143,33 @@ class _GramTextLogits(torch.autograd.Function):
                 grad_hidden.T @ semantic if need[1] else None,
                 grad_hidden.sum(0) if need[2] else None,
                 grad_gram, grad_text_hidden, grad_bias_hidden, grad_text_bias, grad_bias_square, None)
+
+
+def _fused_rows(tensor: Tensor) -> bool:
+    """Whether the numba row passes apply: a CPU float32 / float64 tensor."""
+    return tensor.device.type == "cpu" and tensor.dtype in (torch.float32, torch.float64)
+
+
+def _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, half_grad, logits, scale, roots):
+    """:meth:`_GramTextLogits.backward` with its row passes in numba (``ovgaussian.train.gram_rows``)."""
+    n, dtype = hidden.shape[0], hidden.numpy().dtype
+    grad_dots, grad_squared = torch.empty_like(grad_logits), hidden.new_empty(n)
+    blocks = gram_rows.sum_blocks(n)
+    grad_sums, weighted_sums = hidden.new_zeros(blocks, hidden.shape[1]), hidden.new_zeros(blocks, hidden.shape[1])
+    weighted = torch.empty_like(hidden)  # [N, H] diag(dn2) h
+    if n:
+        gram_rows.logit_grad_rows(grad_logits.numpy(), logits.numpy(), scale.numpy(), roots.numpy(),
+                                  gram_rows.scalars(COSINE_NORM_EPS, dtype), grad_dots.numpy(), grad_squared.numpy())
+    grad_hidden = grad_dots @ text_hidden.T  # [N, H] grad_dots A^T, made dh in the loop
+    if n:
+        gram_rows.backward_rows(hidden.numpy(), half_grad.numpy(), grad_squared.numpy(), grad_hidden.numpy(),
+                                weighted.numpy(), grad_sums.numpy(), weighted_sums.numpy())
+    return (grad_hidden @ w1 if need[0] else None,
+            grad_hidden.T @ semantic if need[1] else None,
+            grad_sums.sum(0) if need[2] else None,
+            weighted.T @ hidden if need[3] else None,
+            hidden.T @ grad_dots if need[4] else None,
+            2.0 * weighted_sums.sum(0) if need[5] else None,
+            grad_dots.sum(0) if need[6] else None,
+            grad_squared.sum() if need[7] else None,
+            None)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from ovgaussian.train import gram_logits, gram_rows
 from ovgaussian.train.eager_rows import eager_row_sum
 from ovgaussian.train.gram_logits import GramTerms, gram_terms, gram_text_logits, gram_text_logits_reference
 from ovgaussian.train.losses import compute_text_logits, masked_cross_entropy
@@ -36,8 +37,16 @@ def _degenerate_rows(semantic: torch.Tensor, phi) -> torch.Tensor:
     return semantic
 
 
+@pytest.fixture(params=["numba", "torch"])
+def row_passes(request, monkeypatch):
+    """Both forms of the row passes: the numba loops (CPU float tensors) and the torch expressions (other devices)."""
+    if request.param == "torch":
+        monkeypatch.setattr(gram_logits, "_fused_rows", lambda tensor: False)
+    return request.param
+
+
 @pytest.mark.parametrize("seed", [0, 1])
-def test_gram_logits_equal_autograd_and_the_direct_expression_forward_and_backward(seed):
+def test_gram_logits_equal_autograd_and_the_direct_expression_forward_and_backward(seed, row_passes):
     phi = _phi(seed)
     text = torch.randn(7, 48, dtype=torch.float64)
     semantic = _degenerate_rows(torch.randn(200, 16, dtype=torch.float64), phi)
@@ -53,7 +62,7 @@ def test_gram_logits_equal_autograd_and_the_direct_expression_forward_and_backwa
     assert all(torch.isfinite(g).all() for g in fast[1])
 
 
-def test_gram_logits_gradcheck_and_a_zero_norm_row():
+def test_gram_logits_gradcheck_and_a_zero_norm_row(row_passes):
     """gradcheck of the Function in every input; a row whose phi(s) is exactly zero (b2 = 0, hidden = 0) gets the
     direct expression's value (0) and gradient (the norm's clamp passes none), not NaN."""
     phi = _phi(2, hidden=6, width=5)
@@ -85,6 +94,37 @@ def test_gram_logits_refuse_a_bad_temperature_and_accept_no_rows():
     assert out.shape == (0, 4)
     out.sum().backward()
     assert empty.grad.shape == (0, 16)
+
+
+def test_numba_row_passes_match_the_torch_ones_in_float32_over_several_sum_blocks(monkeypatch):
+    """float32 (what training runs), more rows than one block of the backward's column sums, a short last block,
+    rows whose hidden layer is all zero: the numba passes give the torch expressions' values and gradients; and the
+    same bits on one thread as on two (the block sums are added in a fixed order)."""
+    import numba
+
+    phi = _phi(6, hidden=128, width=384, dtype=torch.float32)
+    text = torch.randn(20, 384)
+    rows = 2 * gram_rows.SUM_BLOCK_ROWS + 77
+    semantic = _degenerate_rows(torch.randn(rows, 16), phi)[:, :].clone()
+    semantic[4:6] = torch.randn(2, 16)  # drop the 1e-30 / 1e6 rows: float32 products of 1e6 lose the comparison
+    upstream = torch.randn(rows, 20)
+
+    def run():
+        return _grads(lambda s: gram_text_logits(s, gram_terms(phi, text), 0.07), phi, semantic, text, upstream)
+
+    fused = run()
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        single = run()
+    finally:
+        numba.set_num_threads(threads)
+    assert torch.equal(fused[0], single[0]) and all(torch.equal(a, b) for a, b in zip(fused[1], single[1]))
+    monkeypatch.setattr(gram_logits, "_fused_rows", lambda tensor: False)
+    plain = run()
+    torch.testing.assert_close(fused[0], plain[0], rtol=1e-5, atol=1e-5)
+    for a, b in zip(fused[1], plain[1]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * float(b.abs().max()))
 
 
 def test_gram_terms_only_for_linear_relu_linear():
@@ -126,7 +166,8 @@ def test_eager_row_sum_equals_the_whole_sum_forward_and_backward(chunk_rows):
     for a, b in zip(chunked[1][:-1], whole[1][:-1]):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
     assert whole[1][-1] is None  # one piece: autograd's "unused"; in chunks: an explicit zero gradient
-    assert chunked[1][-1] is None if chunk_rows >= 150 else torch.equal(chunked[1][-1], torch.zeros(3, dtype=torch.float64))
+    zero = torch.zeros(3, dtype=torch.float64)
+    assert chunked[1][-1] is None if chunk_rows >= 150 else torch.equal(chunked[1][-1], zero)
 
     with torch.no_grad():  # evaluation: the plain sum, no gradients taken
         assert torch.equal(eager_row_sum(fn, (semantic, labels), (*gram_terms(phi, text), unused),

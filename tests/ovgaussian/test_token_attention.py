@@ -20,7 +20,8 @@ def _inputs(n: int, t: int, h: int, d: int, dtype, seed: int = 0):
     return q, k, v
 
 
-@pytest.mark.parametrize("n,t,h,d", [(0, 4, 4, 4), (1, 4, 4, 4), (300, 4, 4, 4), (57, 5, 2, 3), (9, 1, 1, 1)])
+@pytest.mark.parametrize("n,t,h,d", [(0, 4, 4, 4), (1, 4, 4, 4), (300, 4, 4, 4), (40, 5, 3, 4), (57, 5, 2, 3),
+                                     (9, 1, 1, 1)])
 def test_token_attention_equals_the_reference_forward_and_backward(n, t, h, d):
     q, k, v = _inputs(n, t, h, d, torch.float64)
     upstream = torch.randn(n, h, d, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
@@ -39,8 +40,9 @@ def test_token_attention_equals_the_reference_forward_and_backward(n, t, h, d):
 def test_token_attention_float32_close_to_the_reference_and_gradcheck():
     q, k, v = _inputs(200, 4, 4, 4, torch.float32, seed=3)
     torch.testing.assert_close(token_attention(q, k, v), token_attention_reference(q, k, v), rtol=1e-5, atol=1e-5)
-    small = [x[3:9].double().clone().requires_grad_() for x in _inputs(9, 4, 2, 3, torch.float64, seed=4)]
-    assert torch.autograd.gradcheck(token_attention, small)
+    for d in (3, 4):  # the generic kernels and the d = 4 ones
+        small = [x[3:9].double().clone().requires_grad_() for x in _inputs(9, 4, 2, d, torch.float64, seed=4)]
+        assert torch.autograd.gradcheck(token_attention, small)
 
 
 def test_token_attention_refuses_mismatched_shapes():
