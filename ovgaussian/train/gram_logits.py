@@ -89,13 +89,15 @@ class _GramTextLogits(torch.autograd.Function):
         hidden = torch.addmm(b1, semantic, w1.T).clamp_min_(0.0)  # [N, H] relu
         fused = _fused_rows(hidden)
         if fused:  # the row passes in one numba loop (ovgaussian.train.gram_rows)
-            half_grad = hidden @ gram  # [N, H] h G; + c in the loop
-            dots_c = hidden @ torch.cat([text_hidden, bias_hidden[:, None]], dim=1)  # [N, C + 1] h [A | c]
-            n, dtype = hidden.shape[0], hidden.numpy().dtype
+            # h [G | A | c | 0] in one product; its first H columns become half_grad = h G + c in the loop
+            (n, h), c = hidden.shape, text_hidden.shape[1]
+            right = gram.new_zeros(h, gram_rows.product_width(h, c))
+            right[:, :h], right[:, h:h + c], right[:, h + c] = gram, text_hidden, bias_hidden
+            half_grad = hidden @ right
+            dtype = hidden.numpy().dtype
             logits, scale, roots = hidden.new_empty(n, text_hidden.shape[1]), hidden.new_empty(n), hidden.new_empty(n)
             if n:
-                gram_rows.forward_rows(hidden.numpy(), half_grad.numpy(), dots_c.numpy(),
-                                       bias_hidden.detach().contiguous().numpy(),
+                gram_rows.forward_rows(hidden.numpy(), half_grad.numpy(), bias_hidden.detach().contiguous().numpy(),
                                        text_bias.detach().contiguous().numpy(),
                                        gram_rows.scalars(float(bias_square), dtype),
                                        gram_rows.scalars(COSINE_NORM_EPS, dtype), gram_rows.scalars(temperature, dtype),
@@ -126,6 +128,7 @@ class _GramTextLogits(torch.autograd.Function):
         grad_norm = (grad_logits * logits).sum(1).neg_() / roots.clamp_min(COSINE_NORM_EPS)
         if live is None:  # fused forward, backward on another dtype: roots >= eps > 0 implies n2 > 0
             live = roots >= COSINE_NORM_EPS
+            half_grad = half_grad[:, :hidden.shape[1]]  # the forward's products h [G | A | c], c added to h G
         grad_squared = torch.where(live, grad_norm / (2.0 * roots).clamp_min(COSINE_NORM_EPS), 0.0)  # [N]
         grad_gram = grad_bias_hidden = None
         if need[3] or need[5]:
@@ -150,8 +153,9 @@ def _fused_rows(tensor: Tensor) -> bool:
     return tensor.device.type == "cpu" and tensor.dtype in (torch.float32, torch.float64)
 
 
-def _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, half_grad, logits, scale, roots):
-    """:meth:`_GramTextLogits.backward` with its row passes in numba (``ovgaussian.train.gram_rows``)."""
+def _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, products, logits, scale, roots):
+    """:meth:`_GramTextLogits.backward` with its row passes in numba (``ovgaussian.train.gram_rows``); the first ``H``
+    columns of the forward's ``products`` hold ``half_grad``."""
     n, dtype = hidden.shape[0], hidden.numpy().dtype
     grad_dots, grad_squared = torch.empty_like(grad_logits), hidden.new_empty(n)
     blocks = gram_rows.sum_blocks(n)
@@ -162,12 +166,12 @@ def _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, half_g
                                   gram_rows.scalars(COSINE_NORM_EPS, dtype), grad_dots.numpy(), grad_squared.numpy())
     grad_hidden = grad_dots @ text_hidden.T  # [N, H] grad_dots A^T, made dh in the loop
     if n:
-        gram_rows.backward_rows(hidden.numpy(), half_grad.numpy(), grad_squared.numpy(), grad_hidden.numpy(),
+        gram_rows.backward_rows(hidden.numpy(), products.numpy(), grad_squared.numpy(), grad_hidden.numpy(),
                                 weighted.numpy(), grad_sums.numpy(), weighted_sums.numpy())
     return (grad_hidden @ w1 if need[0] else None,
             grad_hidden.T @ semantic if need[1] else None,
             grad_sums.sum(0) if need[2] else None,
-            weighted.T @ hidden if need[3] else None,
+            weighted.T @ hidden if need[3] else None,  # h^T diag(dn2) h, symmetric
             hidden.T @ grad_dots if need[4] else None,
             2.0 * weighted_sums.sum(0) if need[5] else None,
             grad_dots.sum(0) if need[6] else None,

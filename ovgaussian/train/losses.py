@@ -80,11 +80,12 @@ def masked_cross_entropy(
     if count == 0:
         return logits.sum() * 0.0, 0
     num_classes = logits.shape[1]
-    chosen = labels[valid]
+    every = count == labels.shape[0]  # no row to drop: skip the copies of the selection (same values)
+    chosen = labels if every else labels[valid]
     if int(chosen.min()) < 0 or int(chosen.max()) >= num_classes:
         raise ValueError(f"labels must be in 0..{num_classes - 1} or IGNORE_LABEL, got range "
                          f"{int(chosen.min())}..{int(chosen.max())}")
-    log_probs = torch.log_softmax(logits[valid], dim=1)
+    log_probs = torch.log_softmax(logits if every else logits[valid], dim=1)
     nll = -log_probs.gather(1, chosen[:, None])[:, 0]
     if class_weights is not None:
         nll = nll * class_weights.to(nll.dtype)[chosen]

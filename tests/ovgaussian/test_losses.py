@@ -79,6 +79,26 @@ def test_empty_valid_sets_give_zero_not_nan():
     assert count == 0 and float(cos) == 0.0
 
 
+@pytest.mark.parametrize("weighted", [False, True])
+def test_every_row_labelled_skips_the_selection_with_the_same_bits(weighted):
+    """With no IGNORE row the logits are used as they are (no selected copy); the value and the rows' gradients
+    are bitwise those of the same rows with an ignored row appended (which takes the selecting path)."""
+    g = torch.Generator().manual_seed(3)
+    logits = torch.randn(50, 6, generator=g, dtype=torch.float64)
+    labels = torch.randint(0, 6, (50,), generator=g)
+    weights = torch.rand(6, generator=g, dtype=torch.float64) + 0.5 if weighted else None
+    every = logits.clone().requires_grad_()
+    loss, count = masked_cross_entropy(every, labels, weights)
+    loss.backward()
+    padded = torch.cat([logits, torch.randn(1, 6, generator=g, dtype=torch.float64)]).requires_grad_()
+    loss_padded, count_padded = masked_cross_entropy(padded, torch.cat([labels, torch.tensor([IGNORE_LABEL])]),
+                                                     weights)
+    loss_padded.backward()
+    assert count == count_padded == 50
+    assert torch.equal(loss, loss_padded)
+    assert torch.equal(every.grad, padded.grad[:50]) and torch.equal(padded.grad[50], torch.zeros(6, dtype=torch.float64))
+
+
 def test_labels_out_of_range_are_an_error():
     with pytest.raises(ValueError, match="labels must be in 0..2"):
         masked_cross_entropy(torch.zeros(2, 3), torch.tensor([0, 3]))
