@@ -33,7 +33,7 @@ from torch import Tensor, nn
 
 from ovgaussian.model.config import NUM_GAUSSIAN_ATTRIBUTES, OVGaussianNetConfig
 from ovgaussian.model.narrow_linear import narrow_linear
-from ovgaussian.model.token_attention import token_attention
+from ovgaussian.model.token_attention import token_attention_packed
 from ovgaussian.sparse import (
     DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxelize_points,
 )
@@ -298,9 +298,11 @@ class VoxelToPointAdapter(nn.Module):
         tokens = narrow_linear(attributes, weight, bias).view(n, t, weight.shape[0] // t)  # [N, T, A_tok]
         d = tokens.shape[2] // h
         q = self.query(voxel_features).view(n, h, d)  # [N, H, d]
-        k = self.key(tokens).view(n, t, h, d)  # [N, T, H, d]
-        v = self.value(tokens).view(n, t, h, d)
-        attended = token_attention(q, k, v).reshape(n, h * d)  # [N, H * d]
+        # keys and values by one product: [N * T, A_tok] x [A_tok, 2 A_tok] (the key has no bias) -> [N, T, 2, H, d]
+        kv_weight = torch.cat([self.key.weight, self.value.weight])
+        kv_bias = torch.cat([torch.zeros_like(self.value.bias), self.value.bias])
+        kv = torch.addmm(kv_bias, tokens.reshape(n * t, tokens.shape[2]), kv_weight.T).view(n, t, 2, h, d)
+        attended = token_attention_packed(q, kv).reshape(n, h * d)  # [N, H * d]
         m = self.out(attended)
         return self.mlp(torch.cat([m, voxel_features], dim=1)) + voxel_features
 

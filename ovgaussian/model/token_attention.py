@@ -50,17 +50,47 @@ def token_attention(q: Tensor, k: Tensor, v: Tensor) -> Tensor:
     return _TokenAttention.apply(q, k, v)
 
 
+def token_attention_packed(q: Tensor, kv: Tensor) -> Tensor:
+    """:func:`token_attention` of ``q [N, H, d]`` over keys ``kv[:, :, 0]`` and values ``kv[:, :, 1]`` of one
+    ``[N, T, 2, H, d]`` tensor: keys and values come from one product (``ovgaussian.model.network``'s adapter), and
+    the kernels read and write them in place, so neither a copy in the forward nor a zero-filled gradient per half
+    in the backward is made."""
+    if kv.ndim != 5 or kv.shape[2] != 2:
+        raise ValueError(f"token_attention_packed: kv must be [N, T, 2, H, d], got {tuple(kv.shape)}")
+    if q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64) or q.dtype != kv.dtype:
+        return token_attention(q, kv[:, :, 0], kv[:, :, 1])
+    if q.ndim != 3 or kv.shape[0] != q.shape[0] or kv.shape[3:] != q.shape[1:]:
+        raise ValueError(f"token_attention_packed: q must be [N, H, d] and kv [N, T, 2, H, d], got "
+                         f"{tuple(q.shape)}, {tuple(kv.shape)}")
+    return _PackedTokenAttention.apply(q, kv)
+
+
+def _attend(q: Tensor, k: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """``(out [N, H, d], weights [N, T, H])`` by the numba kernels; ``k``, ``v`` may be strided views."""
+    n, t, h, d = k.shape
+    out = q.new_empty(n, h, d)
+    weights = q.new_empty(n, t, h)
+    if n:
+        kernel = _forward_rows_d4 if d == 4 else _forward_rows
+        run_parallel(kernel, q.detach().numpy(), k.detach().numpy(), v.detach().numpy(), _scale(q),
+                     out.numpy(), weights.numpy(), chunk=GAUSSIANS_PER_CHUNK)
+    return out, weights
+
+
+def _attend_backward(q, k, v, weights, grad_out, grad_q, grad_k, grad_v) -> None:
+    """Fill ``grad_q``, ``grad_k``, ``grad_v`` (may be strided views) by the numba kernels."""
+    if q.shape[0]:
+        kernel = _backward_rows_d4 if q.shape[2] == 4 else _backward_rows
+        run_parallel(kernel, q.detach().numpy(), k.detach().numpy(), v.detach().numpy(), weights.numpy(),
+                     grad_out.numpy(), _scale(q), grad_q.numpy(), grad_k.numpy(), grad_v.numpy(),
+                     chunk=GAUSSIANS_PER_CHUNK)
+
+
 class _TokenAttention(torch.autograd.Function):
     @staticmethod
     def forward(ctx, q, k, v):  # noqa: D102
         q, k, v = q.contiguous(), k.contiguous(), v.contiguous()
-        n, t, h, d = k.shape
-        out = q.new_empty(n, h, d)
-        weights = q.new_empty(n, t, h)
-        if n:
-            kernel = _forward_rows_d4 if d == 4 else _forward_rows
-            run_parallel(kernel, q.detach().numpy(), k.detach().numpy(), v.detach().numpy(), _scale(q),
-                         out.numpy(), weights.numpy(), chunk=GAUSSIANS_PER_CHUNK)
+        out, weights = _attend(q, k, v)
         ctx.save_for_backward(q, k, v, weights)
         return out
 
@@ -68,14 +98,27 @@ class _TokenAttention(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):  # noqa: D102
         q, k, v, weights = ctx.saved_tensors
-        grad_out = grad_out.contiguous()
         grad_q, grad_k, grad_v = torch.empty_like(q), torch.empty_like(k), torch.empty_like(v)
-        if q.shape[0]:
-            kernel = _backward_rows_d4 if q.shape[2] == 4 else _backward_rows
-            run_parallel(kernel, q.numpy(), k.numpy(), v.numpy(), weights.numpy(), grad_out.numpy(),
-                         _scale(q), grad_q.numpy(), grad_k.numpy(), grad_v.numpy(),
-                         chunk=GAUSSIANS_PER_CHUNK)
+        _attend_backward(q, k, v, weights, grad_out.contiguous(), grad_q, grad_k, grad_v)
         return grad_q, grad_k, grad_v
+
+
+class _PackedTokenAttention(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, q, kv):  # noqa: D102
+        q, kv = q.contiguous(), kv.contiguous()
+        out, weights = _attend(q, kv[:, :, 0], kv[:, :, 1])
+        ctx.save_for_backward(q, kv, weights)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):  # noqa: D102
+        q, kv, weights = ctx.saved_tensors
+        grad_q, grad_kv = torch.empty_like(q), torch.empty_like(kv)
+        _attend_backward(q, kv[:, :, 0], kv[:, :, 1], weights, grad_out.contiguous(), grad_q, grad_kv[:, :, 0],
+                         grad_kv[:, :, 1])
+        return grad_q, grad_kv
 
 
 def _scale(q: Tensor) -> np.ndarray:

@@ -164,7 +164,8 @@ def _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, produc
     if n:
         gram_rows.logit_grad_rows(grad_logits.numpy(), logits.numpy(), scale.numpy(), roots.numpy(),
                                   gram_rows.scalars(COSINE_NORM_EPS, dtype), grad_dots.numpy(), grad_squared.numpy())
-    grad_hidden = grad_dots @ text_hidden.T  # [N, H] grad_dots A^T, made dh in the loop
+    # A^T made contiguous first: with a transposed [C, H] operand the product took 2-5 ms instead of 1.2 (C = 20)
+    grad_hidden = grad_dots @ text_hidden.T.contiguous()  # [N, H] grad_dots A^T, made dh in the loop
     if n:
         gram_rows.backward_rows(hidden.numpy(), products.numpy(), grad_squared.numpy(), grad_hidden.numpy(),
                                 weighted.numpy(), grad_sums.numpy(), weighted_sums.numpy())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ovgaussian.model.token_attention import token_attention, token_attention_reference
+from ovgaussian.model.token_attention import token_attention, token_attention_packed, token_attention_reference
 
 
 def _inputs(n: int, t: int, h: int, d: int, dtype, seed: int = 0):
@@ -51,3 +51,34 @@ def test_token_attention_refuses_mismatched_shapes():
         token_attention(q[:, :2], k, v)
     with pytest.raises(ValueError, match="token_attention"):
         token_attention(q, k, v[:, :3])
+
+
+@pytest.mark.parametrize("n,t,h,d", [(0, 4, 4, 4), (300, 4, 4, 4), (57, 5, 2, 3)])
+def test_packed_keys_and_values_equal_the_separate_ones_forward_and_backward(n, t, h, d):
+    """Keys and values as the two halves of one [N, T, 2, H, d] tensor, read and written in place by the kernels
+    (the d = 4 ones and the generic ones): the output and every gradient equal the separate tensors' bitwise, and
+    the reference's; the packed gradient holds the keys' and the values' gradients in its halves."""
+    q, k, v = _inputs(n, t, h, d, torch.float64, seed=5)
+    upstream = torch.randn(n, h, d, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    kv = torch.stack([k, v], dim=2).requires_grad_()
+    qp = q.clone().requires_grad_()
+    out = token_attention_packed(qp, kv)
+    grads = torch.autograd.grad((out * upstream).sum(), [qp, kv]) if n else [torch.zeros_like(qp), torch.zeros_like(kv)]
+    leaves = [x.clone().requires_grad_() for x in (q, k, v)]
+    separate = token_attention(*leaves)
+    want = torch.autograd.grad((separate * upstream).sum(), leaves) if n else [torch.zeros_like(x) for x in leaves]
+    assert torch.equal(out, separate)
+    assert torch.equal(grads[0], want[0]) and torch.equal(grads[1][:, :, 0], want[1])
+    assert torch.equal(grads[1][:, :, 1], want[2])
+    torch.testing.assert_close(out, token_attention_reference(q, k, v), rtol=1e-12, atol=1e-12)
+    small = [q[3:9].clone().requires_grad_(), kv.detach()[3:9].clone().requires_grad_()] if n else None
+    if small:
+        assert torch.autograd.gradcheck(token_attention_packed, small)
+
+
+def test_packed_attention_refuses_bad_shapes():
+    q, k, v = _inputs(4, 4, 4, 4, torch.float32)
+    with pytest.raises(ValueError, match="kv must be"):
+        token_attention_packed(q, torch.stack([k, v, v], dim=2))
+    with pytest.raises(ValueError, match="token_attention_packed"):
+        token_attention_packed(q[:, :2], torch.stack([k, v], dim=2))
