@@ -1,11 +1,9 @@
-"""Numba kernels of the sparse conv: kernel-map merge join, row gather / scatter-add, GEMM-plan building (serial), and
-parallel row gathers and a scatter-add onto distinct rows (the implicit GEMM's large blocks)."""
+"""Numba kernels of the sparse conv: kernel-map merge join, row gather / scatter-add, GEMM-plan building (all serial)."""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-from numba import prange
 
 
 @numba.njit(cache=True, nogil=True)
@@ -74,42 +72,6 @@ def gather_neighbour_block(x: np.ndarray, neighbours: np.ndarray, out: np.ndarra
             else:
                 for c in range(c_in):
                     out[i, base + c] = 0.0
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def gather_neighbour_block_parallel(x: np.ndarray, neighbours: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
-    """:func:`gather_neighbour_block` with the rows split over threads (each writes its own rows: same result)."""
-    num_rows = x.shape[0]
-    c_in = x.shape[1]
-    for i in prange(neighbours.shape[0]):
-        for p in range(neighbours.shape[1]):
-            r = neighbours[i, p]
-            base = p * c_in
-            if r < num_rows:
-                for c in range(c_in):
-                    out[i, base + c] = x[r, c]
-            else:
-                for c in range(c_in):
-                    out[i, base + c] = 0.0
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def gather_rows_parallel(x: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """:func:`gather_rows` with the rows split over threads (same result)."""
-    for p in prange(rows.shape[0]):
-        r = rows[p]
-        for c in range(x.shape[1]):
-            out[p, c] = x[r, c]
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def add_distinct_rows_parallel(out: np.ndarray, rows: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover
-    """``out[rows[p]] += y[p]`` for ``rows`` without repeats (the caller's guarantee), rows split over threads: each
-    row of ``out`` gets one addition, so the result equals :func:`scatter_add_rows`' bit for bit."""
-    for p in prange(rows.shape[0]):
-        r = rows[p]
-        for c in range(out.shape[1]):
-            out[r, c] += y[p, c]
 
 
 @numba.njit(cache=True, nogil=True)

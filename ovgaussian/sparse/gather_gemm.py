@@ -42,7 +42,6 @@ import torch
 from torch import Tensor
 
 import ovgaussian.sparse._numba_kernels as nk
-from seggaussian.render.parallel import run_parallel
 
 if TYPE_CHECKING:
     from ovgaussian.sparse.kernel_map import KernelMap
@@ -71,10 +70,6 @@ MIN_GROUPED_CHANNELS = 16
 #: 2.97 s CPU with 1 << 18, 0.98 s with 1 << 20; with OMP_WAIT_POLICY=PASSIVE or 1 thread both sizes
 #: take 0.36-0.44 s CPU (``benchmarks/results/paper_scale.md``).
 GATHER_BLOCK_ELEMENTS = 1 << 20
-#: Row gathers and scatter-adds of at least this many values run on all threads (numba ``prange``); smaller ones
-#: stay serial, where waking the threads costs more than it saves. On a rotated 3 x 1,000,000-Gaussian batch (203k
-#: voxels, MinkUNet34C) the U-Net's forward + backward took 8.3 s against 9.0 s serial, alternated (BENCHMARKS.md).
-PARALLEL_MIN_ELEMENTS = 1 << 16
 #: Bits used per int64 word of a pattern bit mask (below 63: no sign bit involved).
 MASK_WORD_BITS = 60
 
@@ -324,29 +319,16 @@ class _BlockOps(NamedTuple):
 
 
 def _numba_block_ops() -> _BlockOps:
-    """Numba loops; blocks of at least :data:`PARALLEL_MIN_ELEMENTS` values run on all threads. Every ``add_rows``
-    call of this module adds onto distinct rows (a group's rows, or one offset's output rows), so the threads never
-    share a row and the result is the serial loop's."""
     def gather_neighbours(x: Tensor, neighbours: Tensor, out: Tensor) -> Tensor:
-        if out.numel() >= PARALLEL_MIN_ELEMENTS:
-            run_parallel(nk.gather_neighbour_block_parallel, x.detach().numpy(), neighbours.numpy(), out.numpy(),
-                         chunk=0)
-        else:
-            nk.gather_neighbour_block(x.detach().numpy(), neighbours.numpy(), out.numpy())
+        nk.gather_neighbour_block(x.detach().numpy(), neighbours.numpy(), out.numpy())
         return out
 
     def gather_rows(x: Tensor, rows: Tensor, out: Tensor) -> Tensor:
-        if out.numel() >= PARALLEL_MIN_ELEMENTS:
-            run_parallel(nk.gather_rows_parallel, x.detach().numpy(), rows.numpy(), out.numpy(), chunk=0)
-        else:
-            nk.gather_rows(x.detach().numpy(), rows.numpy(), out.numpy())
+        nk.gather_rows(x.detach().numpy(), rows.numpy(), out.numpy())
         return out
 
     def add_rows(out: Tensor, rows: Tensor, y: Tensor) -> None:
-        if y.numel() >= PARALLEL_MIN_ELEMENTS:
-            run_parallel(nk.add_distinct_rows_parallel, out.numpy(), rows.numpy(), y.detach().numpy(), chunk=0)
-        else:
-            nk.scatter_add_rows(out.numpy(), rows.numpy(), y.detach().numpy())
+        nk.scatter_add_rows(out.numpy(), rows.numpy(), y.detach().numpy())
 
     return _BlockOps(gather_neighbours, gather_rows, add_rows)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -12,7 +11,6 @@ from ovgaussian.sparse import (
     voxelize_points,
 )
 from ovgaussian.sparse.conv import sparse_conv_autograd
-from ovgaussian.sparse import _numba_kernels as nk, gather_gemm
 from ovgaussian.sparse.gather_gemm import build_gather_plan, flip_plan, gather_gemm_conv, gather_plans
 from ovgaussian.sparse.kernel_map import KernelMap, build_submanifold_map
 from ovgaussian.sparse.reference import (
@@ -180,14 +178,10 @@ def test_gather_plan_covers_every_row_once_and_every_pair(min_group_rows, max_gr
         assert len(plan.groups) <= max_groups + 1
 
 
-@pytest.mark.parametrize("backend", ["numba", "numba-parallel", "torch"])
+@pytest.mark.parametrize("backend", ["numba", "torch"])
 @pytest.mark.parametrize("min_group_rows", [1, 3, 10**9])
-def test_gemm_with_forced_groupings_matches_dense_float64(min_group_rows, backend, monkeypatch):
-    """Groups only, groups + residual, residual only: all equal dense conv3d (forward and backward); with the numba
-    row loops serial and (``numba-parallel``: every block, however small) on all threads."""
-    if backend == "numba-parallel":
-        monkeypatch.setattr(gather_gemm, "PARALLEL_MIN_ELEMENTS", 0)
-        backend = "numba"
+def test_gemm_with_forced_groupings_matches_dense_float64(min_group_rows, backend):
+    """Groups only, groups + residual, residual only: all equal dense conv3d (forward and backward)."""
     sites = random_sites(54, 2, 8, 0.3)
     coarse, down = sites.downsample()
     cases = [
@@ -207,30 +201,6 @@ def test_gemm_with_forced_groupings_matches_dense_float64(min_group_rows, backen
         want = forward_backward(dense, f, w)
         for a, b in zip(got, want):
             torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
-
-
-def test_parallel_row_loops_equal_the_serial_ones_bitwise():
-    """The parallel gathers (absent neighbours included) and the scatter-add onto distinct rows give the serial
-    loops' bits, float32 and float64."""
-    rng = np.random.default_rng(7)
-    for dtype in (np.float32, np.float64):
-        x = rng.standard_normal((500, 24)).astype(dtype)
-        neighbours = rng.integers(0, 600, (300, 5))  # >= 500: absent
-        want, got = np.empty((300, 120), dtype), np.full((300, 120), np.nan, dtype)
-        nk.gather_neighbour_block(x, neighbours, want)
-        nk.gather_neighbour_block_parallel(x, neighbours, got)
-        assert np.array_equal(want, got)
-        rows = rng.integers(0, 500, 333)
-        want, got = np.empty((333, 24), dtype), np.full((333, 24), np.nan, dtype)
-        nk.gather_rows(x, rows, want)
-        nk.gather_rows_parallel(x, rows, got)
-        assert np.array_equal(want, got)
-        distinct = rng.permutation(500)[:200]
-        y = rng.standard_normal((200, 24)).astype(dtype)
-        want, got = x.copy(), x.copy()
-        nk.scatter_add_rows(want, distinct, y)
-        nk.add_distinct_rows_parallel(got, distinct, y)
-        assert np.array_equal(want, got)
 
 
 def test_flipped_plan_of_a_submanifold_map_is_the_transposed_plan():
