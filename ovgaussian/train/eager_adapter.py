@@ -39,10 +39,12 @@ def semantic_with_row_loss(
     row_tensors: tuple[Tensor, ...],  # [N, ...] each, chunked with the rows (e.g. labels)
     loss_params: tuple[Tensor, ...],  # passed whole to every chunk (e.g. the decoder's Gram terms)
     chunk_rows: int | None = None,
-) -> tuple[Tensor, Tensor]:  # semantic [N, S], loss sums [num_scenes]
-    """``(net(means, attributes, batch_index), sums)`` with ``sums[b]`` = the sum over scene ``b``'s row chunks of
-    ``row_loss`` (module docstring). Chunks of ``chunk_rows`` (default ``model.CHECKPOINT_ROWS``) never cross a
-    scene boundary."""
+    rows: Tensor | None = None,  # [R] increasing rows whose vectors and loss terms are wanted; None: all
+) -> tuple[Tensor, Tensor]:  # semantic [N or R, S], loss sums [num_scenes]
+    """``(net(means, attributes, batch_index, rows), sums)`` with ``sums[b]`` = the sum over scene ``b``'s row chunks
+    of ``row_loss`` (module docstring). Chunks of ``chunk_rows`` (default ``model.CHECKPOINT_ROWS``) never cross a
+    scene boundary. With ``rows`` the voxels still pool every Gaussian; the per-Gaussian stage and the row loss run
+    on those rows only (``row_tensors`` are given for every Gaussian and taken at ``rows``)."""
     if not net.config.use_adapter:
         raise ValueError("semantic_with_row_loss: the network has no adapter")
     if attributes.requires_grad or means.requires_grad:
@@ -56,6 +58,11 @@ def semantic_with_row_loss(
     if chunk_rows < 1:
         raise ValueError(f"semantic_with_row_loss: chunk_rows must be >= 1, got {chunk_rows}")
     voxel_features, point_to_voxel, attributes = net.voxel_stage(means, attributes, batch_index)
+    if rows is not None:
+        if rows.ndim != 1 or (rows.shape[0] > 1 and bool((rows[1:] <= rows[:-1]).any())):
+            raise ValueError("semantic_with_row_loss: rows must be increasing row indices")
+        point_to_voxel, attributes, batch_index = point_to_voxel[rows], attributes[rows], batch_index[rows]
+        row_tensors = tuple(t[rows] for t in row_tensors)
     counts = torch.bincount(batch_index.cpu(), minlength=num_scenes).tolist()
     chunks, start = [], 0
     for scene, count in enumerate(counts):

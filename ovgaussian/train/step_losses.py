@@ -266,13 +266,27 @@ def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embed
         logits = gram_text_logits(rows_semantic, GramTerms(*terms), temperature)
         return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
 
+    scene_rows = [None] * len(samples) if unlabelled_columns is not None else [term_rows(s) for s in samples]
+    rows = None
+    if unlabelled_columns is None:
+        starts = torch.tensor([0] + [len(s.means) for s in samples]).cumsum(0).tolist()
+        rows = torch.cat([r + start for r, start in zip(scene_rows, starts)]).to(means.device)
     semantic, sums = semantic_with_row_loss(net, means, attributes, batch_index, len(samples), row_loss, (labels,),
-                                            tuple(gram_terms(net.phi, text_embeddings)))
-    counts = [len(sample.means) for sample in samples]
+                                            tuple(gram_terms(net.phi, text_embeddings)), rows=rows)
+    counts = [len(s.means) if r is None else len(r) for s, r in zip(samples, scene_rows)]
     terms = []
     for b, (sample, scene_semantic) in enumerate(zip(samples, torch.split(semantic, counts))):
         count = text_3d_count(sample.labels, unlabelled_columns)
         text_3d = (sums[b] * 0.0, 0) if count == 0 else (sums[b] / count, count)
         terms.append(scene_losses(net, scene_semantic, sample, text_embeddings, config, use_teacher, class_weights,
-                                  unlabelled_columns, None, text_3d))
+                                  unlabelled_columns, scene_rows[b], text_3d))
     return terms
+
+
+def term_rows(sample: SceneSample) -> "torch.Tensor":
+    """``[R]`` increasing rows of the Gaussians that take part in a step's losses without a transductive term: the
+    labelled ones (3D text term) and every contributor of the sampled pixels (2D terms). The others' semantic vectors
+    are read by no loss, so the eager path (``_eager_batch_losses``) does not compute them."""
+    labelled = sample.labels != IGNORE_LABEL
+    labelled[sample.pixel_ids[sample.pixel_ids >= 0]] = True
+    return torch.nonzero(labelled)[:, 0]

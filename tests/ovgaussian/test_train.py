@@ -1014,14 +1014,17 @@ def test_eager_adapter_and_text_loss_equal_the_one_piece_step(scenes, tmp_path, 
     real = step_losses_module.semantic_with_row_loss
 
     def counting(*args, **kw):
-        eager_calls.append(1)
+        eager_calls.append(kw.get("rows"))
         return real(*args, **kw)
 
     monkeypatch.setattr(model_module, "CHECKPOINT_MIN_ROWS", 0)
     monkeypatch.setattr(model_module, "CHECKPOINT_ROWS", 37)
     monkeypatch.setattr(step_losses_module, "semantic_with_row_loss", counting)
     eager_terms, eager_grads = step()
-    assert eager_calls == [1]
+    assert len(eager_calls) == 1
+    # without a transductive term, the Gaussians that are unlabelled and feed no sampled pixel are skipped
+    total = sum(len(s.means) for s in samples)
+    assert eager_calls[0] is None if mode == "transductive" else 0 < len(eager_calls[0]) < total
     for (a_total, a3, a2), (b_total, b3, b2) in zip(eager_terms, whole_terms):
         assert (a3, a2) == (b3, b2) and a3 > 0
         assert a_total == pytest.approx(b_total, rel=1e-5, abs=1e-6)
@@ -1029,6 +1032,17 @@ def test_eager_adapter_and_text_loss_equal_the_one_piece_step(scenes, tmp_path, 
     for name, grad in whole_grads.items():
         scale = float(grad.abs().max())
         torch.testing.assert_close(eager_grads[name], grad, rtol=1e-4, atol=1e-6 + 1e-5 * scale, msg=name)
+
+
+def test_eager_adapter_refuses_rows_out_of_order():
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.eager_adapter import semantic_with_row_loss
+
+    net = build_network(tiny_model_config(12)).train()
+    means, attributes = torch.rand(10, 3), torch.rand(10, 11)
+    with pytest.raises(ValueError, match="rows must be increasing"):
+        semantic_with_row_loss(net, means, attributes, torch.zeros(10, dtype=torch.int64), 1,
+                               lambda s, labels: s.sum(), (torch.zeros(10),), (), rows=torch.tensor([3, 3, 5]))
 
 
 def test_eager_adapter_path_with_a_frozen_backbone_and_adapter(scenes, tmp_path, monkeypatch):
