@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from ovgaussian.model.config import NUM_GAUSSIAN_ATTRIBUTES, OVGaussianNetConfig
 from ovgaussian.model.narrow_linear import narrow_linear
+from ovgaussian.model.relu_mlp import relu_mlp
 from ovgaussian.model.token_attention import token_attention_packed
 from ovgaussian.sparse import (
     DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxelize_points,
@@ -304,7 +305,7 @@ class VoxelToPointAdapter(nn.Module):
         kv = torch.addmm(kv_bias, tokens.reshape(n * t, tokens.shape[2]), kv_weight.T).view(n, t, 2, h, d)
         attended = token_attention_packed(q, kv).reshape(n, h * d)  # [N, H * d]
         m = self.out(attended)
-        return self.mlp(torch.cat([m, voxel_features], dim=1)) + voxel_features
+        return relu_mlp(self.mlp, torch.cat([m, voxel_features], dim=1)) + voxel_features
 
     def forward_reference(self, voxel_features: Tensor, attributes: Tensor) -> Tensor:
         """:meth:`forward` written plainly (one embedding per group, ``einsum`` attention): the reference."""

@@ -1,0 +1,118 @@
+"""``Linear (ReLU Linear)*`` with its bias + ReLU and the ReLU's backward as one numba pass each (the adapter's MLP).
+
+Autograd's graph of ``nn.Sequential(Linear, ReLU, Linear, ReLU, Linear)`` makes, per hidden layer and per chunk of
+rows: a copy of the broadcast bias into the product's output (``addmm``), a new tensor for the ReLU, and in the
+backward the ReLU's mask and the bias gradient's column sum, each a pass over ``[rows, 96]`` (12 MB per 32,768
+rows). :func:`relu_mlp` keeps the products in torch and does each hidden layer's elementwise work in one loop over
+the rows: ``h = max(x W^T + b, 0)`` in place of the product, and in the backward ``g = g * (h > 0)`` in place with the
+column sums of ``g`` (the bias gradient) per block of rows, added in a fixed order (deterministic). The
+``nn.Sequential`` itself is the reference; the tests compare values and every gradient, on degenerate rows too.
+CPU float32 / float64 tensors; anything else (or another layer layout) runs the ``nn.Sequential``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from numba import prange
+from torch import Tensor, nn
+
+#: Rows per block of the backward's column sums (one partial row per block, added in block order).
+SUM_BLOCK_ROWS = 1024
+
+#: ``reassoc`` lets the column sums run on SIMD lanes; no flag that assumes finite values.
+_JIT = dict(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+
+
+def relu_mlp(mlp: nn.Module, x: Tensor) -> Tensor:  # [N, in] -> [N, out]
+    """``mlp(x)`` for ``mlp = nn.Sequential(Linear, ReLU, ..., Linear)`` (module docstring)."""
+    layers = _linear_layers(mlp)
+    if layers is None or x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or any(
+            layer.weight.dtype != x.dtype for layer in layers):
+        return mlp(x)
+    params = [t for layer in layers for t in (layer.weight, layer.bias)]
+    return _ReluMLP.apply(x, *params)
+
+
+def _linear_layers(mlp: nn.Module) -> "list[nn.Linear] | None":
+    """The Linear layers of ``Sequential(Linear, ReLU, Linear, ..., Linear)`` (every Linear with a bias), or None."""
+    modules = list(mlp) if isinstance(mlp, nn.Sequential) else []
+    if len(modules) % 2 == 0:
+        return None
+    for i, module in enumerate(modules):
+        want = nn.Linear if i % 2 == 0 else nn.ReLU
+        if type(module) is not want or (want is nn.Linear and module.bias is None):
+            return None
+    return modules[::2]
+
+
+class _ReluMLP(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, *params):  # noqa: D102
+        weights, biases = params[0::2], params[1::2]
+        hidden = [x]
+        h = x.contiguous()
+        for w, b in zip(weights[:-1], biases[:-1]):
+            h = h @ w.T
+            if h.shape[0]:
+                bias_relu_rows(h.numpy(), b.detach().contiguous().numpy(), _zero(h))
+            hidden.append(h)
+        out = torch.addmm(biases[-1], h, weights[-1].T)
+        ctx.save_for_backward(*hidden, *weights)
+        ctx.layers = len(weights)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):  # noqa: D102
+        saved = ctx.saved_tensors
+        hidden, weights = saved[:ctx.layers], saved[ctx.layers:]
+        need = ctx.needs_input_grad
+        grads: list[Tensor | None] = [None] * (2 * ctx.layers)
+        g = grad_out.contiguous()
+        bias_grad = g.sum(0) if need[2 * ctx.layers] else None
+        for i in range(ctx.layers - 1, -1, -1):
+            grads[2 * i] = g.T @ hidden[i] if need[1 + 2 * i] else None
+            grads[2 * i + 1] = bias_grad
+            if i == 0:
+                grads_x = g @ weights[0] if need[0] else None
+                break
+            g = g @ weights[i]  # [N, in_i]: the gradient at hidden[i], then through its ReLU
+            sums = g.new_zeros(max(1, -(-g.shape[0] // SUM_BLOCK_ROWS)), g.shape[1])
+            if g.shape[0]:
+                relu_grad_rows(g.numpy(), hidden[i].numpy(), sums.numpy(), _zero(g))
+            bias_grad = sums.sum(0) if need[2 * i] else None
+        return (grads_x, *grads)
+
+
+def _zero(t: Tensor) -> np.ndarray:
+    """``[0]`` in ``t``'s dtype (``v - v`` would be NaN for an infinite ``v``)."""
+    return np.zeros(1, dtype=t.numpy().dtype)
+
+
+@numba.njit(parallel=True, **_JIT)
+def bias_relu_rows(h, bias, zero):  # pragma: no cover - compiled
+    """``h [N, C] = max(h + bias, 0)`` in place (``zero``: ``[0]`` in ``h``'s dtype)."""
+    n, c = h.shape
+    z = zero[0]
+    for i in prange(n):
+        for j in range(c):
+            v = h[i, j] + bias[j]
+            h[i, j] = v if v > 0 else z
+
+
+@numba.njit(parallel=True, **_JIT)
+def relu_grad_rows(g, h, sums, zero):  # pragma: no cover - compiled
+    """``g [N, C]`` = ``g`` where ``h > 0``, else 0, in place (``h`` the ReLU's output); ``sums [B, C]``: the column
+    sums of the result per block of :data:`SUM_BLOCK_ROWS` rows (``zero``: ``[0]`` in the dtype)."""
+    n, c = g.shape
+    z = zero[0]
+    for b in prange(sums.shape[0]):
+        for j in range(c):
+            sums[b, j] = z
+        for i in range(b * SUM_BLOCK_ROWS, min(n, (b + 1) * SUM_BLOCK_ROWS)):
+            for j in range(c):
+                v = g[i, j] if h[i, j] > 0 else z
+                g[i, j] = v
+                sums[b, j] += v
