@@ -1,6 +1,7 @@
 """The OVGaussian network (``network``: voxelized Gaussians -> sparse U-Net -> adapter -> S), its configuration
-(``config``, data only), the adapter's attention over attribute tokens (``token_attention``, a numba row loop) and a
-linear layer for few input columns (``narrow_linear``).
+(``config``, data only), the adapter's attention over attribute tokens (``token_attention``, a numba row loop), a
+linear layer for few input columns (``narrow_linear``) and the adapter's MLP with fused bias + ReLU passes
+(``relu_mlp``).
 """
 
-__all__ = ["config", "narrow_linear", "network", "token_attention"]
+__all__ = ["config", "narrow_linear", "network", "relu_mlp", "token_attention"]
