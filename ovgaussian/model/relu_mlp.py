@@ -13,13 +13,11 @@ CPU float32 / float64 tensors; anything else (or another layer layout) runs the 
 from __future__ import annotations
 
 import numba
-import numpy as np
 import torch
 from numba import prange
 from torch import Tensor, nn
 
-#: Rows per block of the backward's column sums (one partial row per block, added in block order).
-SUM_BLOCK_ROWS = 1024
+from seggaussian.render.parallel import SUM_BLOCK_ROWS, dtype_scalars, run_parallel, sum_blocks
 
 #: ``reassoc`` lets the column sums run on SIMD lanes; no flag that assumes finite values.
 _JIT = dict(cache=True, nogil=True, fastmath={"reassoc", "contract"})
@@ -51,44 +49,38 @@ class _ReluMLP(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, *params):  # noqa: D102
         weights, biases = params[0::2], params[1::2]
-        hidden = [x]
+        hidden = [x]  # each layer's input: x, then the hidden layers' ReLU outputs
         h = x.contiguous()
         for w, b in zip(weights[:-1], biases[:-1]):
             h = h @ w.T
             if h.shape[0]:
-                bias_relu_rows(h.numpy(), b.detach().contiguous().numpy(), _zero(h))
+                run_parallel(bias_relu_rows, h.numpy(), b.detach().contiguous().numpy(),
+                             dtype_scalars(0, h.numpy().dtype), chunk=0)
             hidden.append(h)
         out = torch.addmm(biases[-1], h, weights[-1].T)
         ctx.save_for_backward(*hidden, *weights)
-        ctx.layers = len(weights)
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):  # noqa: D102
         saved = ctx.saved_tensors
-        hidden, weights = saved[:ctx.layers], saved[ctx.layers:]
-        need = ctx.needs_input_grad
-        grads: list[Tensor | None] = [None] * (2 * ctx.layers)
-        g = grad_out.contiguous()
-        bias_grad = g.sum(0) if need[2 * ctx.layers] else None
-        for i in range(ctx.layers - 1, -1, -1):
-            grads[2 * i] = g.T @ hidden[i] if need[1 + 2 * i] else None
-            grads[2 * i + 1] = bias_grad
-            if i == 0:
-                grads_x = g @ weights[0] if need[0] else None
-                break
-            g = g @ weights[i]  # [N, in_i]: the gradient at hidden[i], then through its ReLU
-            sums = g.new_zeros(max(1, -(-g.shape[0] // SUM_BLOCK_ROWS)), g.shape[1])
-            if g.shape[0]:
-                relu_grad_rows(g.numpy(), hidden[i].numpy(), sums.numpy(), _zero(g))
-            bias_grad = sums.sum(0) if need[2 * i] else None
-        return (grads_x, *grads)
-
-
-def _zero(t: Tensor) -> np.ndarray:
-    """``[0]`` in ``t``'s dtype (``v - v`` would be NaN for an infinite ``v``)."""
-    return np.zeros(1, dtype=t.numpy().dtype)
+        layers = len(saved) // 2
+        hidden, weights = saved[:layers], saved[layers:]
+        need = ctx.needs_input_grad  # x, then (weight, bias) per layer
+        grads: list[Tensor | None] = []
+        g = grad_out.contiguous()  # the gradient at layer i's output
+        bias_grad = g.sum(0)
+        for i in range(layers - 1, -1, -1):
+            grads[:0] = [g.T @ hidden[i] if need[1 + 2 * i] else None, bias_grad if need[2 + 2 * i] else None]
+            if i > 0:  # through layer i to its input, then through that input's ReLU (its bias gradient on the way)
+                g = g @ weights[i]
+                sums = g.new_zeros(sum_blocks(g.shape[0]), g.shape[1])
+                if g.shape[0]:
+                    run_parallel(relu_grad_rows, g.numpy(), hidden[i].numpy(), sums.numpy(),
+                                 dtype_scalars(0, g.numpy().dtype), chunk=0)
+                bias_grad = sums.sum(0)
+        return (g @ weights[0] if need[0] else None, *grads)
 
 
 @numba.njit(parallel=True, **_JIT)

@@ -29,6 +29,7 @@ from torch import Tensor
 
 from ovgaussian.train import gram_rows
 from ovgaussian.train.losses import COSINE_NORM_EPS, normalize_rows
+from seggaussian.render.parallel import dtype_scalars, run_parallel, sum_blocks
 
 
 class GramTerms(NamedTuple):
@@ -87,22 +88,20 @@ class _GramTextLogits(torch.autograd.Function):
     def forward(ctx, semantic, w1, b1, gram, text_hidden, bias_hidden, text_bias, bias_square,  # noqa: D102
                 temperature):
         hidden = torch.addmm(b1, semantic, w1.T).clamp_min_(0.0)  # [N, H] relu
-        fused = _fused_rows(hidden)
-        if fused:  # the row passes in one numba loop (ovgaussian.train.gram_rows)
+        if _fused_rows(hidden):  # the row passes in one numba loop (ovgaussian.train.gram_rows)
             # h [G | A | c | 0] in one product; its first H columns become half_grad = h G + c in the loop
             (n, h), c = hidden.shape, text_hidden.shape[1]
             right = gram.new_zeros(h, gram_rows.product_width(h, c))
             right[:, :h], right[:, h:h + c], right[:, h + c] = gram, text_hidden, bias_hidden
             half_grad = hidden @ right
             dtype = hidden.numpy().dtype
-            logits, scale, roots = hidden.new_empty(n, text_hidden.shape[1]), hidden.new_empty(n), hidden.new_empty(n)
+            logits, scale, roots = hidden.new_empty(n, c), hidden.new_empty(n), hidden.new_empty(n)
             if n:
-                gram_rows.forward_rows(hidden.numpy(), half_grad.numpy(), bias_hidden.detach().contiguous().numpy(),
-                                       text_bias.detach().contiguous().numpy(),
-                                       gram_rows.scalars(float(bias_square), dtype),
-                                       gram_rows.scalars(COSINE_NORM_EPS, dtype), gram_rows.scalars(temperature, dtype),
-                                       logits.numpy(), scale.numpy(), roots.numpy())
-            live = None
+                run_parallel(gram_rows.forward_rows, hidden.numpy(), half_grad.numpy(),
+                             bias_hidden.detach().contiguous().numpy(), text_bias.detach().contiguous().numpy(),
+                             dtype_scalars(float(bias_square), dtype), dtype_scalars(COSINE_NORM_EPS, dtype),
+                             dtype_scalars(temperature, dtype), logits.numpy(), scale.numpy(), roots.numpy(), chunk=0)
+            live = None  # marks the fused forward: its backward is fused too (the gradient has the logits' device)
         else:
             half_grad = (hidden @ gram).add_(bias_hidden)  # [N, H] h G + c: half of d n2 / dh (G symmetric)
             squared = (hidden * half_grad).sum(1).add_(hidden @ bias_hidden).add_(bias_square)  # h G h^T + 2 h c + bb
@@ -111,7 +110,6 @@ class _GramTextLogits(torch.autograd.Function):
             logits = torch.addmm(text_bias, hidden, text_hidden).mul_(scale[:, None])
             # the norm's gradient flows where both clamps pass it (as autograd's clamp_min: input >= bound)
             live = (squared >= 0.0) & (roots >= COSINE_NORM_EPS)
-        ctx.fused = fused
         ctx.save_for_backward(semantic, w1, text_hidden, hidden, half_grad, logits, scale, roots, live)
         return logits
 
@@ -120,15 +118,12 @@ class _GramTextLogits(torch.autograd.Function):
         semantic, w1, text_hidden, hidden, half_grad, logits, scale, roots, live = ctx.saved_tensors
         need = ctx.needs_input_grad
         grad_logits = grad_logits.contiguous()
-        if ctx.fused and _fused_rows(grad_logits):
+        if live is None:
             return _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, half_grad, logits, scale,
                                    roots)
         grad_dots = grad_logits * scale[:, None]  # [N, C]
         # logit = dot / (norm T): d/dnorm = -logit / norm; norm = sqrt(n2): d/dn2 = 1 / (2 norm)
         grad_norm = (grad_logits * logits).sum(1).neg_() / roots.clamp_min(COSINE_NORM_EPS)
-        if live is None:  # fused forward, backward on another dtype: roots >= eps > 0 implies n2 > 0
-            live = roots >= COSINE_NORM_EPS
-            half_grad = half_grad[:, :hidden.shape[1]]  # the forward's products h [G | A | c], c added to h G
         grad_squared = torch.where(live, grad_norm / (2.0 * roots).clamp_min(COSINE_NORM_EPS), 0.0)  # [N]
         grad_gram = grad_bias_hidden = None
         if need[3] or need[5]:
@@ -158,17 +153,17 @@ def _fused_backward(need, grad_logits, semantic, w1, text_hidden, hidden, produc
     columns of the forward's ``products`` hold ``half_grad``."""
     n, dtype = hidden.shape[0], hidden.numpy().dtype
     grad_dots, grad_squared = torch.empty_like(grad_logits), hidden.new_empty(n)
-    blocks = gram_rows.sum_blocks(n)
+    blocks = sum_blocks(n)
     grad_sums, weighted_sums = hidden.new_zeros(blocks, hidden.shape[1]), hidden.new_zeros(blocks, hidden.shape[1])
     weighted = torch.empty_like(hidden)  # [N, H] diag(dn2) h
     if n:
-        gram_rows.logit_grad_rows(grad_logits.numpy(), logits.numpy(), scale.numpy(), roots.numpy(),
-                                  gram_rows.scalars(COSINE_NORM_EPS, dtype), grad_dots.numpy(), grad_squared.numpy())
+        run_parallel(gram_rows.logit_grad_rows, grad_logits.numpy(), logits.numpy(), scale.numpy(), roots.numpy(),
+                     dtype_scalars(COSINE_NORM_EPS, dtype), grad_dots.numpy(), grad_squared.numpy(), chunk=0)
     # A^T made contiguous first: with a transposed [C, H] operand the product took 2-5 ms instead of 1.2 (C = 20)
     grad_hidden = grad_dots @ text_hidden.T.contiguous()  # [N, H] grad_dots A^T, made dh in the loop
     if n:
-        gram_rows.backward_rows(hidden.numpy(), products.numpy(), grad_squared.numpy(), grad_hidden.numpy(),
-                                weighted.numpy(), grad_sums.numpy(), weighted_sums.numpy())
+        run_parallel(gram_rows.backward_rows, hidden.numpy(), products.numpy(), grad_squared.numpy(),
+                     grad_hidden.numpy(), weighted.numpy(), grad_sums.numpy(), weighted_sums.numpy(), chunk=0)
     return (grad_hidden @ w1 if need[0] else None,
             grad_hidden.T @ semantic if need[1] else None,
             grad_sums.sum(0) if need[2] else None,

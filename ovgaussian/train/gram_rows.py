@@ -3,7 +3,9 @@
 Between its products, the Gram form's forward and backward are elementwise work on ``[N, H]`` rows (``H = 128``):
 adding ``c`` to ``h G``, the row sums ``h . (h G + c)``, the ReLU's mask, scaling rows by ``dn2``, the column sums
 of the bias gradients. As torch operations each is a pass over 16 MB per 32,768 rows (more than the cache holds),
-eleven passes per chunk, about 15 ms of a 98 ms eager chunk. Here each direction is one loop over the rows:
+about 15 ms of a 98 ms eager chunk by ``torch.profiler``, which overstates small operations: with these loops the
+chunk took 4.9 ms less (median of 15 alternated runs). Here each direction is one loop over the rows, called through
+``run_parallel``:
 
 - :func:`forward_rows`: ``half_grad = h G + c`` in place, ``n2 = h . half_grad + h . c + bb``, the norms, the scale
   ``1 / (max(norm, eps) T)`` and the logits ``(h A + tb) * scale``; ``h G``, ``h A`` and ``h . c`` come from one
@@ -21,12 +23,10 @@ from __future__ import annotations
 import math
 
 import numba
-import numpy as np
 from numba import prange
 
-#: Rows per block of the backward's column sums: each block writes one partial row, the partials are added in
-#: block order (no atomics, the same result on any thread count).
-SUM_BLOCK_ROWS = 1024
+from seggaussian.render.parallel import SUM_BLOCK_ROWS
+
 #: The forward's product ``h [G | A | c]`` gets zero columns up to a multiple of this (:func:`product_width`).
 PRODUCT_COLUMNS_MULTIPLE = 16
 
@@ -37,8 +37,8 @@ _JIT = dict(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 @numba.njit(parallel=True, **_JIT)
 def forward_rows(hidden, products, bias_hidden, text_bias, bias_square, eps, temperature,
                  logits, scale, roots):  # pragma: no cover - compiled
-    """From ``hidden [N, H]`` and ``products [N, >= H + C + 1] = h [G | A | c | 0]``: ``products[:, :H] += c`` in place (the
-    backward's ``half_grad``), ``logits [N, C]``, ``scale [N]``, ``roots [N]`` (``sqrt(max(n2, 0))``)."""
+    """From ``hidden [N, H]`` and ``products [N, >= H + C + 1] = h [G | A | c | 0]``: ``products[:, :H] += c`` in
+    place (the backward's ``half_grad``), ``logits [N, C]``, ``scale [N]``, ``roots [N]`` (``sqrt(max(n2, 0))``)."""
     n, h = hidden.shape
     c = text_bias.shape[0]
     bb, ep, temp = bias_square[0], eps[0], temperature[0]
@@ -106,13 +106,3 @@ def product_width(hidden: int, classes: int) -> int:
     ``[128, 160]`` took 8.8 ms and the separate ``[128, 128]`` and ``[128, 21]`` ones 9.8 ms together."""
     width = hidden + classes + 1
     return -(-width // PRODUCT_COLUMNS_MULTIPLE) * PRODUCT_COLUMNS_MULTIPLE
-
-
-def sum_blocks(rows: int) -> int:
-    """Blocks of :data:`SUM_BLOCK_ROWS` that :func:`backward_rows` needs for ``rows`` rows."""
-    return max(1, -(-rows // SUM_BLOCK_ROWS))
-
-
-def scalars(value: float, dtype) -> np.ndarray:
-    """``[value]`` in the kernels' dtype (a Python float would promote float32 work to float64)."""
-    return np.array([value], dtype=dtype)
