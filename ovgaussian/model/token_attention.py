@@ -57,11 +57,11 @@ def token_attention_packed(q: Tensor, kv: Tensor) -> Tensor:
     in the backward is made."""
     if kv.ndim != 5 or kv.shape[2] != 2:
         raise ValueError(f"token_attention_packed: kv must be [N, T, 2, H, d], got {tuple(kv.shape)}")
-    if q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64) or q.dtype != kv.dtype:
-        return token_attention(q, kv[:, :, 0], kv[:, :, 1])
     if q.ndim != 3 or kv.shape[0] != q.shape[0] or kv.shape[3:] != q.shape[1:]:
         raise ValueError(f"token_attention_packed: q must be [N, H, d] and kv [N, T, 2, H, d], got "
                          f"{tuple(q.shape)}, {tuple(kv.shape)}")
+    if q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64) or q.dtype != kv.dtype:
+        return token_attention(q, kv[:, :, 0], kv[:, :, 1])
     return _PackedTokenAttention.apply(q, kv)
 
 

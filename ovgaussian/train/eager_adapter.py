@@ -14,7 +14,8 @@ parameters right away (as ``ovgaussian.train.eager_rows`` does for the loss alon
 
 Every adapter forward over all rows happens once, and its backward once; the recomputation covers the rendered
 rows only. With ``rows`` (``step_losses.term_rows``: the labelled Gaussians and the rendered ones) the per-Gaussian
-stage skips the Gaussians no loss reads. Peak memory is a chunk's graph plus one gradient the size of the per-Gaussian voxel features.
+stage skips the Gaussians no loss reads. Peak memory is a chunk's graph plus one gradient the size of the
+per-Gaussian voxel features.
 The one-piece computation (``net(...)`` then the losses) is the reference; the tests compare values and every
 parameter's gradient.
 """

@@ -231,9 +231,8 @@ def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: T
         semantic, counts = net(means, attributes, batch_index), [len(sample.means) for sample in samples]
     else:
         scene_rows = [torch.arange(len(s.means)) if rows is None else rows for s, rows in zip(samples, scene_rows)]
-        starts = torch.tensor([0] + [len(s.means) for s in samples]).cumsum(0)
-        wanted = torch.cat([rows + start for rows, start in zip(scene_rows, starts.tolist())])
-        semantic, counts = net(means, attributes, batch_index, rows=wanted.to(device)), [len(r) for r in scene_rows]
+        wanted = batch_rows(samples, scene_rows).to(device)
+        semantic, counts = net(means, attributes, batch_index, rows=wanted), [len(r) for r in scene_rows]
     # torch.split, not slicing: each slice's gradient would be a zero-filled copy of the whole batch (SliceBackward)
     return [scene_losses(net, scene_semantic, sample, text_embeddings, config, use_teacher, class_weights,
                          unlabelled_columns, rows)
@@ -266,11 +265,10 @@ def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embed
         logits = gram_text_logits(rows_semantic, GramTerms(*terms), temperature)
         return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
 
-    scene_rows = [None] * len(samples) if unlabelled_columns is not None else [term_rows(s) for s in samples]
-    rows = None
+    scene_rows, rows = [None] * len(samples), None  # transductive: every Gaussian takes a 3D term
     if unlabelled_columns is None:
-        starts = torch.tensor([0] + [len(s.means) for s in samples]).cumsum(0).tolist()
-        rows = torch.cat([r + start for r, start in zip(scene_rows, starts)]).to(means.device)
+        scene_rows = [term_rows(s) for s in samples]
+        rows = batch_rows(samples, scene_rows).to(means.device)
     semantic, sums = semantic_with_row_loss(net, means, attributes, batch_index, len(samples), row_loss, (labels,),
                                             tuple(gram_terms(net.phi, text_embeddings)), rows=rows)
     counts = [len(s.means) if r is None else len(r) for s, r in zip(samples, scene_rows)]
@@ -281,6 +279,12 @@ def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embed
         terms.append(scene_losses(net, scene_semantic, sample, text_embeddings, config, use_teacher, class_weights,
                                   unlabelled_columns, scene_rows[b], text_3d))
     return terms
+
+
+def batch_rows(samples: Sequence[SceneSample], scene_rows: Sequence["torch.Tensor"]) -> "torch.Tensor":
+    """``[R]`` rows of the concatenated batch (:func:`network_inputs`) from each scene's own increasing rows."""
+    starts = torch.tensor([0] + [len(s.means) for s in samples]).cumsum(0).tolist()
+    return torch.cat([rows + start for rows, start in zip(scene_rows, starts)])
 
 
 def term_rows(sample: SceneSample) -> "torch.Tensor":
