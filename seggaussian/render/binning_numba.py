@@ -220,8 +220,9 @@ def _count_chunk(boxes, lo, hi, tiles_x, counts):
 @numba.njit(**_JIT)
 def _scatter_chunk(order, boxes, lo, hi, tiles_x, cursor, ids):
     """Append the Gaussians ``lo:hi`` to the tiles of their (trimmed) boxes at ``cursor``. The tile and slot indices
-    are unsigned: numba then emits no negative-index wraparound per access (the loop took 48 -> 35 ms at 1M on one
-    thread); a row is entered only when its span is not empty, so no index wraps."""
+    are unsigned: numba then emits no negative-index wraparound per access (the scatter of 1M Gaussians took 31 -> 22
+    ms, BENCHMARKS.md session 12); a row is entered only when its span is not empty, so no index
+    wraps."""
     for j in range(lo, hi):
         g = np.int32(order[j])
         tx0, ty0, tx1, ty1, tr = _unpack_box(boxes[j])
