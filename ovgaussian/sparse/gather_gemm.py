@@ -24,7 +24,10 @@ Backward:
   submanifold map is symmetric (``nbr[i, k] = j`` iff ``nbr[j, K - 1 - k] = i``), so its transposed
   plan is its own plan with the offsets reversed (:func:`flip_plan`): the groups stay gather-only.
 - weight gradient: per group ``im2col^T @ grad_out[rows]`` (the im2col block is gathered again in
-  backward rather than kept, which would cost ``P * C_in`` floats per row per layer).
+  backward rather than kept, which would cost ``P * C_in`` floats per row per layer). When both gradients
+  are needed (:func:`plan_backward`), the weight gradient instead reuses the input gradient's im2col of
+  ``grad_out`` on the transposed plan, ``cols^T @ features[rows]``, so ``features``' im2col is not
+  gathered a second time.
 
 Work is done in row blocks of about :data:`GATHER_BLOCK_ELEMENTS` gathered values so the im2col
 block stays in cache. Convolutions with fewer than :data:`MIN_GROUPED_CHANNELS` input channels, and
@@ -430,6 +433,52 @@ def plan_weight_grad(features: Tensor, grad_out: Tensor, plan: GatherPlan, ops: 
     return grad_weight
 
 
+def plan_backward(
+    features: Tensor, grad_out: Tensor, weight: Tensor, plan_t: GatherPlan, ops: _BlockOps
+) -> tuple[Tensor, Tensor]:
+    """``(grad_features [num_in, C_in], grad_weight [K, C_in, C_out])`` in one pass over the transposed plan.
+
+    Equal to ``apply_plan(grad_out, weight^T, plan_t)`` and ``plan_weight_grad(features, grad_out, plan)``, but
+    each im2col block of ``grad_out`` is gathered once and feeds both products. A pair of the transposed map,
+    ``(in b, out a, weight k)``, is the forward's ``(in a, out b, k)``, so ``grad_w[k] += features[a]^T
+    grad_out[b]``: per group ``cols^T @ features[rows]`` gives the ``[P * C_out, C_in]`` transposed blocks of
+    its offsets' weight gradients. The weight gradient then gathers ``features[rows]`` (rows increasing: about
+    sequential) instead of the forward's im2col of ``features`` again.
+    """
+    c_in, c_out = weight.shape[1], weight.shape[2]
+    weight_t = weight.transpose(1, 2)  # [K, C_out, C_in]
+    grad_weight = features.new_zeros(plan_t.kernel_volume, c_in, c_out)
+    if plan_t.identity_offset >= 0:
+        grad_features = grad_out @ weight_t[plan_t.identity_offset]
+        torch.mm(features.t(), grad_out, out=grad_weight[plan_t.identity_offset])
+    else:
+        grad_features = grad_out.new_zeros(plan_t.num_out, c_in)
+    for group in plan_t.groups:
+        p = group.offsets.numel()
+        if p == 0:
+            continue
+        stacked = weight_t.index_select(0, group.offsets).reshape(p * c_out, c_in)
+        step = _block_rows(p * c_out)
+        n = group.rows.numel()
+        acc = features.new_zeros(p * c_out, c_in)  # [P * C_out, C_in]: grad_w[offsets[q]]^T in block q
+        cols_buf = grad_out.new_empty(min(step, n), p * c_out)
+        prod_buf = grad_out.new_empty(min(step, n), c_in)
+        x_buf = features.new_empty(min(step, n), c_in)
+        for s in range(0, n, step):
+            e = min(s + step, n)
+            cols = ops.gather_neighbours(grad_out, group.neighbours[s:e], cols_buf[: e - s])
+            ops.add_rows(grad_features, group.rows[s:e], torch.mm(cols, stacked, out=prod_buf[: e - s]))
+            acc.addmm_(cols.t(), ops.gather_rows(features, group.rows[s:e], x_buf[: e - s]))
+        grad_weight.index_add_(0, group.offsets, acc.view(p, c_out, c_in).transpose(1, 2))
+    for k, (in_rows, out_rows) in enumerate(zip(plan_t.residual_in, plan_t.residual_out)):
+        if in_rows.numel():
+            g = ops.gather_rows(grad_out, in_rows, grad_out.new_empty(in_rows.numel(), c_out))
+            ops.add_rows(grad_features, out_rows, g @ weight_t[k])
+            x = ops.gather_rows(features, out_rows, features.new_empty(out_rows.numel(), c_in))
+            grad_weight[k].addmm_(x.t(), g)
+    return grad_features, grad_weight
+
+
 class _GatherGemmFunction(torch.autograd.Function):
     @staticmethod
     def forward(  # noqa: D102
@@ -444,6 +493,9 @@ class _GatherGemmFunction(torch.autograd.Function):
         features, weight = ctx.saved_tensors
         grad_out = grad_out.contiguous()
         grad_features = grad_weight = None
+        if ctx.needs_input_grad[0] and ctx.needs_input_grad[1]:
+            grad_features, grad_weight = plan_backward(features, grad_out, weight, ctx.plan_t, ctx.ops)
+            return grad_features, grad_weight, None, None, None
         if ctx.needs_input_grad[0]:
             grad_features = apply_plan(grad_out, weight.transpose(1, 2), ctx.plan_t, ctx.ops)
         if ctx.needs_input_grad[1]:

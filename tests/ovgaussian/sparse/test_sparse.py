@@ -203,6 +203,44 @@ def test_gemm_with_forced_groupings_matches_dense_float64(min_group_rows, backen
             torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
 
 
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+@pytest.mark.parametrize("min_group_rows", [1, 10**9])
+def test_one_pass_backward_equals_the_two_separate_gradients(min_group_rows, backend):
+    """``plan_backward`` (both gradients from one gather of ``grad_out``, used when both are needed) against
+    ``apply_plan`` on the transposed plan and ``plan_weight_grad`` on the plan (the paths taken when only one
+    is needed), on a submanifold map and on down and up maps; and each single-gradient path against dense."""
+    from ovgaussian.sparse.gather_gemm import apply_plan, block_ops, plan_backward, plan_weight_grad
+
+    sites = random_sites(71, 2, 8, 0.35)
+    coarse, down = sites.downsample()
+    cases = [
+        (sites.submanifold_map(3), lambda f, w: submanifold_conv_dense(f, sites, w, 3, (8, 8, 8), 2), len(sites), 27),
+        (down, lambda f, w: down_conv_dense(f, sites, coarse, w, (8, 8, 8), 2), len(sites), 8),
+        (down.transposed(), lambda f, w: up_conv_dense(f, coarse, sites, w, (4, 4, 4), 2), len(coarse), 8),
+    ]
+    for i, (kmap, dense, rows, k_vol) in enumerate(cases):
+        plan = build_gather_plan(kmap, min_group_rows=min_group_rows, backend=backend)
+        plan_t = flip_plan(plan) if kmap.symmetric else build_gather_plan(
+            kmap.transposed(), min_group_rows=min_group_rows, backend=backend)
+        if min_group_rows == 1:
+            assert plan_t.groups
+        f, w = rand(72 + i, rows, 4), rand(76 + i, k_vol, 4, 5)
+        grad_out = rand(80 + i, kmap.num_out, 5)
+        ops = block_ops(backend, f)
+        grad_f, grad_w = plan_backward(f, grad_out, w, plan_t, ops)
+        torch.testing.assert_close(grad_f, apply_plan(grad_out, w.transpose(1, 2), plan_t, ops), atol=1e-12, rtol=0)
+        torch.testing.assert_close(grad_w, plan_weight_grad(f, grad_out, plan, ops), atol=1e-12, rtol=0)
+        # single gradients through autograd: frozen weight (input gradient only), input without gradient
+        conv = lambda a, b: gather_gemm_conv(a, b, kmap, backend, (plan, plan_t))  # noqa: E731
+        want = forward_backward(dense, f, w)
+        f_only = f.clone().requires_grad_(True)
+        (conv(f_only, w) * rand(99, kmap.num_out, 5)).sum().backward()
+        w_only = w.clone().requires_grad_(True)
+        (conv(f, w_only) * rand(99, kmap.num_out, 5)).sum().backward()
+        torch.testing.assert_close(f_only.grad, want[1], atol=1e-10, rtol=1e-10)
+        torch.testing.assert_close(w_only.grad, want[2], atol=1e-10, rtol=1e-10)
+
+
 def test_flipped_plan_of_a_submanifold_map_is_the_transposed_plan():
     sites = random_sites(44, 1, 8, 0.3)
     kmap = sites.submanifold_map(3)
