@@ -290,7 +290,8 @@ class VoxelToPointAdapter(nn.Module):
         channels per head) is one loop over the rows, forward and backward
         (``ovgaussian.model.token_attention``), instead of ``einsum``, which becomes millions of tiny batched
         matmuls plus layout copies (elementwise torch products were 1.1-1.4x less CPU than ``einsum`` per 1,000,000
-        Gaussians, ``benchmarks/results/paper_scale.md``; the row loop is measured in BENCHMARKS.md).
+        Gaussians, ``benchmarks/results/paper_scale.md``; the row loop is measured in BENCHMARKS.md). The output
+        projection ``out`` is folded into the MLP's first layer (below), so ``m`` is not formed.
         """
         n = attributes.shape[0]
         weight = torch.block_diag(*[embed.weight for embed in self.token_embed])  # [T * A_tok, A]
@@ -304,8 +305,14 @@ class VoxelToPointAdapter(nn.Module):
         kv_bias = torch.cat([torch.zeros_like(self.value.bias), self.value.bias])
         kv = torch.addmm(kv_bias, tokens.reshape(n * t, tokens.shape[2]), kv_weight.T).view(n, t, 2, h, d)
         attended = token_attention_packed(q, kv).reshape(n, h * d)  # [N, H * d]
-        m = self.out(attended)
-        return relu_mlp(self.mlp, torch.cat([m, voxel_features], dim=1)) + voxel_features
+        # The output projection folded into the MLP's first layer: W1 [m | f] with m = W_out a + b_out is
+        # (W1_m W_out) a + W1_f f + (b1 + W1_m b_out). m is never formed, and the first layer reads [a | f], 16 + 16
+        # = 32 columns: MKL's products with a 27-column side ran at half the speed of 32 (BENCHMARKS.md, session 14).
+        first, width = self.mlp[0], self.out.out_features
+        w_m = first.weight[:, :width]
+        folded = (torch.cat([w_m @ self.out.weight, first.weight[:, width:]], dim=1),
+                  torch.addmv(first.bias, w_m, self.out.bias))
+        return relu_mlp(self.mlp, torch.cat([attended, voxel_features], dim=1), first=folded) + voxel_features
 
     def forward_reference(self, voxel_features: Tensor, attributes: Tensor) -> Tensor:
         """:meth:`forward` written plainly (one embedding per group, ``einsum`` attention): the reference."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numba
 import torch
+import torch.nn.functional as F
 from numba import prange
 from torch import Tensor, nn
 
@@ -23,13 +24,20 @@ from seggaussian.render.parallel import SUM_BLOCK_ROWS, dtype_scalars, run_paral
 _JIT = dict(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 
 
-def relu_mlp(mlp: nn.Module, x: Tensor) -> Tensor:  # [N, in] -> [N, out]
-    """``mlp(x)`` for ``mlp = nn.Sequential(Linear, ReLU, ..., Linear)`` (module docstring)."""
+def relu_mlp(mlp: nn.Module, x: Tensor, first: "tuple[Tensor, Tensor] | None" = None) -> Tensor:  # [N, in] -> [N, out]
+    """``mlp(x)`` for ``mlp = nn.Sequential(Linear, ReLU, ..., Linear)`` (module docstring).
+
+    ``first``: ``(weight [hidden, in], bias [hidden])`` used in place of the first layer's own (e.g. that layer with
+    a preceding linear map folded in); gradients flow to whatever they were computed from."""
     layers = _linear_layers(mlp)
     if layers is None or x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or any(
             layer.weight.dtype != x.dtype for layer in layers):
-        return mlp(x)
+        if first is None:
+            return mlp(x)
+        return mlp[1:](F.linear(x, *first))
     params = [t for layer in layers for t in (layer.weight, layer.bias)]
+    if first is not None:
+        params[:2] = first
     return _ReluMLP.apply(x, *params)
 
 
@@ -72,7 +80,8 @@ class _ReluMLP(torch.autograd.Function):
         g = grad_out.contiguous()  # the gradient at layer i's output
         bias_grad = g.sum(0)
         for i in range(layers - 1, -1, -1):
-            grads[:0] = [g.T @ hidden[i] if need[1 + 2 * i] else None, bias_grad if need[2 + 2 * i] else None]
+            grads[:0] = [_weight_grad(g, hidden[i]) if need[1 + 2 * i] else None,
+                         bias_grad if need[2 + 2 * i] else None]
             if i > 0:  # through layer i to its input, then through that input's ReLU (its bias gradient on the way)
                 g = g @ weights[i]
                 sums = g.new_zeros(sum_blocks(g.shape[0]), g.shape[1])
@@ -81,6 +90,12 @@ class _ReluMLP(torch.autograd.Function):
                                  dtype_scalars(0, g.numpy().dtype), chunk=0)
                 bias_grad = sums.sum(0)
         return (g @ weights[0] if need[0] else None, *grads)
+
+
+def _weight_grad(g: Tensor, h: Tensor) -> Tensor:  # g [N, out], h [N, in] -> [out, in]
+    """``g^T h``, formed as ``(h^T g)^T`` when ``g`` is the narrower: MKL runs ``[rows, N] x [N, cols]`` faster with
+    the wider side as ``rows`` (32,768 rows: ``[16, N] x [N, 96]`` 1.41 ms, ``[96, N] x [N, 16]`` 0.95 ms)."""
+    return (h.T @ g).T if g.shape[1] < h.shape[1] else g.T @ h
 
 
 @numba.njit(parallel=True, **_JIT)

@@ -92,3 +92,30 @@ def test_other_layouts_run_the_sequential():
     calls.clear()
     relu_mlp(fused, x)
     assert calls == []
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float16])
+def test_first_layer_override_equals_linear_then_the_rest(dtype):
+    """``first=(w, b)`` replaces the first layer (the adapter folds its output projection into it): values and the
+    gradients of x, of the tensors w and b were computed from, and of the other layers, against
+    ``mlp[1:](F.linear(x, w, b))``; float64 takes the numba passes, float16 the Sequential fallback."""
+    mlp = _mlp((32, 96, 96, 16), torch.float64, seed=4).to(dtype)
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(300, 32, generator=g, dtype=torch.float64).to(dtype)
+    upstream = torch.randn(300, 16, generator=g, dtype=torch.float64).to(dtype)
+    fold = torch.randn(32, 32, generator=g, dtype=torch.float64).to(dtype).requires_grad_()
+
+    def run(fn):
+        leaf = x.clone().requires_grad_()
+        first = (mlp[0].weight @ fold, mlp[0].bias * 2)
+        out = fn(leaf, first)
+        return out.detach(), torch.autograd.grad((out * upstream).sum(), [leaf, fold, *mlp.parameters()])
+
+    fast = run(lambda v, first: relu_mlp(mlp, v, first=first))
+    reference = run(lambda v, first: mlp[1:](torch.nn.functional.linear(v, *first)))
+    tol = dict(rtol=1e-10, atol=1e-9) if dtype == torch.float64 else dict(rtol=0, atol=0)
+    torch.testing.assert_close(fast[0], reference[0], **tol)
+    for a, b in zip(fast[1], reference[1]):
+        torch.testing.assert_close(a, b, **(tol if dtype != torch.float64 else
+                                            dict(rtol=1e-10, atol=1e-9 * max(1.0, float(b.abs().max())))))
+    assert float(fast[1][1].abs().sum()) > 0  # the gradient reaches what the override was computed from
