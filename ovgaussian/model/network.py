@@ -300,18 +300,21 @@ class VoxelToPointAdapter(nn.Module):
         tokens = narrow_linear(attributes, weight, bias).view(n, t, weight.shape[0] // t)  # [N, T, A_tok]
         d = tokens.shape[2] // h
         q = self.query(voxel_features).view(n, h, d)  # [N, H, d]
-        # keys and values by one product: [N * T, A_tok] x [A_tok, 2 A_tok] (the key has no bias) -> [N, T, 2, H, d]
+        # keys and values by one product, both without bias: [N * T, A_tok] x [A_tok, 2 A_tok] -> [N, T, 2, H, d]. The
+        # key has none; the value's, b_v, is added after the attention: each row's weights over its tokens sum to 1,
+        # so the attended row with it is the row without it plus b_v (folded into the MLP's bias below).
         kv_weight = torch.cat([self.key.weight, self.value.weight])
-        kv_bias = torch.cat([torch.zeros_like(self.value.bias), self.value.bias])
-        kv = torch.addmm(kv_bias, tokens.reshape(n * t, tokens.shape[2]), kv_weight.T).view(n, t, 2, h, d)
-        attended = token_attention_packed(q, kv).reshape(n, h * d)  # [N, H * d]
-        # The output projection folded into the MLP's first layer: W1 [m | f] with m = W_out a + b_out is
-        # (W1_m W_out) a + W1_f f + (b1 + W1_m b_out). m is never formed, and the first layer reads [a | f], 16 + 16
-        # = 32 columns: MKL's products with a 27-column side ran at half the speed of 32 (BENCHMARKS.md, session 14).
+        kv = (tokens.reshape(n * t, tokens.shape[2]) @ kv_weight.T).view(n, t, 2, h, d)
+        attended = token_attention_packed(q, kv).reshape(n, h * d)  # [N, H * d], without b_v
+        # The output projection folded into the MLP's first layer: W1 [m | f] with m = W_out (a + b_v) + b_out is
+        # (W1_m W_out) a + W1_f f + (b1 + W1_m b_out + W1_m W_out b_v). m is never formed, and the first layer reads
+        # [a | f], 16 + 16 = 32 columns: MKL's products with a 27-column side ran at half the speed of 32
+        # (BENCHMARKS.md, session 14).
         first, width = self.mlp[0], self.out.out_features
         w_m = first.weight[:, :width]
-        folded = (torch.cat([w_m @ self.out.weight, first.weight[:, width:]], dim=1),
-                  torch.addmv(first.bias, w_m, self.out.bias))
+        w_a = w_m @ self.out.weight  # [hidden, H * d]
+        folded = (torch.cat([w_a, first.weight[:, width:]], dim=1),
+                  torch.addmv(torch.addmv(first.bias, w_m, self.out.bias), w_a, self.value.bias))
         return relu_mlp(self.mlp, torch.cat([attended, voxel_features], dim=1), first=folded) + voxel_features
 
     def forward_reference(self, voxel_features: Tensor, attributes: Tensor) -> Tensor:
