@@ -178,22 +178,32 @@ def test_gather_plan_covers_every_row_once_and_every_pair(min_group_rows, max_gr
         assert len(plan.groups) <= max_groups + 1
 
 
+def conv_cases(sites: VoxelSites, sizes: tuple[int, ...]) -> list:
+    """``(kernel map, dense reference (features, weight) -> out, input rows, kernel volume)`` for the submanifold maps
+    of ``sizes`` on ``sites`` (an 8^3 grid, 2 scenes), its down map and its up map."""
+    coarse, down = sites.downsample()
+    cases = [(sites.submanifold_map(k), lambda f, w, k=k: submanifold_conv_dense(f, sites, w, k, (8, 8, 8), 2),
+              len(sites), k**3) for k in sizes]
+    return cases + [
+        (down, lambda f, w: down_conv_dense(f, sites, coarse, w, (8, 8, 8), 2), len(sites), 8),
+        (down.transposed(), lambda f, w: up_conv_dense(f, coarse, sites, w, (4, 4, 4), 2), len(coarse), 8),
+    ]
+
+
+def forced_plans(kmap: KernelMap, min_group_rows: int, backend: str):
+    """``(plan, transposed plan)`` of ``kmap`` with groups from ``min_group_rows`` rows."""
+    plan = build_gather_plan(kmap, min_group_rows=min_group_rows, backend=backend)
+    plan_t = flip_plan(plan) if kmap.symmetric else build_gather_plan(
+        kmap.transposed(), min_group_rows=min_group_rows, backend=backend)
+    return plan, plan_t
+
+
 @pytest.mark.parametrize("backend", ["numba", "torch"])
 @pytest.mark.parametrize("min_group_rows", [1, 3, 10**9])
 def test_gemm_with_forced_groupings_matches_dense_float64(min_group_rows, backend):
     """Groups only, groups + residual, residual only: all equal dense conv3d (forward and backward)."""
-    sites = random_sites(54, 2, 8, 0.3)
-    coarse, down = sites.downsample()
-    cases = [
-        (sites.submanifold_map(3), lambda f, w: submanifold_conv_dense(f, sites, w, 3, (8, 8, 8), 2), len(sites), 27),
-        (sites.submanifold_map(5), lambda f, w: submanifold_conv_dense(f, sites, w, 5, (8, 8, 8), 2), len(sites), 125),
-        (down, lambda f, w: down_conv_dense(f, sites, coarse, w, (8, 8, 8), 2), len(sites), 8),
-        (down.transposed(), lambda f, w: up_conv_dense(f, coarse, sites, w, (4, 4, 4), 2), len(coarse), 8),
-    ]
-    for i, (kmap, dense, rows, k_vol) in enumerate(cases):
-        plan = build_gather_plan(kmap, min_group_rows=min_group_rows, backend=backend)
-        plan_t = flip_plan(plan) if kmap.symmetric else build_gather_plan(
-            kmap.transposed(), min_group_rows=min_group_rows, backend=backend)
+    for i, (kmap, dense, rows, k_vol) in enumerate(conv_cases(random_sites(54, 2, 8, 0.3), (3, 5))):
+        plan, plan_t = forced_plans(kmap, min_group_rows, backend)
         if min_group_rows == 1:
             assert plan.groups and plan_t.groups
         f, w = rand(55 + i, rows, 3), rand(60 + i, k_vol, 3, 2)
@@ -211,17 +221,8 @@ def test_one_pass_backward_equals_the_two_separate_gradients(min_group_rows, bac
     is needed), on a submanifold map and on down and up maps; and each single-gradient path against dense."""
     from ovgaussian.sparse.gather_gemm import apply_plan, block_ops, plan_backward, plan_weight_grad
 
-    sites = random_sites(71, 2, 8, 0.35)
-    coarse, down = sites.downsample()
-    cases = [
-        (sites.submanifold_map(3), lambda f, w: submanifold_conv_dense(f, sites, w, 3, (8, 8, 8), 2), len(sites), 27),
-        (down, lambda f, w: down_conv_dense(f, sites, coarse, w, (8, 8, 8), 2), len(sites), 8),
-        (down.transposed(), lambda f, w: up_conv_dense(f, coarse, sites, w, (4, 4, 4), 2), len(coarse), 8),
-    ]
-    for i, (kmap, dense, rows, k_vol) in enumerate(cases):
-        plan = build_gather_plan(kmap, min_group_rows=min_group_rows, backend=backend)
-        plan_t = flip_plan(plan) if kmap.symmetric else build_gather_plan(
-            kmap.transposed(), min_group_rows=min_group_rows, backend=backend)
+    for i, (kmap, dense, rows, k_vol) in enumerate(conv_cases(random_sites(71, 2, 8, 0.35), (3,))):
+        plan, plan_t = forced_plans(kmap, min_group_rows, backend)
         if min_group_rows == 1:
             assert plan_t.groups
         f, w = rand(72 + i, rows, 4), rand(76 + i, k_vol, 4, 5)
