@@ -99,7 +99,7 @@ def surface_sites_256(num_voxels: int, seed: int):
 
 def bench_conv(reps: int, distribution: str, num_voxels: int = 100_000, channels: int = 32, layers: int = 3) -> dict:
     from ovgaussian.sparse import VoxelSites, sparse_conv
-    from ovgaussian.sparse.gather_gemm import build_gather_plan, gather_plans
+    from ovgaussian.sparse.gather_plan import build_gather_plan, gather_plans
     from ovgaussian.sparse.kernel_map import build_submanifold_map
 
     sites = (random_sites_256 if distribution == "uniform" else surface_sites_256)(num_voxels, 0)

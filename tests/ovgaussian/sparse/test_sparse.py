@@ -11,7 +11,8 @@ from ovgaussian.sparse import (
     voxelize_points,
 )
 from ovgaussian.sparse.conv import sparse_conv_autograd
-from ovgaussian.sparse.gather_gemm import build_gather_plan, flip_plan, gather_gemm_conv, gather_plans
+from ovgaussian.sparse.gather_gemm import gather_gemm_conv
+from ovgaussian.sparse.gather_plan import build_gather_plan, flip_plan, gather_plans
 from ovgaussian.sparse.kernel_map import KernelMap, build_submanifold_map
 from ovgaussian.sparse.reference import (
     down_conv_dense, naive_submanifold_pairs, submanifold_conv_dense, up_conv_dense,
