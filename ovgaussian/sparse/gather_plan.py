@@ -1,4 +1,4 @@
-"""Plans of the implicit-GEMM sparse convolution (``gather_gemm``): a kernel map's output rows grouped by neighbour pattern.
+"""Plans of the implicit-GEMM sparse conv (``gather_gemm``): a kernel map's output rows grouped by neighbour pattern.
 
 For a kernel map in which every output row has at most one input per kernel offset (submanifold,
 stride-2 down and transposed up convs), the ``[num_out, K]`` neighbour table ``nbr`` (input row per
