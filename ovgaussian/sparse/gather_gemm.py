@@ -102,9 +102,20 @@ def apply_plan(features: Tensor, weight: Tensor, plan: GatherPlan, ops: _BlockOp
 
     ``features [num_in, C_in]`` contiguous, no autograd (called inside the autograd Function).
     """
+    return _apply_plan(features, weight, plan, ops, None)[0]
+
+
+def _apply_plan(
+    features: Tensor, weight: Tensor, plan: GatherPlan, ops: _BlockOps, out_rows_of: Tensor | None
+) -> tuple[Tensor, Tensor | None]:
+    """:func:`apply_plan`, and with ``out_rows_of [num_out, C]`` also ``sums [K, C_in, C]``: per offset ``k``, the sum
+    over its pairs ``(in j, out i)`` of ``features[j]^T out_rows_of[i]``, from the same gathered blocks."""
     c_in, c_out = weight.shape[1], weight.shape[2]
+    sums = None if out_rows_of is None else features.new_zeros(plan.kernel_volume, c_in, out_rows_of.shape[1])
     if plan.identity_offset >= 0:
         out = features @ weight[plan.identity_offset]
+        if sums is not None:
+            torch.mm(features.t(), out_rows_of, out=sums[plan.identity_offset])
     else:
         out = features.new_zeros(plan.num_out, c_out)
     for group in plan.groups:
@@ -116,15 +127,25 @@ def apply_plan(features: Tensor, weight: Tensor, plan: GatherPlan, ops: _BlockOp
         n = group.rows.numel()
         cols_buf = features.new_empty(min(step, n), p * c_in)
         prod_buf = features.new_empty(min(step, n), c_out)
+        if sums is not None:
+            acc = features.new_zeros(p * c_in, out_rows_of.shape[1])  # block q: sums[offsets[q]]
+            rows_buf = out_rows_of.new_empty(min(step, n), out_rows_of.shape[1])
         for s in range(0, n, step):
             e = min(s + step, n)
             cols = ops.gather_neighbours(features, group.neighbours[s:e], cols_buf[: e - s])
             ops.add_rows(out, group.rows[s:e], torch.mm(cols, stacked, out=prod_buf[: e - s]))
+            if sums is not None:
+                acc.addmm_(cols.t(), ops.gather_rows(out_rows_of, group.rows[s:e], rows_buf[: e - s]))
+        if sums is not None:
+            sums.index_add_(0, group.offsets, acc.view(p, c_in, -1))
     for k, (in_rows, out_rows) in enumerate(zip(plan.residual_in, plan.residual_out)):
         if in_rows.numel():
             x = ops.gather_rows(features, in_rows, features.new_empty(in_rows.numel(), c_in))
             ops.add_rows(out, out_rows, x @ weight[k])
-    return out
+            if sums is not None:
+                sums[k].addmm_(x.t(), ops.gather_rows(out_rows_of, out_rows, out_rows_of.new_empty(out_rows.numel(),
+                                                                                                  out_rows_of.shape[1])))
+    return out, sums
 
 
 def plan_weight_grad(features: Tensor, grad_out: Tensor, plan: GatherPlan, ops: _BlockOps) -> Tensor:
@@ -167,38 +188,8 @@ def plan_backward(
     its offsets' weight gradients. The weight gradient then gathers ``features[rows]`` (rows increasing: about
     sequential) instead of the forward's im2col of ``features`` again.
     """
-    c_in, c_out = weight.shape[1], weight.shape[2]
-    weight_t = weight.transpose(1, 2)  # [K, C_out, C_in]
-    grad_weight = features.new_zeros(plan_t.kernel_volume, c_in, c_out)
-    if plan_t.identity_offset >= 0:
-        grad_features = grad_out @ weight_t[plan_t.identity_offset]
-        torch.mm(features.t(), grad_out, out=grad_weight[plan_t.identity_offset])
-    else:
-        grad_features = grad_out.new_zeros(plan_t.num_out, c_in)
-    for group in plan_t.groups:
-        p = group.offsets.numel()
-        if p == 0:
-            continue
-        stacked = weight_t.index_select(0, group.offsets).reshape(p * c_out, c_in)
-        step = _block_rows(p * c_out)
-        n = group.rows.numel()
-        acc = features.new_zeros(p * c_out, c_in)  # [P * C_out, C_in]: grad_w[offsets[q]]^T in block q
-        cols_buf = grad_out.new_empty(min(step, n), p * c_out)
-        prod_buf = grad_out.new_empty(min(step, n), c_in)
-        x_buf = features.new_empty(min(step, n), c_in)
-        for s in range(0, n, step):
-            e = min(s + step, n)
-            cols = ops.gather_neighbours(grad_out, group.neighbours[s:e], cols_buf[: e - s])
-            ops.add_rows(grad_features, group.rows[s:e], torch.mm(cols, stacked, out=prod_buf[: e - s]))
-            acc.addmm_(cols.t(), ops.gather_rows(features, group.rows[s:e], x_buf[: e - s]))
-        grad_weight.index_add_(0, group.offsets, acc.view(p, c_out, c_in).transpose(1, 2))
-    for k, (in_rows, out_rows) in enumerate(zip(plan_t.residual_in, plan_t.residual_out)):
-        if in_rows.numel():
-            g = ops.gather_rows(grad_out, in_rows, grad_out.new_empty(in_rows.numel(), c_out))
-            ops.add_rows(grad_features, out_rows, g @ weight_t[k])
-            x = ops.gather_rows(features, out_rows, features.new_empty(out_rows.numel(), c_in))
-            grad_weight[k].addmm_(x.t(), g)
-    return grad_features, grad_weight
+    grad_features, grad_weight_t = _apply_plan(grad_out, weight.transpose(1, 2), plan_t, ops, features)
+    return grad_features, grad_weight_t.transpose(1, 2).contiguous()
 
 
 class _GatherGemmFunction(torch.autograd.Function):
