@@ -24,6 +24,8 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "gaussians", "--gaussians", type=click.IntRange(min=1), default=D.gaussians,
                show_default=True)
 @config_option(SuiteConfig, "epochs", "--epochs", type=click.IntRange(min=1), default=D.epochs, show_default=True)
+@config_option(SuiteConfig, "lovasz_weight", "--lovasz-weight", type=click.FloatRange(min=0), default=D.lovasz_weight,
+               show_default=True)
 @config_option(SuiteConfig, "loss_gaussians", "--loss-gaussians", type=click.IntRange(min=0), default=D.loss_gaussians or 0,
                show_default=True)
 @config_option(SuiteConfig, "max_views", "--max-views", type=click.IntRange(min=1), default=D.max_views,
@@ -34,11 +36,12 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "progress", "--progress/--no-progress", default=D.progress, show_default=True)
 @json_option
 @guarded
-def command(out, scenes, replica_scenes, splats, gaussians, epochs, loss_gaussians, max_views, ablation, jobs, seed, progress, as_json):
+def command(out, scenes, replica_scenes, splats, gaussians, epochs, lovasz_weight, loss_gaussians, max_views, ablation, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
     from ovgaussian.suite.profile import run_suite
 
     config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, splats=splats, gaussians=gaussians, epochs=epochs,
+                         lovasz_weight=lovasz_weight,
                          loss_gaussians=loss_gaussians or None, max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)
     report = run_suite(config, log=(lambda m: click.echo(m, err=True)) if progress and not as_json else None)
     passed = sum(ok for ok, _ in report.checks.values())

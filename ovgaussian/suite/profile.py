@@ -205,7 +205,8 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
                         holdout_classes=spec.holdout_classes, loss_gaussians=config.loss_gaussians,
                         scene_cache_size=config.scene_cache_size),
         loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
-                        class_balance=config.class_balance, unlabelled_as_unseen=spec.unlabelled_as_unseen),
+                        class_balance=config.class_balance, lovasz_weight=config.lovasz_weight,
+                        unlabelled_as_unseen=spec.unlabelled_as_unseen),
         optim=OptimConfig(lr=config.lr),
     )
 
@@ -449,6 +450,8 @@ def format_checks(result: dict) -> str:
 SETTINGS_NAME = "suite-settings.json"
 #: SuiteConfig fields that change no result: where it is written, the progress display, processes at a time.
 SETTINGS_IGNORED = ("out", "progress", "jobs")
+#: SuiteConfig fields added after profile folders were first made, with the value every folder made before had.
+SETTINGS_ADDED = {"lovasz_weight": 0.0}
 
 
 def check_settings(config: SuiteConfig) -> None:
@@ -460,7 +463,7 @@ def check_settings(config: SuiteConfig) -> None:
     if not path.is_file():
         write_json_atomic(path, settings)
         return
-    before = json.loads(path.read_text())
+    before = {**SETTINGS_ADDED, **json.loads(path.read_text())}
     changed = [f"{k} {before.get(k)!r} -> {settings.get(k)!r}" for k in sorted(set(before) | set(settings))
                if before.get(k) != settings.get(k)]
     if changed:

@@ -113,6 +113,9 @@ def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
     assert {c.data.scene_cache_size for c in configs.values()} == {config.scene_cache_size}
     subset = SuiteConfig(out=Path("/tmp/profile"), loss_gaussians=2048)
     assert {S.train_config(subset, spec, Path("/tmp/d")).data.loss_gaussians for spec in RUNS} == {2048}
+    assert {c.loss.lovasz_weight for c in configs.values()} == {config.lovasz_weight}
+    lovasz = SuiteConfig(out=Path("/tmp/profile"), lovasz_weight=0.5)
+    assert {S.train_config(lovasz, spec, Path("/tmp/d")).loss.lovasz_weight for spec in RUNS} == {0.5}
 
 
 def test_bench_suite_cli_maps_loss_gaussians_0_to_every_gaussian(monkeypatch, tmp_path):
@@ -131,6 +134,8 @@ def test_bench_suite_cli_maps_loss_gaussians_0_to_every_gaussian(monkeypatch, tm
                            (["--loss-gaussians", "512"], 512)):
         CliRunner().invoke(command, ["--out", str(tmp_path), *args])
         assert seen.pop().loss_gaussians == expected
+    CliRunner().invoke(command, ["--out", str(tmp_path), "--lovasz-weight", "0.25"])
+    assert seen.pop().lovasz_weight == 0.25
 
 
 def test_calibrated_stacking_row_uses_the_calibration_run_and_is_checked_for_ova():
@@ -200,6 +205,12 @@ def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
         check_settings(replace(config, replica_scenes=8))
     with pytest.raises(ValueError, match="class_balance"):
         check_settings(replace(config, class_balance=0.5))
+    # a folder recorded before a setting existed was made with that setting's value of the time, and only with it
+    older = {k: v for k, v in recorded.items() if k != "lovasz_weight"}
+    (tmp_path / SETTINGS_NAME).write_text(json.dumps(older))
+    check_settings(replace(config, lovasz_weight=0.0))
+    with pytest.raises(ValueError, match=r"lovasz_weight 0\.0 -> 1\.0"):
+        check_settings(replace(config, lovasz_weight=1.0))
 
 
 def test_a_rerun_keeps_the_times_of_the_invocations_before_it(tmp_path):
