@@ -152,9 +152,9 @@ class SuiteConfig:
     """Oracle Gaussians sampled per room (the oracle dataset: the control row, or everything with
     ``splats="oracle"``)."""
     epochs: int = 45
-    """Epochs of every run (45 x 15 steps of 3 rooms; one schedule for all runs). 45 instead of 30 raised the full
-    run and its oracle control alike (3D CSA 25.3 -> 28.7 and 32.8 -> 37.0, seed 1), and the profile still runs
-    from nothing within 60 minutes on 2 cores (BENCHMARKS.md, "Session 15")."""
+    """Epochs of every run (45 x 15 steps of 3 rooms; one schedule for all runs). With it the whole profile, the 72
+    room fits included, runs from nothing within 60 minutes on 2 cores; what 45 buys against 30 is in BENCHMARKS.md,
+    "Session 15"."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
@@ -181,10 +181,9 @@ class SuiteConfig:
     val 3D IoU): 0.5 -> 0.75 raises box 4.3 -> 18.8, monitor 6.5 -> 15.1, chair 22.3 -> 25.5 at the same 3D CSA
     (31.1 -> 31.3); 1.0 collapses window into window frame (window IoU 0, 3D CSA 25.5)."""
     lovasz_weight: float = 1.0
-    """Weight of the Lovasz-softmax term of the 3D-to-text loss of every run (``LossConfig.lovasz_weight``), beside
-    the cross-entropy with weight 1, as Pointcept's PTv3 configs for ScanNet train: the 3D IoU counts
-    Gaussians, and a fit gives boundaries many of them. It raised the fitted run more than its oracle control
-    (seed 1, 45 epochs: 3D CSA 28.7 -> 31.3 and 37.0 -> 37.3; BENCHMARKS.md, "Session 15"). 0: cross-entropy only."""
+    """Weight of the Lovasz-softmax term (an IoU surrogate) of the 3D-to-text loss of every run
+    (``LossConfig.lovasz_weight``), beside the cross-entropy of weight 1, as Pointcept's PTv3 configs for ScanNet
+    train; 0: cross-entropy only. Its effect on fitted splats and on the oracle control: BENCHMARKS.md, "Session 15"."""
     num_classes: int = 20
     """Vocabulary size K."""
     max_views: int = 4
