@@ -111,7 +111,8 @@ def _apply_plan(
     """:func:`apply_plan`, and with ``out_rows_of [num_out, C]`` also ``sums [K, C_in, C]``: per offset ``k``, the sum
     over its pairs ``(in j, out i)`` of ``features[j]^T out_rows_of[i]``, from the same gathered blocks."""
     c_in, c_out = weight.shape[1], weight.shape[2]
-    sums = None if out_rows_of is None else features.new_zeros(plan.kernel_volume, c_in, out_rows_of.shape[1])
+    c_sum = 0 if out_rows_of is None else out_rows_of.shape[1]
+    sums = None if out_rows_of is None else features.new_zeros(plan.kernel_volume, c_in, c_sum)
     if plan.identity_offset >= 0:
         out = features @ weight[plan.identity_offset]
         if sums is not None:
@@ -128,8 +129,8 @@ def _apply_plan(
         cols_buf = features.new_empty(min(step, n), p * c_in)
         prod_buf = features.new_empty(min(step, n), c_out)
         if sums is not None:
-            acc = features.new_zeros(p * c_in, out_rows_of.shape[1])  # block q: sums[offsets[q]]
-            rows_buf = out_rows_of.new_empty(min(step, n), out_rows_of.shape[1])
+            acc = features.new_zeros(p * c_in, c_sum)  # block q: sums[offsets[q]]
+            rows_buf = out_rows_of.new_empty(min(step, n), c_sum)
         for s in range(0, n, step):
             e = min(s + step, n)
             cols = ops.gather_neighbours(features, group.neighbours[s:e], cols_buf[: e - s])
@@ -137,14 +138,14 @@ def _apply_plan(
             if sums is not None:
                 acc.addmm_(cols.t(), ops.gather_rows(out_rows_of, group.rows[s:e], rows_buf[: e - s]))
         if sums is not None:
-            sums.index_add_(0, group.offsets, acc.view(p, c_in, -1))
+            sums.index_add_(0, group.offsets, acc.view(p, c_in, c_sum))
     for k, (in_rows, out_rows) in enumerate(zip(plan.residual_in, plan.residual_out)):
         if in_rows.numel():
             x = ops.gather_rows(features, in_rows, features.new_empty(in_rows.numel(), c_in))
             ops.add_rows(out, out_rows, x @ weight[k])
             if sums is not None:
-                sums[k].addmm_(x.t(), ops.gather_rows(out_rows_of, out_rows, out_rows_of.new_empty(out_rows.numel(),
-                                                                                                  out_rows_of.shape[1])))
+                y = ops.gather_rows(out_rows_of, out_rows, out_rows_of.new_empty(out_rows.numel(), c_sum))
+                sums[k].addmm_(x.t(), y)
     return out, sums
 
 

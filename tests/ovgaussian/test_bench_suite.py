@@ -118,7 +118,7 @@ def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
     assert {S.train_config(lovasz, spec, Path("/tmp/d")).loss.lovasz_weight for spec in RUNS} == {0.5}
 
 
-def test_bench_suite_cli_maps_loss_gaussians_0_to_every_gaussian(monkeypatch, tmp_path):
+def test_bench_suite_cli_maps_its_options_loss_gaussians_0_to_every_gaussian_and_lovasz_weight(monkeypatch, tmp_path):
     from click.testing import CliRunner
 
     from cli.ov_bench_suite import command
