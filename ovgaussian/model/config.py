@@ -44,6 +44,10 @@ class OVGaussianNetConfig:
     pool_weighting: Literal["mean", "opacity"] = "opacity"
     """How a voxel's input features are pooled from its Gaussians: ``mean`` (each Gaussian counts once) or
     ``opacity`` (weighted by opacity, so the faint Gaussians a fit leaves everywhere count little)."""
+    devoxelize: Literal["nearest", "trilinear"] = "nearest"
+    """How a Gaussian reads the backbone's voxel features: ``nearest`` (its own voxel's row: every Gaussian of a voxel
+    gets the same) or ``trilinear`` (a blend of the occupied voxels whose centres surround it, weighted by its
+    position: ``ovgaussian.sparse.devoxelize``)."""
     semantic_width: int = 16
     """Width of the per-Gaussian semantic vector s (paper: 16); also the backbone's output width."""
     use_adapter: bool = True
@@ -74,6 +78,8 @@ class OVGaussianNetConfig:
             raise ValueError(f"input_encoding must be 'raw' or 'robust', got {self.input_encoding!r}")
         if self.pool_weighting not in ("mean", "opacity"):
             raise ValueError(f"pool_weighting must be 'mean' or 'opacity', got {self.pool_weighting!r}")
+        if self.devoxelize not in ("nearest", "trilinear"):
+            raise ValueError(f"devoxelize must be 'nearest' or 'trilinear', got {self.devoxelize!r}")
         if self.adapter_attention_width % self.adapter_heads:
             raise ValueError("adapter_attention_width must be divisible by adapter_heads")
 
@@ -92,4 +98,4 @@ class OVGaussianNetConfig:
 
 #: Values of the fields added after runs were first saved, for a run folder whose config lacks them: such a run
 #: was trained with these behaviours (``ovgaussian.run.checkpoint`` loads it with them, not with today's defaults).
-LEGACY_FIELD_VALUES = {"input_encoding": "raw", "pool_weighting": "mean"}
+LEGACY_FIELD_VALUES = {"input_encoding": "raw", "pool_weighting": "mean", "devoxelize": "nearest"}

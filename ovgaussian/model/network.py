@@ -38,6 +38,7 @@ from ovgaussian.model.token_attention import token_attention_packed
 from ovgaussian.sparse import (
     DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxelize_points,
 )
+from ovgaussian.sparse.devoxelize import PointGather, trilinear_gather
 from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX, QUAT_NORM_EPS, SH_C0
 
 #: Attribute groups of :func:`gaussian_attributes`, in column order (name, width).
@@ -388,13 +389,18 @@ class OVGaussianNet(nn.Module):
             return None
         return attributes[:, 3].detach().clamp_min(POOL_MIN_WEIGHT)
 
-    def voxel_stage(self, means: Tensor, attributes: Tensor, batch_index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The stage before the per-Gaussian one: ``(voxel_features [M, S], point_to_voxel [N], network inputs
-        [N, A])`` (inputs checked and encoded, voxelized, the sparse U-Net)."""
+    def voxel_stage(self, means: Tensor, attributes: Tensor, batch_index: Tensor) -> tuple[Tensor, PointGather, Tensor]:
+        """The stage before the per-Gaussian one: ``(voxel_features [M, S], the Gaussians' PointGather (rows
+        [N, K]), network inputs [N, A])`` (inputs checked and encoded, voxelized, the sparse U-Net; the gather is
+        ``config.devoxelize``'s)."""
         attributes = self.prepare_inputs(means, attributes, batch_index)
         vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
                               weights=self.pool_weights(attributes))
-        return self.backbone(vox.voxels), vox.point_to_voxel, attributes
+        if self.config.devoxelize == "trilinear":
+            point_gather = trilinear_gather(vox.voxels.sites.keys, vox.point_to_voxel, vox.point_offsets)
+        else:
+            point_gather = PointGather.nearest(vox.point_to_voxel)
+        return self.backbone(vox.voxels), point_gather, attributes
 
     def forward(
         self,
@@ -405,10 +411,10 @@ class OVGaussianNet(nn.Module):
     ) -> Tensor:
         """Semantic vectors ``[N, semantic_width]`` (``[R, semantic_width]`` of ``rows``, in their order: the
         voxels still pool every Gaussian, only the per-Gaussian stage is restricted)."""
-        voxel_features, point_to_voxel, attributes = self.voxel_stage(means, attributes, batch_index)
+        voxel_features, point_gather, attributes = self.voxel_stage(means, attributes, batch_index)
         if rows is not None:
-            point_to_voxel, attributes = point_to_voxel[rows], attributes[rows]
-        per_gaussian = voxel_features[point_to_voxel]  # [N or R, S]
+            point_gather, attributes = point_gather.take(rows), attributes[rows]
+        per_gaussian = point_gather.gather(voxel_features)  # [N or R, S]
         if self.config.use_adapter:
             return torch.cat(checkpointed_rows(self.adapter, per_gaussian, attributes), dim=0)
         return self.point_head(per_gaussian)

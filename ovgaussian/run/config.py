@@ -161,6 +161,10 @@ class TrainConfig:
     pool_weighting: Literal["mean", "opacity"] = "opacity"
     """Pooling of Gaussians into a voxel: weighted by ``opacity`` (faint Gaussians count little) or a plain
     ``mean``."""
+    devoxelize: Literal["nearest", "trilinear"] = "nearest"
+    """How a Gaussian reads the voxel features: its own voxel's (``nearest``: all Gaussians of a voxel alike) or a
+    ``trilinear`` blend of the occupied voxels around it, by its position (Gaussians at a boundary lean to the side
+    they lie on)."""
     progress: bool = True
     """Show a tqdm progress bar with the running losses."""
     keep_checkpoints: int = 2

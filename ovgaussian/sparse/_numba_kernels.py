@@ -1,4 +1,5 @@
-"""Numba kernels of the sparse conv: kernel-map merge join, row gather / scatter-add, GEMM-plan building (all serial)."""
+"""Numba kernels of the sparse conv (kernel-map merge join, row gather / scatter-add, GEMM-plan building) and of the
+trilinear devoxelization (corners, blend, its transpose); all serial."""
 
 from __future__ import annotations
 
@@ -161,3 +162,89 @@ def residual_pairs(table, group_of_row, group_bits, num_in):  # pragma: no cover
                 out_rows[fill[k]] = r
                 fill[k] += 1
     return in_rows, out_rows, counts
+
+
+@numba.njit(cache=True, nogil=True)
+def neighbour_table(keys, deltas):  # pragma: no cover - compiled
+    """``[M, D]`` row of the site at ``keys[i] + deltas[d]``, or -1; keys strictly increasing (a merge walk per delta,
+    as :func:`merge_pairs`)."""
+    m = keys.shape[0]
+    table = np.full((m, deltas.shape[0]), -1, np.int64)
+    for d in range(deltas.shape[0]):
+        j = 0
+        for i in range(m):
+            q = keys[i] + deltas[d]
+            while j < m and keys[j] < q:
+                j += 1
+            if j == m:
+                break
+            if keys[j] == q:
+                table[i, d] = j
+    return table
+
+
+@numba.njit(cache=True, nogil=True)
+def trilinear_corners(table, rows, offsets, out_rows, out_weights) -> None:  # pragma: no cover - compiled
+    """Trilinear corners of points in their voxels (``ovgaussian.sparse.devoxelize.trilinear_gather``).
+
+    Point ``i`` lies in voxel ``rows[i]`` at ``offsets[i]`` (voxel edges, centre 0.5); ``table`` is the
+    :func:`neighbour_table` of the voxels for the 27 offsets ``(dx, dy, dz)`` in ``{-1, 0, 1}^3``, column
+    ``9 (dx + 1) + 3 (dy + 1) + dz + 1``. Corner ``k`` has bits ``(x, y, z) = (k >> 2 & 1, k >> 1 & 1, k & 1)``: 1
+    takes the neighbour on the point's side of the centre along that axis. A corner that is not occupied gets the own
+    row and weight 0; the others the product of ``1 - |offset - 0.5|`` (own side) and ``|offset - 0.5|``
+    (neighbour), all normalized to sum 1 per point.
+    """
+    side = np.empty(3, np.int64)
+    share = np.empty(3, np.float64)
+    weights = np.empty(8, np.float64)
+    for i in range(rows.shape[0]):
+        own_row = rows[i]
+        for a in range(3):
+            centred = np.float64(offsets[i, a]) - 0.5
+            side[a] = -1 if centred < 0 else 1
+            share[a] = min(abs(centred), 0.5)
+        total = 0.0
+        for k in range(8):
+            weight = 1.0
+            column = 13  # (0, 0, 0)
+            for a in range(3):
+                if (k >> (2 - a)) & 1:
+                    weight *= share[a]
+                    column += side[a] * (9, 3, 1)[a]
+                else:
+                    weight *= 1.0 - share[a]
+            row = table[own_row, column]
+            if row < 0:
+                row = own_row
+                weight = 0.0
+            out_rows[i, k] = row
+            weights[k] = weight
+            total += weight
+        for k in range(8):
+            out_weights[i, k] = weights[k] / total
+
+
+@numba.njit(cache=True, nogil=True)
+def blend_rows(x, rows, weights, out) -> None:  # pragma: no cover - compiled
+    """``out[i] = sum_k weights[i, k] * x[rows[i, k]]``."""
+    for i in range(rows.shape[0]):
+        for c in range(x.shape[1]):
+            out[i, c] = 0.0
+        for k in range(rows.shape[1]):
+            r = rows[i, k]
+            w = weights[i, k]
+            if w != 0.0:
+                for c in range(x.shape[1]):
+                    out[i, c] += w * x[r, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def blend_scatter(out, rows, weights, y) -> None:  # pragma: no cover - compiled
+    """``out[rows[i, k]] += weights[i, k] * y[i]`` in increasing ``(i, k)`` (serial: deterministic)."""
+    for i in range(rows.shape[0]):
+        for k in range(rows.shape[1]):
+            r = rows[i, k]
+            w = weights[i, k]
+            if w != 0.0:
+                for c in range(y.shape[1]):
+                    out[r, c] += w * y[i, c]

@@ -1,4 +1,5 @@
-"""Slow, obviously-correct references for the sparse convolutions (used by tests and benchmarks).
+"""Slow, obviously-correct references for the sparse convolutions and the trilinear devoxelization (tests,
+benchmarks).
 
 Dense: scatter the sparse features into a ``[B, C, X, Y, Z]`` grid, run ``torch.nn.functional.conv3d``
 / ``conv_transpose3d``, and read the result back at the output sites. Naive: kernel maps from a
@@ -73,3 +74,30 @@ def naive_submanifold_pairs(sites: VoxelSites, kernel_size: int) -> set[tuple[in
             if in_row is not None:
                 pairs.add((k, in_row, out_row))
     return pairs
+
+
+def trilinear_gather_reference(
+    voxel_coords: Tensor,  # [M, 3] int coordinates of the occupied voxels
+    voxel_batch: Tensor,  # [M] scene of each voxel
+    points: Tensor,  # [N, 3] positions
+    point_batch: Tensor,  # [N] scene of each point
+    voxel_size: Tensor,  # [B] voxel edge per scene
+    origin: Tensor,  # [B, 3] corner of voxel (0, 0, 0) per scene
+) -> Tensor:  # [N, M] float64 weights
+    """Slow, obviously-correct trilinear weights, as a dense ``[N, M]`` matrix: for each point, every occupied voxel
+    whose centre lies within one voxel edge on each axis gets the product of ``1 - |distance| / edge`` over the axes;
+    each row is normalized to sum to 1. Written from positions, not from :func:`ovgaussian.sparse.devoxelize.trilinear_gather`'s offsets."""
+    n, m = points.shape[0], voxel_coords.shape[0]
+    out = torch.zeros(n, m, dtype=torch.float64)
+    for i in range(n):
+        b = int(point_batch[i])
+        edge = float(voxel_size[b])
+        for j in range(m):
+            if int(voxel_batch[j]) != b:
+                continue
+            centre = origin[b].double() + (voxel_coords[j].double() + 0.5) * edge
+            gap = (points[i].double() - centre).abs() / edge
+            if bool((gap < 1.0).all()):
+                out[i, j] = float(torch.prod(1.0 - gap))
+        out[i] /= out[i].sum()
+    return out

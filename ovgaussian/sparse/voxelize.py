@@ -97,12 +97,15 @@ class Voxelization(NamedTuple):
         point_to_voxel: ``[N]`` int64 row of each point's voxel in ``voxels.features``.
         voxel_size: ``[B]`` voxel edge (metres) used for each scene.
         origin: ``[B, 3]`` world position of voxel ``(0, 0, 0)``'s corner for each scene.
+        point_offsets: ``[N, 3]`` each point's position inside its voxel, ``(p - voxel corner) / voxel edge`` in
+            [0, 1], from the float64 positions the voxel was chosen from (``ovgaussian.sparse.devoxelize``).
     """
 
     voxels: SparseVoxels
     point_to_voxel: Tensor
     voxel_size: Tensor
     origin: Tensor
+    point_offsets: Tensor
 
 
 def voxelize_points(
@@ -147,8 +150,10 @@ def voxelize_points(
     hi = hi.scatter_reduce(0, idx3, pts, reduce="amax")
     extent = (hi - lo).clamp_min(0).amax(dim=1)  # [B]
     sizes = torch.maximum(torch.full_like(extent, voxel_size), extent / max(max_grid_extent - 1, 1))
-    coords = torch.floor((pts - lo[batch_index]) / sizes[batch_index, None]).long()
+    scaled = (pts - lo[batch_index]) / sizes[batch_index, None]
+    coords = torch.floor(scaled).long()
     coords = coords.clamp_(0, max_grid_extent - 1)  # the scene maximum lands exactly on the cap
+    offsets = (scaled - coords).clamp_(0.0, 1.0).float()
     sites, inverse = VoxelSites.from_coords(batch_index, coords)
     m = len(sites)
     if weights is None:
@@ -162,4 +167,4 @@ def voxelize_points(
         pooled = features.new_zeros(m, features.shape[1]).index_add_(0, inverse, features * w[:, None])
         totals = features.new_zeros(m).index_add_(0, inverse, w)
         pooled = pooled / totals[:, None]
-    return Voxelization(SparseVoxels(pooled, sites), inverse, sizes.float(), lo.float())
+    return Voxelization(SparseVoxels(pooled, sites), inverse, sizes.float(), lo.float(), offsets)

@@ -10,7 +10,8 @@ parameters right away (as ``ovgaussian.train.eager_rows`` does for the loss alon
 - the loss sums' part is the stored gradients times each scene's incoming scalar (exact: linear);
 - the semantic vectors' part (the 2D losses, through ``M = W S``) reaches only the rows that contribute to a sampled
   pixel: the adapter is recomputed with its graph for those rows alone (a few percent of a scene's Gaussians);
-- both land on the voxel features through the gather of the Gaussians' voxels (an index-add), and on the parameters.
+- both land on the voxel features through the transpose of the Gaussians' gather (``PointGather.scatter``: an
+  index-add per corner), and on the parameters.
 
 Every adapter forward over all rows happens once, and its backward once; the recomputation covers the rendered
 rows only. With ``rows`` (``step_losses.term_rows``: the labelled Gaussians and the rendered ones) the per-Gaussian
@@ -28,6 +29,7 @@ import torch
 from torch import Tensor
 
 from ovgaussian.model import network as model
+from ovgaussian.sparse.devoxelize import PointGather
 from ovgaussian.train.eager_rows import accumulate, gradients
 
 
@@ -59,11 +61,11 @@ def semantic_with_row_loss(
     chunk_rows = model.CHECKPOINT_ROWS if chunk_rows is None else int(chunk_rows)
     if chunk_rows < 1:
         raise ValueError(f"semantic_with_row_loss: chunk_rows must be >= 1, got {chunk_rows}")
-    voxel_features, point_to_voxel, attributes = net.voxel_stage(means, attributes, batch_index)
+    voxel_features, point_gather, attributes = net.voxel_stage(means, attributes, batch_index)
     if rows is not None:
         if rows.ndim != 1 or (rows.shape[0] > 1 and bool((rows[1:] <= rows[:-1]).any())):
             raise ValueError("semantic_with_row_loss: rows must be increasing row indices")
-        point_to_voxel, attributes, batch_index = point_to_voxel[rows], attributes[rows], batch_index[rows]
+        point_gather, attributes, batch_index = point_gather.take(rows), attributes[rows], batch_index[rows]
         row_tensors = tuple(t[rows] for t in row_tensors)
     counts = torch.bincount(batch_index.cpu(), minlength=num_scenes).tolist()
     chunks, start = [], 0
@@ -73,21 +75,22 @@ def semantic_with_row_loss(
         start += count
     adapter_params = tuple(net.adapter.parameters())
     meta = (net.adapter, row_loss, chunks, num_scenes, len(adapter_params), len(row_tensors), chunk_rows)
-    return _AdapterRowLoss.apply(meta, voxel_features, point_to_voxel, attributes, *adapter_params, *row_tensors,
+    return _AdapterRowLoss.apply(meta, voxel_features, *point_gather, attributes, *adapter_params, *row_tensors,
                                  *loss_params)
 
 
 class _AdapterRowLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, meta, voxel_features, point_to_voxel, attributes, *inputs):  # noqa: D102
+    def forward(ctx, meta, voxel_features, gather_rows, gather_weights, attributes, *inputs):  # noqa: D102
         adapter, row_loss, chunks, num_scenes, num_adapter, num_rows, _ = meta
         adapter_params = inputs[:num_adapter]
         row_tensors = inputs[num_adapter:num_adapter + num_rows]
-        needs = ctx.needs_input_grad[4:]
+        needs = ctx.needs_input_grad[5:]
         leaves = [p.detach().requires_grad_(need)
                   for p, need in zip(inputs[num_adapter + num_rows:], needs[num_adapter + num_rows:])]
         features = voxel_features.detach()
-        n = point_to_voxel.shape[0]
+        point_gather = PointGather(gather_rows, gather_weights)
+        n = gather_rows.shape[0]
         semantic = features.new_empty(n, adapter.mlp[-1].out_features)
         row_grads = features.new_zeros(n, features.shape[1]) if ctx.needs_input_grad[1] else None
         # per scene: gradients of its loss sum with respect to the adapter's parameters and the loss params
@@ -95,7 +98,7 @@ class _AdapterRowLoss(torch.autograd.Function):
         sums = features.new_zeros(num_scenes)
         with torch.enable_grad():
             for start, end, scene in chunks:
-                per_gaussian = features[point_to_voxel[start:end]].requires_grad_(row_grads is not None)
+                per_gaussian = point_gather.slice(start, end).gather(features).requires_grad_(row_grads is not None)
                 rows_semantic = adapter(per_gaussian, attributes[start:end])
                 semantic[start:end] = rows_semantic.detach()
                 value = row_loss(rows_semantic, *(t[start:end] for t in row_tensors), *leaves)
@@ -105,14 +108,15 @@ class _AdapterRowLoss(torch.autograd.Function):
                 for i, g in enumerate(grads[1:]):
                     param_grads[scene][i] = accumulate(param_grads[scene][i], g)
                 sums[scene] += value.detach()
-        ctx.save_for_backward(voxel_features, point_to_voxel, attributes)
+        ctx.save_for_backward(voxel_features, gather_rows, gather_weights, attributes)
         ctx.meta, ctx.row_grads, ctx.param_grads = meta, row_grads, param_grads
         return semantic, sums
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_semantic, grad_sums):  # noqa: D102
-        voxel_features, point_to_voxel, attributes = ctx.saved_tensors
+        voxel_features, gather_rows, gather_weights, attributes = ctx.saved_tensors
+        point_gather = PointGather(gather_rows, gather_weights)
         adapter, _, chunks, num_scenes, num_adapter, num_rows, chunk_rows = ctx.meta
         row_grads, param_grads, ctx.row_grads, ctx.param_grads = ctx.row_grads, ctx.param_grads, None, None
         adapter_params = tuple(adapter.parameters())
@@ -129,7 +133,8 @@ class _AdapterRowLoss(torch.autograd.Function):
             for s in range(0, rendered.shape[0], chunk_rows):
                 rows = rendered[s:s + chunk_rows]
                 with torch.enable_grad():
-                    per_gaussian = voxel_features.detach()[point_to_voxel[rows]].requires_grad_(row_grads is not None)
+                    per_gaussian = point_gather.take(rows).gather(voxel_features.detach()).requires_grad_(
+                        row_grads is not None)
                     grads = gradients(adapter(per_gaussian, attributes[rows]), (per_gaussian, *adapter_params),
                                       grad_semantic[rows])
                 if grads[0] is not None:
@@ -138,5 +143,5 @@ class _AdapterRowLoss(torch.autograd.Function):
                     totals[i] = accumulate(totals[i], g)
         grad_features = None
         if row_grads is not None:
-            grad_features = torch.zeros_like(voxel_features).index_add_(0, point_to_voxel, row_grads)
-        return (None, grad_features, None, None, *totals[:num_adapter], *([None] * num_rows), *totals[num_adapter:])
+            grad_features = point_gather.scatter(row_grads, voxel_features.shape[0])
+        return (None, grad_features, None, None, None, *totals[:num_adapter], *([None] * num_rows), *totals[num_adapter:])

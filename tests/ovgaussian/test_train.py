@@ -281,11 +281,12 @@ def test_epoch_batches_and_rank_slices():
 # --- trainer -------------------------------------------------------------------------------------
 
 
-def tiny_model_config(width: int):
+def tiny_model_config(width: int, devoxelize: str = "nearest"):
     from ovgaussian.model.config import OVGaussianNetConfig
 
     return OVGaussianNetConfig(widths=(8, 8, 8, 8, 8, 8, 8, 8), blocks=(1, 1, 1, 1, 1, 1, 1, 1), stem_width=8,
-                               stem_kernel_size=3, voxel_size=0.25, embedding_width=width, seed=0)
+                               stem_kernel_size=3, voxel_size=0.25, embedding_width=width, seed=0,
+                               devoxelize=devoxelize)
 
 
 def text_stub(num: int = 16, width: int = 12) -> torch.Tensor:
@@ -982,11 +983,12 @@ def test_a_3d_loss_subset_as_large_as_the_scene_changes_nothing(scenes, tmp_path
         torch.testing.assert_close(got_grads[name], want_grads[name], rtol=1e-4, atol=1e-6, msg=name)
 
 
-@pytest.mark.parametrize("mode", ["plain", "class-weights", "transductive"])
+@pytest.mark.parametrize("mode", ["plain", "class-weights", "transductive", "trilinear"])
 def test_eager_adapter_and_text_loss_equal_the_one_piece_step(scenes, tmp_path, monkeypatch, mode):
     """batch_losses' eager path (adapter and 3D text loss per row chunk, gradients taken in the forward, the adapter
     recomputed for the rendered rows only: ovgaussian.train.eager_adapter), forced on a tiny batch with 37-row chunks,
-    gives the loss terms and every parameter's gradient of the one-piece step (net(...) then the losses)."""
+    gives the loss terms and every parameter's gradient of the one-piece step (net(...) then the losses); "trilinear"
+    with the trilinear devoxelization (its gradient reaches the voxels through PointGather.scatter)."""
     from ovgaussian.run.checkpoint import build_network
     import ovgaussian.model.network as model_module
     import ovgaussian.train.step_losses as step_losses_module
@@ -1002,7 +1004,7 @@ def test_eager_adapter_and_text_loss_equal_the_one_piece_step(scenes, tmp_path, 
         config, text, kwargs = transductive_config(tmp_path), text_stub(20), {"unlabelled_columns": torch.arange(16, 20)}
 
     def step():
-        net = build_network(tiny_model_config(12)).train()
+        net = build_network(tiny_model_config(12, "trilinear" if mode == "trilinear" else "nearest")).train()
         terms = batch_losses(net, samples, text, config, True, "cpu", **kwargs)
         loss = sum(t.total for t in terms)
         loss.backward()
