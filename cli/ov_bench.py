@@ -21,6 +21,8 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "prompt_ensemble", "--prompt-ensemble", is_flag=True)
 @config_option(BenchConfig, "class_offsets", "--class-offsets", is_flag=True)
 @config_option(BenchConfig, "generative", "--generative", is_flag=True)
+@config_option(BenchConfig, "ensemble_runs", "--ensemble-run", "ensemble_runs", type=click.Path(path_type=Path, file_okay=False),
+               multiple=True)
 @config_option(BenchConfig, "stacking_run", "--stacking-run", type=click.Path(path_type=Path, file_okay=False),
                default=None)
 @click.option("--metric", "metric", type=click.Choice([*METRICS, "all"], case_sensitive=False), default="all",
@@ -40,7 +42,8 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets, generative, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
+def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets, generative, ensemble_runs,
+            stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
             out, label, verify, device, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
     from ovgaussian.bench.evaluate import run_bench, table1_header, table1_row
@@ -52,7 +55,7 @@ def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets,
         raise click.UsageError("--run is required with --predictor model")
     config = BenchConfig(dataset=dataset, run=run, checkpoint=checkpoint, predictor=predictor,
                          prompt_ensemble=prompt_ensemble, class_offsets=class_offsets, generative=generative,
-                         stacking_run=stacking_run,
+                         stacking_run=stacking_run, ensemble_runs=tuple(ensemble_runs),
                          metrics=metrics,
                          dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,
                          max_scenes=max_scenes, progress=progress and not as_json, verify=verify, device=device)

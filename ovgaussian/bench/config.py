@@ -37,6 +37,10 @@ class BenchConfig:
     """What is scored: the trained model, or a non-learned baseline fitted on the train split (baseline.py)."""
     prompt_ensemble: bool = False
     """Open vocabulary: embed each class name under several prompt templates, averaged (ovgaussian.text.prompt_ensemble)."""
+    ensemble_runs: tuple[Path, ...] = ()
+    """More runs scored with ``run`` as one ensemble: each encodes the scenes, and their class scores are averaged
+    (ovgaussian.predict.ensemble). Typically the same recipe trained with other seeds. Not with stacking_run or
+    generative; class_offsets are then fitted on the ensemble's scores."""
     stacking_run: Optional[Path] = None
     """Open vocabulary, calibrated stacking: a run trained with --holdout-classes; gamma is chosen with it on the train split (never on unseen labels), recorded in the report, and subtracted from the seen classes' scores (ovgaussian.openvocab.calibration)."""
     class_offsets: bool = False

@@ -44,6 +44,7 @@ from ovgaussian.run.checkpoint import CONFIG_NAME, read_json
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.openvocab.feature_synthesis import fit_generative_predictor
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
+from ovgaussian.predict.ensemble import EnsemblePredictor
 from ovgaussian.predict.query import load_model_predictor
 from ovgaussian.text.prompt_ensemble import PROMPT_TEMPLATES
 from ovgaussian.run.config import config_to_dict
@@ -393,6 +394,17 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
         description = {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),
                        "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None,
                        "prompt_templates": list(templates)}
+        if config.ensemble_runs:
+            if config.generative or config.stacking_run is not None:
+                raise ValueError("bench: --ensemble-run is not supported with --generative or --stacking-run")
+            members = [predictor] + [load_model_predictor(run, None, device=config.device, prompt_templates=templates)
+                                     for run in config.ensemble_runs]
+            description["ensemble"] = [
+                {"run": str(run), "checkpoint": str(member.checkpoint),
+                 "checkpoint_sha256": sha256_file(Path(member.checkpoint) / "model.safetensors")
+                 if (Path(member.checkpoint) / "model.safetensors").is_file() else None}
+                for run, member in zip(config.ensemble_runs, members[1:])]
+            predictor = EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
         if config.generative:
             train_scenes = _train_scenes(config)
             predictor, record = fit_generative_predictor(predictor, train_scenes, benchmark_vocabulary(config.num_classes),
