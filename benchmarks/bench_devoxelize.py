@@ -1,4 +1,5 @@
-"""Benchmark: voxel features back to Gaussians, nearest voxel against trilinear blend (``ovgaussian.sparse.devoxelize``).
+"""Benchmark: voxel features back to Gaussians, nearest voxel against trilinear blend
+(``ovgaussian.sparse.devoxelize``).
 
 Points on the faces of a 6 x 5 x 3 m box room with some clutter and floaters (a fitted splat's layout: most points
 on surfaces), voxelized at ``--voxel`` metres. Timed round-robin in one process, one torch thread, median of
@@ -12,9 +13,7 @@ scale (both modes need it). Prints a markdown table.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -39,18 +38,6 @@ def room_points(n: int, seed: int) -> torch.Tensor:
     return pts + 0.003 * torch.randn(n, 3, generator=g)
 
 
-def medians(fns: dict, reps: int) -> dict:
-    for fn in fns.values():
-        fn()
-    times: dict = {name: [] for name in fns}
-    for _ in range(reps):
-        for name, fn in fns.items():
-            start = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - start)
-    return {name: statistics.median(t) for name, t in times.items()}
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, nargs="+", default=[150_000, 1_000_000])
@@ -60,6 +47,7 @@ def main() -> int:
     args = parser.parse_args()
     torch.set_num_threads(1)
 
+    from bench_sparse import interleaved_medians
     from ovgaussian.sparse import voxelize_points
     from ovgaussian.sparse.devoxelize import PointGather, trilinear_gather
 
@@ -76,7 +64,7 @@ def main() -> int:
             grads = torch.randn(n, args.channels)
             nearest = PointGather.nearest(vox.point_to_voxel)
             tri = trilinear_gather(vox.voxels.sites.keys, vox.point_to_voxel, vox.point_offsets)
-            t = medians({
+            t = interleaved_medians({
                 "voxelize": lambda: voxelize_points(pts, torch.zeros(n, 1), batch, edge, 4096),
                 "n_build": lambda: PointGather.nearest(vox.point_to_voxel),
                 "n_gather": lambda: nearest.gather(features),
@@ -87,8 +75,11 @@ def main() -> int:
             }, args.reps)
             occupied = float((tri.weights > 0).sum(1).float().mean())
             ms = {k: f"{1e3 * v:.0f}" if v >= 0.01 else f"{1e3 * v:.1f}" for k, v in t.items()}
-            print(f"| {n:,} | {edge:g} | {m:,} | {ms['voxelize']} ms | {ms['n_build']} / {ms['n_gather']} / "
-                  f"{ms['n_scatter']} ms | {ms['t_build']} / {ms['t_gather']} / {ms['t_scatter']} ms | {occupied:.2f} |")
+            nearest_ms = f"{ms['n_build']} / {ms['n_gather']} / {ms['n_scatter']} ms"
+            trilinear_ms = f"{ms['t_build']} / {ms['t_gather']} / {ms['t_scatter']} ms"
+            cells = (f"{n:,}", f"{edge:g}", f"{m:,}", f"{ms['voxelize']} ms", nearest_ms, trilinear_ms,
+                     f"{occupied:.2f}")
+            print("| " + " | ".join(cells) + " |")
     return 0
 
 

@@ -165,34 +165,15 @@ def residual_pairs(table, group_of_row, group_bits, num_in):  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True)
-def neighbour_table(keys, deltas):  # pragma: no cover - compiled
-    """``[M, D]`` row of the site at ``keys[i] + deltas[d]``, or -1; keys strictly increasing (a merge walk per delta,
-    as :func:`merge_pairs`)."""
-    m = keys.shape[0]
-    table = np.full((m, deltas.shape[0]), -1, np.int64)
-    for d in range(deltas.shape[0]):
-        j = 0
-        for i in range(m):
-            q = keys[i] + deltas[d]
-            while j < m and keys[j] < q:
-                j += 1
-            if j == m:
-                break
-            if keys[j] == q:
-                table[i, d] = j
-    return table
-
-
-@numba.njit(cache=True, nogil=True)
 def trilinear_corners(table, rows, offsets, out_rows, out_weights) -> None:  # pragma: no cover - compiled
     """Trilinear corners of points in their voxels (``ovgaussian.sparse.devoxelize.trilinear_gather``).
 
-    Point ``i`` lies in voxel ``rows[i]`` at ``offsets[i]`` (voxel edges, centre 0.5); ``table`` is the
-    :func:`neighbour_table` of the voxels for the 27 offsets ``(dx, dy, dz)`` in ``{-1, 0, 1}^3``, column
-    ``9 (dx + 1) + 3 (dy + 1) + dz + 1``. Corner ``k`` has bits ``(x, y, z) = (k >> 2 & 1, k >> 1 & 1, k & 1)``: 1
-    takes the neighbour on the point's side of the centre along that axis. A corner that is not occupied gets the own
-    row and weight 0; the others the product of ``1 - |offset - 0.5|`` (own side) and ``|offset - 0.5|``
-    (neighbour), all normalized to sum 1 per point.
+    Point ``i`` lies in voxel ``rows[i]`` at ``offsets[i]`` (voxel edges, centre 0.5). ``table`` is the ``[M, 27]``
+    table of the voxels' neighbours (row or -1: ``devoxelize.neighbour_table``) at the offsets ``(dx, dy, dz)`` in
+    ``{-1, 0, 1}^3``, column ``9 (dx + 1) + 3 (dy + 1) + dz + 1``. Corner ``k`` has bits
+    ``(x, y, z) = (k >> 2 & 1, k >> 1 & 1, k & 1)``: 1 takes the neighbour on the point's side of the centre along
+    that axis. A corner that is not occupied gets the own row and weight 0; the others the product of
+    ``1 - |offset - 0.5|`` (own side) and ``|offset - 0.5|`` (neighbour), all normalized to sum 1 per point.
     """
     side = np.empty(3, np.int64)
     share = np.empty(3, np.float64)

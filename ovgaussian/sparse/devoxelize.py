@@ -116,6 +116,16 @@ class _Blend(torch.autograd.Function):
         return out, None, None
 
 
+def neighbour_table(keys: np.ndarray) -> np.ndarray:  # [M] sorted int64 -> [M, 27] int64
+    """Row of the voxel at each of the 27 offsets of :data:`_NEIGHBOUR_DELTAS` around each voxel, or -1 (the
+    kernel map's merge walk, ``_numba_kernels.merge_pairs``)."""
+    rows_i, rows_j, counts = nk.merge_pairs(keys, _NEIGHBOUR_DELTAS)
+    table = np.full((keys.shape[0], len(_NEIGHBOUR_DELTAS)), -1, np.int64)
+    for d, count in enumerate(counts):
+        table[rows_i[d, :count], d] = rows_j[d, :count]
+    return table
+
+
 def trilinear_gather(
     voxel_keys: Tensor,  # [M] sorted packed keys of the occupied voxels (VoxelSites.keys)
     point_to_voxel: Tensor,  # [N] row of each point's voxel
@@ -133,7 +143,7 @@ def trilinear_gather(
     device = point_to_voxel.device
     rows = np.empty((n, 8), np.int64)
     weights = np.empty((n, 8), np.float32)
-    table = nk.neighbour_table(voxel_keys.cpu().contiguous().numpy(), _NEIGHBOUR_DELTAS)
+    table = neighbour_table(voxel_keys.cpu().contiguous().numpy())
     nk.trilinear_corners(table, point_to_voxel.long().cpu().contiguous().numpy(), offsets.cpu().contiguous().numpy(),
                          rows, weights)
     return PointGather(torch.from_numpy(rows).to(device), torch.from_numpy(weights).to(device))
