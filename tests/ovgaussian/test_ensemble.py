@@ -56,8 +56,8 @@ def test_ensemble_refuses_mismatched_widths():
 
 def test_bench_scores_an_ensemble_of_runs(tmp_path):
     """End to end on shards: ``ovgaussian bench --ensemble-run`` records every member's checkpoint; an ensemble of a
-    run with itself scores what the run alone scores; a second seed changes the row; with --stacking-run it is a
-    one-line error."""
+    run with itself scores what the run alone scores; one with a second seed is scored; with --stacking-run or a
+    baseline predictor it is a one-line error."""
     from click.testing import CliRunner
 
     from cli.ovgaussian_cli import main
@@ -89,3 +89,6 @@ def test_bench_scores_an_ensemble_of_runs(tmp_path):
     bad = CliRunner().invoke(main, common + ["--ensemble-run", str(tmp_path / "run1"), "--stacking-run",
                                              str(tmp_path / "run1")])
     assert bad.exit_code != 0 and "not supported" in bad.output and "Traceback" not in bad.output
+    baseline = CliRunner().invoke(main, ["bench", "--data", str(data), "--predictor", "majority", "--ensemble-run",
+                                         str(tmp_path / "run1"), "--no-progress"])
+    assert baseline.exit_code != 0 and "does not apply" in baseline.output and "Traceback" not in baseline.output
