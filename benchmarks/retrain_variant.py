@@ -33,7 +33,8 @@ def main() -> int:
     parser.add_argument("--pool-weighting", choices=("mean", "opacity"), default=None)
     parser.add_argument("--devoxelize", choices=("nearest", "trilinear"), default=None)
     parser.add_argument("--seed", type=int, default=None,
-                        help="override the run's seed (network initialization, scene order, sampling): run-to-run spread")
+                        help="override the run's seed (network initialization, scene order, sampling): the "
+                             "run-to-run spread")
     parser.add_argument("--epochs", type=int, default=None, help="override the run's epochs (a quick check)")
     parser.add_argument("--voxel-size", type=float, default=None, help="voxel edge (m) of the network's finest level")
     parser.add_argument("--loss-gaussians", type=int, default=None,
@@ -52,7 +53,8 @@ def main() -> int:
 
     saved = config_from_dict(TrainConfig, json.loads((args.run / "config.json").read_text())["train"])
     changes = {k: v for k, v in (("input_encoding", args.input_encoding), ("pool_weighting", args.pool_weighting),
-                                 ("devoxelize", args.devoxelize), ("seed", args.seed), ("epochs", args.epochs), ("voxel_size", args.voxel_size)) if v is not None}
+                                 ("devoxelize", args.devoxelize), ("seed", args.seed), ("epochs", args.epochs),
+                                 ("voxel_size", args.voxel_size)) if v is not None}
     config = dataclasses.replace(saved, out=args.out / "run", progress=False, **changes)
     if args.loss_gaussians is not None:
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, loss_gaussians=args.loss_gaussians))

@@ -21,8 +21,8 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "prompt_ensemble", "--prompt-ensemble", is_flag=True)
 @config_option(BenchConfig, "class_offsets", "--class-offsets", is_flag=True)
 @config_option(BenchConfig, "generative", "--generative", is_flag=True)
-@config_option(BenchConfig, "ensemble_runs", "--ensemble-run", "ensemble_runs", type=click.Path(path_type=Path, file_okay=False),
-               multiple=True)
+@config_option(BenchConfig, "ensemble_runs", "--ensemble-run", "ensemble_runs",
+               type=click.Path(path_type=Path, file_okay=False), multiple=True)
 @config_option(BenchConfig, "stacking_run", "--stacking-run", type=click.Path(path_type=Path, file_okay=False),
                default=None)
 @click.option("--metric", "metric", type=click.Choice([*METRICS, "all"], case_sensitive=False), default="all",

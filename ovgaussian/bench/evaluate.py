@@ -430,7 +430,8 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
         return predictor, description
 
     if config.ensemble_runs:
-        raise ValueError(f"bench: --ensemble-run scores trained runs; it does not apply to --predictor {config.predictor}")
+        raise ValueError(f"bench: --ensemble-run scores trained runs; it does not apply to --predictor "
+                         f"{config.predictor}")
     train = shards.iter_scenes(config.dataset, "train", views=False, verify=config.verify)
     if config.predictor == "majority":
         predictor = baseline.fit_majority(train)

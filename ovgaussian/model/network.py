@@ -7,7 +7,8 @@ Data flow of :meth:`OVGaussianNet.forward` (paper section 3, supplementary B):
 2. A sparse U-Net in the MinkUNet34C layout maps them to voxel features ``[M, 16]``.
 3. The voxel-to-point adapter fuses each Gaussian's voxel feature with its own attributes:
 
-       m_i = MHA(Q(f_i), K(t_i), V(t_i))            f_i = voxel feature of g_i's voxel [16]
+       m_i = MHA(Q(f_i), K(t_i), V(t_i))            f_i = voxel feature of g_i's voxel [16] (``devoxelize="trilinear"``:
+                                                    a blend of the voxels around g_i, ``ovgaussian.sparse.devoxelize``)
        s_i = MLP(concat(m_i, f_i)) + f_i            MLP 27 -> 96 -> 96 -> 16 (ReLU between)
 
    Interpretation (the paper gives the equations and widths, not every detail): the keys and values
@@ -389,7 +390,8 @@ class OVGaussianNet(nn.Module):
             return None
         return attributes[:, 3].detach().clamp_min(POOL_MIN_WEIGHT)
 
-    def voxel_stage(self, means: Tensor, attributes: Tensor, batch_index: Tensor) -> tuple[Tensor, PointGather, Tensor]:
+    def voxel_stage(self, means: Tensor, attributes: Tensor,
+                    batch_index: Tensor) -> tuple[Tensor, PointGather, Tensor]:
         """The stage before the per-Gaussian one: ``(voxel_features [M, S], the Gaussians' PointGather (rows
         [N, K]), network inputs [N, A])`` (inputs checked and encoded, voxelized, the sparse U-Net; the gather is
         ``config.devoxelize``'s)."""

@@ -86,7 +86,8 @@ def trilinear_gather_reference(
 ) -> Tensor:  # [N, M] float64 weights
     """Slow, obviously-correct trilinear weights, as a dense ``[N, M]`` matrix: for each point, every occupied voxel
     whose centre lies within one voxel edge on each axis gets the product of ``1 - |distance| / edge`` over the axes;
-    each row is normalized to sum to 1. Written from positions, not from :func:`ovgaussian.sparse.devoxelize.trilinear_gather`'s offsets."""
+    each row is normalized to sum to 1. Written from positions, not from the offsets that
+    :func:`ovgaussian.sparse.devoxelize.trilinear_gather` uses."""
     n, m = points.shape[0], voxel_coords.shape[0]
     out = torch.zeros(n, m, dtype=torch.float64)
     for i in range(n):

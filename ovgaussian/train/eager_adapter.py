@@ -144,4 +144,5 @@ class _AdapterRowLoss(torch.autograd.Function):
         grad_features = None
         if row_grads is not None:
             grad_features = point_gather.scatter(row_grads, voxel_features.shape[0])
-        return (None, grad_features, None, None, None, *totals[:num_adapter], *([None] * num_rows), *totals[num_adapter:])
+        return (None, grad_features, None, None, None, *totals[:num_adapter], *([None] * num_rows),
+                *totals[num_adapter:])
