@@ -3,8 +3,9 @@
 
 Points on the faces of a 6 x 5 x 3 m box room with some clutter and floaters (a fitted splat's layout: most points
 on surfaces), voxelized at ``--voxel`` metres. Timed round-robin in one process, one torch thread, median of
-``--reps``: building the gather (the trilinear one looks up 7 neighbour keys per point), ``gather`` of ``[M, 16]``
-voxel features to the points, and ``scatter`` (its transpose, the backward). The voxelization itself is timed for
+``--reps``: building the gather (the trilinear one: 8 corners per point from the 3^3 kernel map the backbone caches on
+the sites; the map is built once, in the warm-up), ``gather`` of ``[M, 16]`` voxel features to the points, and
+``scatter`` (its transpose, the backward). The voxelization itself is timed for
 scale (both modes need it). Prints a markdown table.
 
     .venv/bin/python benchmarks/bench_devoxelize.py --points 150000 1000000 --voxel 0.1 0.05 --reps 5
@@ -63,13 +64,13 @@ def main() -> int:
             features = torch.randn(m, args.channels)
             grads = torch.randn(n, args.channels)
             nearest = PointGather.nearest(vox.point_to_voxel)
-            tri = trilinear_gather(vox.voxels.sites.keys, vox.point_to_voxel, vox.point_offsets)
+            tri = trilinear_gather(vox.voxels.sites, vox.point_to_voxel, vox.point_offsets)
             t = interleaved_medians({
                 "voxelize": lambda: voxelize_points(pts, torch.zeros(n, 1), batch, edge, 4096),
                 "n_build": lambda: PointGather.nearest(vox.point_to_voxel),
                 "n_gather": lambda: nearest.gather(features),
                 "n_scatter": lambda: nearest.scatter(grads, m),
-                "t_build": lambda: trilinear_gather(vox.voxels.sites.keys, vox.point_to_voxel, vox.point_offsets),
+                "t_build": lambda: trilinear_gather(vox.voxels.sites, vox.point_to_voxel, vox.point_offsets),
                 "t_gather": lambda: tri.gather(features),
                 "t_scatter": lambda: tri.scatter(grads, m),
             }, args.reps)

@@ -398,11 +398,12 @@ class OVGaussianNet(nn.Module):
         attributes = self.prepare_inputs(means, attributes, batch_index)
         vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
                               weights=self.pool_weights(attributes))
+        voxel_features = self.backbone(vox.voxels)  # first: it builds the sites' kernel maps the trilinear gather reads
         if self.config.devoxelize == "trilinear":
-            point_gather = trilinear_gather(vox.voxels.sites.keys, vox.point_to_voxel, vox.point_offsets)
+            point_gather = trilinear_gather(vox.voxels.sites, vox.point_to_voxel, vox.point_offsets)
         else:
             point_gather = PointGather.nearest(vox.point_to_voxel)
-        return self.backbone(vox.voxels), point_gather, attributes
+        return voxel_features, point_gather, attributes
 
     def forward(
         self,

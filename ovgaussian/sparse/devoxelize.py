@@ -26,12 +26,7 @@ import torch
 from torch import Tensor
 
 from ovgaussian.sparse import _numba_kernels as nk
-from ovgaussian.sparse.keys import offset_key_delta
-
-
-#: Key steps to the 27 sites ``(dx, dy, dz)`` in ``{-1, 0, 1}^3``, x slowest (``_numba_kernels.trilinear_corners``).
-_NEIGHBOUR_DELTAS = np.array([offset_key_delta((dx, dy, dz)) for dx in (-1, 0, 1) for dy in (-1, 0, 1)
-                              for dz in (-1, 0, 1)], np.int64)
+from ovgaussian.sparse.voxelize import VoxelSites
 
 
 class PointGather(NamedTuple):
@@ -69,7 +64,9 @@ class PointGather(NamedTuple):
 
     def scatter(self, point_grads: Tensor, num_voxels: int) -> Tensor:  # [N, C] -> [M, C]
         """The transpose of :meth:`gather`: ``[num_voxels, C]`` sums of the point rows' shares."""
-        if self.rows.shape[1] == 1 or point_grads.device.type != "cpu":
+        if self.rows.shape[1] == 1:
+            return point_grads.new_zeros(num_voxels, point_grads.shape[1]).index_add_(0, self.rows[:, 0], point_grads)
+        if point_grads.device.type != "cpu":
             return self.scatter_reference(point_grads, num_voxels)
         out = point_grads.new_zeros(num_voxels, point_grads.shape[1])
         nk.blend_scatter(out.numpy(), self.rows.contiguous().numpy(),
@@ -108,26 +105,24 @@ class _Blend(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):  # noqa: D102
-        rows, weights = ctx.saved_tensors
         if not ctx.needs_input_grad[0]:
             return None, None, None
-        out = grad_out.new_zeros(ctx.num_voxels, grad_out.shape[1])
-        nk.blend_scatter(out.numpy(), rows.numpy(), weights.numpy(), grad_out.contiguous().numpy())
-        return out, None, None
+        return PointGather(*ctx.saved_tensors).scatter(grad_out, ctx.num_voxels), None, None
 
 
-def neighbour_table(keys: np.ndarray) -> np.ndarray:  # [M] sorted int64 -> [M, 27] int64
-    """Row of the voxel at each of the 27 offsets of :data:`_NEIGHBOUR_DELTAS` around each voxel, or -1 (the
-    kernel map's merge walk, ``_numba_kernels.merge_pairs``)."""
-    rows_i, rows_j, counts = nk.merge_pairs(keys, _NEIGHBOUR_DELTAS)
-    table = np.full((keys.shape[0], len(_NEIGHBOUR_DELTAS)), -1, np.int64)
-    for d, count in enumerate(counts):
-        table[rows_i[d, :count], d] = rows_j[d, :count]
+def neighbour_table(sites: VoxelSites) -> Tensor:  # [M, 27] int64
+    """Row of the site at each offset ``(dx, dy, dz)`` in ``{-1, 0, 1}^3`` (lexicographic, ``kernel_offsets(3)``)
+    from each site, or -1: read off the sites' cached 3^3 submanifold kernel map, which the backbone's convolutions
+    on these sites build anyway."""
+    kmap = sites.submanifold_map(3)
+    table = torch.full((len(sites), kmap.kernel_volume), -1, dtype=torch.int64, device=sites.keys.device)
+    for k, (rows_in, rows_out) in enumerate(zip(kmap.in_indices, kmap.out_indices)):
+        table[rows_out, k] = rows_in
     return table
 
 
 def trilinear_gather(
-    voxel_keys: Tensor,  # [M] sorted packed keys of the occupied voxels (VoxelSites.keys)
+    sites: VoxelSites,  # the occupied voxels
     point_to_voxel: Tensor,  # [N] row of each point's voxel
     offsets: Tensor,  # [N, 3] position inside its voxel in voxel edges, [0, 1]
 ) -> PointGather:
@@ -143,7 +138,7 @@ def trilinear_gather(
     device = point_to_voxel.device
     rows = np.empty((n, 8), np.int64)
     weights = np.empty((n, 8), np.float32)
-    table = neighbour_table(voxel_keys.cpu().contiguous().numpy())
+    table = neighbour_table(sites).cpu().contiguous().numpy()
     nk.trilinear_corners(table, point_to_voxel.long().cpu().contiguous().numpy(), offsets.cpu().contiguous().numpy(),
                          rows, weights)
     return PointGather(torch.from_numpy(rows).to(device), torch.from_numpy(weights).to(device))

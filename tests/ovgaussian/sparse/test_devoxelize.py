@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ovgaussian.sparse import voxelize_points
+from ovgaussian.sparse import VoxelSites, voxelize_points
 from ovgaussian.sparse.devoxelize import PointGather, trilinear_gather
 from ovgaussian.sparse.reference import trilinear_gather_reference
 
@@ -22,7 +22,7 @@ def dense_weights(point_gather: PointGather, num_voxels: int) -> torch.Tensor:
 def gather_and_reference(points, batch_index, voxel_size=0.1, max_grid_extent=4096):
     vox = voxelize_points(points, torch.zeros(points.shape[0], 1), batch_index, voxel_size, max_grid_extent)
     sites = vox.voxels.sites
-    got = trilinear_gather(sites.keys, vox.point_to_voxel, vox.point_offsets)
+    got = trilinear_gather(sites, vox.point_to_voxel, vox.point_offsets)
     want = trilinear_gather_reference(sites.coords, sites.batch_index, points, batch_index, vox.voxel_size, vox.origin)
     return vox, got, want
 
@@ -81,7 +81,7 @@ def test_trilinear_gather_degenerate_inputs():
     torch.testing.assert_close(got.gather(features), features)
 
     none = voxelize_points(torch.zeros(0, 3), torch.zeros(0, 2), torch.zeros(0, dtype=torch.int64), 0.1, 4096)
-    empty = trilinear_gather(none.voxels.sites.keys, none.point_to_voxel, none.point_offsets)
+    empty = trilinear_gather(none.voxels.sites, none.point_to_voxel, none.point_offsets)
     assert empty.rows.shape == (0, 8) and empty.gather(torch.zeros(0, 4)).shape == (0, 4)
 
 
@@ -93,7 +93,7 @@ def test_gather_keeps_constants_and_scatter_is_its_transpose(dtype):
     points, batch_index = clustered_points(7, 300, 2)
     vox = voxelize_points(points, torch.zeros(300, 1), batch_index, 0.1, 4096)
     m = len(vox.voxels.sites)
-    for point_gather in (trilinear_gather(vox.voxels.sites.keys, vox.point_to_voxel, vox.point_offsets),
+    for point_gather in (trilinear_gather(vox.voxels.sites, vox.point_to_voxel, vox.point_offsets),
                          PointGather.nearest(vox.point_to_voxel)):
         torch.testing.assert_close(point_gather.gather(torch.full((m, 3), 2.5)), torch.full((300, 3), 2.5))
         upstream = torch.randn(300, 5, dtype=dtype)
@@ -115,4 +115,4 @@ def test_gather_keeps_constants_and_scatter_is_its_transpose(dtype):
 
 def test_trilinear_gather_refuses_offsets_of_the_wrong_shape():
     with pytest.raises(ValueError, match="offsets must be"):
-        trilinear_gather(torch.tensor([5]), torch.zeros(2, dtype=torch.int64), torch.zeros(2, 2))
+        trilinear_gather(VoxelSites(torch.tensor([5])), torch.zeros(2, dtype=torch.int64), torch.zeros(2, 2))
