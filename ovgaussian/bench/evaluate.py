@@ -382,6 +382,13 @@ def _train_scenes(config: BenchConfig):
     return scenes
 
 
+def _checkpoint_record(run: Path, predictor) -> dict:
+    """The report's record of a model predictor: its run, checkpoint folder and the weights' sha256 (None if absent)."""
+    weights = Path(predictor.checkpoint) / "model.safetensors"
+    return {"run": str(run), "checkpoint": str(predictor.checkpoint),
+            "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None}
+
+
 def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
     """The predictor named by ``config`` and a JSON description of it (checkpoint path + sha256)."""
     if config.predictor == "model":
@@ -390,20 +397,14 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
         templates = PROMPT_TEMPLATES if config.prompt_ensemble else ()
         predictor = load_model_predictor(config.run, config.checkpoint, device=config.device,
                                          prompt_templates=templates)
-        weights = Path(predictor.checkpoint) / "model.safetensors"
-        description = {"kind": "model", "run": str(config.run), "checkpoint": str(predictor.checkpoint),
-                       "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None,
-                       "prompt_templates": list(templates)}
+        description = {"kind": "model", **_checkpoint_record(config.run, predictor), "prompt_templates": list(templates)}
         if config.ensemble_runs:
             if config.generative or config.stacking_run is not None:
                 raise ValueError("bench: --ensemble-run is not supported with --generative or --stacking-run")
             members = [predictor] + [load_model_predictor(run, None, device=config.device, prompt_templates=templates)
                                      for run in config.ensemble_runs]
-            description["ensemble"] = [
-                {"run": str(run), "checkpoint": str(member.checkpoint),
-                 "checkpoint_sha256": sha256_file(Path(member.checkpoint) / "model.safetensors")
-                 if (Path(member.checkpoint) / "model.safetensors").is_file() else None}
-                for run, member in zip(config.ensemble_runs, members[1:])]
+            description["ensemble"] = [_checkpoint_record(run, member)
+                                       for run, member in zip(config.ensemble_runs, members[1:])]
             predictor = EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
         if config.generative:
             train_scenes = _train_scenes(config)
