@@ -31,18 +31,21 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "max_views", "--max-views", type=click.IntRange(min=1), default=D.max_views,
                show_default=True)
 @config_option(SuiteConfig, "ablation", "--ablation/--no-ablation", default=D.ablation, show_default=True)
+@config_option(SuiteConfig, "ensemble", "--ensemble/--no-ensemble", default=D.ensemble, show_default=True)
 @config_option(SuiteConfig, "jobs", "--jobs", type=click.IntRange(min=1), default=D.jobs, show_default=True)
 @config_option(SuiteConfig, "seed", "--seed", type=int, default=D.seed, show_default=True)
 @config_option(SuiteConfig, "progress", "--progress/--no-progress", default=D.progress, show_default=True)
 @json_option
 @guarded
-def command(out, scenes, replica_scenes, splats, gaussians, epochs, lovasz_weight, loss_gaussians, max_views, ablation, jobs, seed, progress, as_json):
+def command(out, scenes, replica_scenes, splats, gaussians, epochs, lovasz_weight, loss_gaussians, max_views, ablation,
+            ensemble, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
     from ovgaussian.suite.profile import run_suite
 
-    config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, splats=splats, gaussians=gaussians, epochs=epochs,
-                         lovasz_weight=lovasz_weight,
-                         loss_gaussians=loss_gaussians or None, max_views=max_views, ablation=ablation, jobs=jobs, seed=seed, progress=progress)
+    config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, splats=splats, gaussians=gaussians,
+                         epochs=epochs, lovasz_weight=lovasz_weight, loss_gaussians=loss_gaussians or None,
+                         max_views=max_views, ablation=ablation, ensemble=ensemble, jobs=jobs, seed=seed,
+                         progress=progress)
     report = run_suite(config, log=(lambda m: click.echo(m, err=True)) if progress and not as_json else None)
     passed = sum(ok for ok, _ in report.checks.values())
     wall, cpu = report.wall, report.cpu

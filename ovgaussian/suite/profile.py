@@ -199,7 +199,7 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
     """The TrainConfig of one run of the profile."""
     return TrainConfig(
         out=run_dir(config, spec.name), epochs=config.epochs, batch_scenes=config.batch_scenes,
-        seed=config.seed, model_preset=config.model_preset, use_adapter=spec.use_adapter,
+        seed=config.seed + spec.seed_offset, model_preset=config.model_preset, use_adapter=spec.use_adapter,
         voxel_size=config.voxel_size, use_coordinates=config.use_coordinates, progress=False,
         data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
                         holdout_classes=spec.holdout_classes, loss_gaussians=config.loss_gaussians,
@@ -233,6 +233,8 @@ def bench_config(config: SuiteConfig, dataset: Path, row: Table1Row | None = Non
         fields.update(dict(row.options))
         if row.stacking_run is not None:
             fields.update(stacking_run=run_dir(config, row.stacking_run))
+        if row.ensemble:
+            fields.update(ensemble_runs=tuple(run_dir(config, name) for name in row.ensemble))
     if run is not None:
         fields.update(run=run)
     if metrics is not None:
@@ -414,13 +416,14 @@ def control_checks(reports: dict, pairs: Sequence[tuple[str, str]], splats: str)
 
 def control_pairs(rows: Sequence[Table1Row], trained_on: dict[str, str]) -> list[tuple[str, str]]:
     """``(fitted, control)`` labels: each row trained and scored on oracle Gaussians, with the row of the full
-    run on the splats that has the same bench options, in the rows' order."""
+    run on the splats that has the same bench options and as many ensemble members, in the rows' order."""
     pairs = []
     for control in rows:
         if control.scored_on != "oracle" or trained_on.get(control.run) != "oracle":
             continue
         fitted = next((r.label for r in rows if r.run == "full" and r.scored_on == "splats"
-                       and r.options == control.options and r.stacking_run is None), None)
+                       and r.options == control.options and r.stacking_run is None
+                       and len(r.ensemble) == len(control.ensemble)), None)
         if fitted is not None:
             pairs.append((fitted, control.label))
     return pairs
@@ -448,8 +451,9 @@ def format_checks(result: dict) -> str:
 
 #: The settings a profile folder was made with (written on its first run, compared on every later one).
 SETTINGS_NAME = "suite-settings.json"
-#: SuiteConfig fields that change no result: where it is written, the progress display, processes at a time.
-SETTINGS_IGNORED = ("out", "progress", "jobs")
+#: SuiteConfig fields that change no result: where it is written, the progress display, processes at a time, and
+#: whether the ensemble rows are scored too (they add runs and rows, and change none that exist).
+SETTINGS_IGNORED = ("out", "progress", "jobs", "ensemble")
 #: SuiteConfig fields added after profile folders were first made, with the value every folder made before had.
 SETTINGS_ADDED = {"lovasz_weight": 0.0}
 
@@ -473,8 +477,10 @@ def check_settings(config: SuiteConfig) -> None:
 
 def table1_rows(config: SuiteConfig) -> tuple[Table1Row, ...]:
     """The Table-1 rows of this profile: every row of :data:`TABLE1_ROWS`, less the control rows when the profile
-    itself runs on oracle Gaussians (they would repeat the full run's row)."""
-    return tuple(r for r in TABLE1_ROWS if config.splats == "fit" or r.scored_on == "splats")
+    itself runs on oracle Gaussians (they would repeat the full run's row), and less the ensemble rows without
+    ``SuiteConfig.ensemble``."""
+    return tuple(r for r in TABLE1_ROWS if (config.splats == "fit" or r.scored_on == "splats")
+                 and (config.ensemble or not r.ensemble))
 
 
 def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> SuiteReport:
@@ -502,7 +508,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     dataset = data.splats
     sizes = split_sizes(dataset)
     rows = table1_rows(config)
-    needed = {name for row in rows for name in (row.run, row.stacking_run) if name is not None}
+    needed = {name for row in rows for name in (row.run, row.stacking_run, *row.ensemble) if name is not None}
     if config.ablation:
         needed |= {row.run for row in ABLATION_ROWS}
     specs = [spec for spec in RUNS if spec.name in needed]
@@ -514,11 +520,11 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     tasks += [Task(f"bench: {row.label}", bench_row,
                    (config, bench_config(config, data.oracle if row.scored_on == "oracle" else dataset, row),
                     reports_dir / f"table1-{index:02d}.json"),
-                   tuple(f"train: {name}" for name in (row.run, row.stacking_run) if name is not None))
+                   tuple(f"train: {name}" for name in (row.run, row.stacking_run, *row.ensemble) if name is not None))
               for index, row in enumerate(rows)]
     # a run scored by a Table-1 row without an open-vocabulary method needs no bench of its own for Table 2
-    plain_rows = {r.run: r.label for r in rows
-                  if r.run is not None and not r.options and not r.stacking_run and r.scored_on == "splats"}
+    plain_rows = {r.run: r.label for r in rows if r.run is not None and not r.options and not r.stacking_run
+                  and not r.ensemble and r.scored_on == "splats"}
     ablation_runs = sorted({row.run for row in ABLATION_ROWS}) if config.ablation else []
     ablation_only = [name for name in ablation_runs if name not in plain_rows]
     tasks += [Task(f"bench: ablation {name}", bench_row,

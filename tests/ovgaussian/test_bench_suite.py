@@ -229,14 +229,17 @@ def test_a_rerun_keeps_the_times_of_the_invocations_before_it(tmp_path):
 def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the_share_is_checked():
     control = [r for r in TABLE1_ROWS if r.scored_on == "oracle"]
     trained = {spec.name: spec.trained_on for spec in RUNS}
-    # the controls (plain and with class offsets) and the full run on oracle
-    assert sorted(trained[r.run] for r in control) == ["oracle", "oracle", "splats"]
+    # the controls (plain and with class offsets, single run and two-seed ensemble) and the full run on oracle
+    assert sorted(trained[r.run] for r in control) == ["oracle"] * 4 + ["splats"]
+    assert all(trained[name] == "oracle" for r in control if trained[r.run] == "oracle" for name in r.ensemble)
     assert trained["full-oracle"] == "oracle" and trained["full"] == "splats"
     assert S.table1_rows(SuiteConfig(splats="oracle")) == tuple(r for r in TABLE1_ROWS if r.scored_on == "splats")
     assert S.table1_rows(SuiteConfig()) == TABLE1_ROWS
     pairs = S.control_pairs(TABLE1_ROWS, trained)
     assert pairs == [("OVGaussian (full)", "control: full trained and scored on oracle Gaussians"),
-                     ("full + class offsets", "control + class offsets")]  # each method against its own control
+                     ("full + class offsets", "control + class offsets"),
+                     ("full, 2 training seeds (ensemble)", "control, 2 training seeds (ensemble)"),
+                     ("full, 2 training seeds + class offsets", "control, 2 training seeds + class offsets")]
     reports = {"full": payload({k: 0.45 for k in ALL}), "control": payload({k: 0.48 for k in ALL}),
                "full + offsets": payload({k: 0.40 for k in ALL}), "control + offsets": payload({k: 0.50 for k in ALL})}
     result = S.control_checks(reports, [("full", "control"), ("full + offsets", "control + offsets")], "fit")
@@ -247,3 +250,49 @@ def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the
     assert not S.control_checks(reports, [("full", "control")], "fit")[name][0]
     assert S.control_checks(reports, [("full", "control")], "oracle") == {}  # an oracle profile has no such check
     assert SuiteConfig().splats == "fit" and not SuiteConfig().ablation
+
+
+def test_ensemble_rows_score_the_run_with_its_other_seeds_and_are_opt_out():
+    config = SuiteConfig(out=Path("/tmp/profile"))
+    specs = {spec.name: spec for spec in RUNS}
+    rows = [r for r in TABLE1_ROWS if r.ensemble]
+    assert len(rows) == 4 and {r.run for r in rows} == {"full", "full-oracle"}
+    for row in rows:
+        bench = S.bench_config(config, Path("/tmp/profile/dataset"), row)
+        assert bench.run == Path("/tmp/profile/runs") / row.run
+        assert bench.ensemble_runs == tuple(Path("/tmp/profile/runs") / name for name in row.ensemble)
+        main = S.train_config(config, specs[row.run], Path("/tmp/d"))
+        for name in row.ensemble:  # a member is the same recipe, trained with another seed and nothing else
+            member = S.train_config(config, specs[name], Path("/tmp/d"))
+            assert member.seed != main.seed and specs[name].trained_on == specs[row.run].trained_on
+            assert replace(member, seed=main.seed, out=main.out) == main
+    plain = S.bench_config(config, Path("/tmp/d"), next(r for r in TABLE1_ROWS if r.label == "OVGaussian (full)"))
+    assert plain.ensemble_runs == ()
+    without = S.table1_rows(replace(config, ensemble=False))
+    assert without == tuple(r for r in TABLE1_ROWS if not r.ensemble)
+    assert [p for p in S.control_pairs(without, {s.name: s.trained_on for s in RUNS})
+            if "seeds" in p[0]] == []
+
+
+def test_the_ensemble_switch_is_not_a_setting_of_the_folder(tmp_path):
+    config = SuiteConfig(out=tmp_path, progress=False, ensemble=False)
+    S.check_settings(config)
+    S.check_settings(replace(config, ensemble=True))  # adds runs and rows, changes none that exist
+
+
+def test_bench_suite_cli_maps_the_ensemble_switch(monkeypatch, tmp_path):
+    from click.testing import CliRunner
+
+    from cli.ov_bench_suite import command
+
+    seen = []
+
+    def record(config, log=None):
+        seen.append(config)
+        raise ValueError("stop here: only the config is checked")
+
+    monkeypatch.setattr(S, "run_suite", record)
+    CliRunner().invoke(command, ["--out", str(tmp_path)])
+    assert seen.pop().ensemble is True
+    CliRunner().invoke(command, ["--out", str(tmp_path), "--no-ensemble"])
+    assert seen.pop().ensemble is False
