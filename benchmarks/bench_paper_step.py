@@ -199,7 +199,7 @@ def run(args) -> dict:
     from seggaussian.util.allocator import settings as allocator_settings
 
     t_setup = time.perf_counter()
-    config = TrainConfig(model_preset=args.preset,
+    config = TrainConfig(model_preset=args.preset, devoxelize=args.devoxelize,
                          data=DataConfig(pixels_per_view=args.pixels, loss_gaussians=args.loss_gaussians))
     vocabulary = training_vocabulary(20)
     records = [make_room(s, args.gaussians) for s in range(args.scenes)]
@@ -245,7 +245,8 @@ def run(args) -> dict:
     phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
     return {
         "workload": {"scenes": args.scenes, "gaussians_per_scene": args.gaussians, "image": f"{HEIGHT}x{WIDTH}",
-                     "pixels_per_view": args.pixels, "preset": args.preset, "loss_gaussians": args.loss_gaussians,
+                     "pixels_per_view": args.pixels, "preset": args.preset, "devoxelize": args.devoxelize,
+                     "loss_gaussians": args.loss_gaussians,
                      "parameters": sum(p.numel() for p in net.parameters())},
         "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "platform": platform.platform(),
                     "loadavg_at_end": os.getloadavg(),
@@ -330,6 +331,8 @@ def main() -> int:
     parser.add_argument("--max-step-s", type=float, default=20.0, help="budget: median step wall time (issue 31)")
     parser.add_argument("--max-backward-ratio", type=float, default=2.5,
                         help="budget: the sparse U-Net's backward over its forward (issue 31)")
+    parser.add_argument("--devoxelize", choices=("nearest", "trilinear"), default="nearest",
+                        help="how each Gaussian reads the voxel features (TrainConfig.devoxelize)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                         help="device of the network and the losses (sampling, blend weights and kernel maps stay "
                              "on the CPU, as in training)")
@@ -377,7 +380,8 @@ def main() -> int:
           f"({result['unet_backward_over_forward']:.2f}x); backward phase / network phase "
           f"{result['backward_over_network']:.2f}x")
     status = "FAILED: " + "; ".join(failed) if failed else "within budget"
-    print(f"paper step ({args.scenes} x {args.gaussians:,} Gaussians, {args.pixels:,} px, {args.preset}): "
+    print(f"paper step ({args.scenes} x {args.gaussians:,} Gaussians, {args.pixels:,} px, {args.preset}, "
+          f"{args.devoxelize}): "
           f"{result['step_wall_s_median']:.1f} s wall, {result['step_cpu_s_median']:.1f} s CPU, "
           f"peak {result['peak_rss_gb']:.2f} GB -> {status}")
     return 1 if failed else 0

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # GPU checks, run on a lent GPU machine (the project's CI has none): the CUDA-marked tests and the paper-scale
-# training step with the network and the losses on the GPU (bench_paper_step.py --device cuda).
+# training step with the network and the losses on the GPU (bench_paper_step.py --device cuda), once per
+# devoxelization named in $DEVOXELIZE (default "nearest"; e.g. DEVOXELIZE="nearest trilinear").
 #
 #   bash benchmarks/device_check.sh [SOURCE_DIR]     # results under $OUT (default /tmp/device-check)
 #
@@ -30,7 +31,9 @@ echo "== CUDA tests"
 timeout "${TEST_TIMEOUT:-240}" python3 -m pytest -q -p no:cacheprovider -m cuda -rs \
     tests/ovgaussian/test_train.py tests/seggaussian/render/test_pixel_blend.py > "$OUT/pytest_cuda.log" 2>&1
 echo "pytest exit $?"; tail -n 12 "$OUT/pytest_cuda.log"
-echo "== paper-scale step on the GPU"
-timeout "${STEP_TIMEOUT:-300}" python3 benchmarks/bench_paper_step.py --device cuda --steps "${STEPS:-3}" \
-    --max-peak-gb 128 > "$OUT/paper_step_cuda.txt" 2>&1
-echo "bench exit $?"; tail -n 8 "$OUT/paper_step_cuda.txt"
+for devoxelize in ${DEVOXELIZE:-nearest}; do
+  echo "== paper-scale step on the GPU ($devoxelize devoxelization)"
+  timeout "${STEP_TIMEOUT:-300}" python3 benchmarks/bench_paper_step.py --device cuda --steps "${STEPS:-3}" \
+      --devoxelize "$devoxelize" --max-peak-gb 128 > "$OUT/paper_step_cuda_$devoxelize.txt" 2>&1
+  echo "bench exit $?"; tail -n 8 "$OUT/paper_step_cuda_$devoxelize.txt"
+done

@@ -734,17 +734,18 @@ def _metrics(out: Path) -> list[dict]:
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (no GPU on this machine)")
-def test_training_on_cuda_follows_the_cpu_run(shard_dataset, tmp_path):
-    """Same seed, same data, every tensor on the GPU (kernel maps may be built on the CPU): the per-step
-    losses follow the CPU run within float tolerance, and the checkpoint loads back on the CPU."""
+@pytest.mark.parametrize("devoxelize", ["nearest", "trilinear"])
+def test_training_on_cuda_follows_the_cpu_run(shard_dataset, tmp_path, devoxelize):
+    """Same seed, same data, every tensor on the GPU (kernel maps and the trilinear gather may be built on the
+    CPU): the per-step losses follow the CPU run within float tolerance, and the checkpoint loads back on the CPU."""
     from ovgaussian.train.loop import train
 
     runs = {}
     for device in ("cpu", "cuda"):
         out = tmp_path / device
-        cfg = tiny_config(out, 2, device=device, data=DataConfig(dataset=shard_dataset, blend_top_k=8,
-                                                                   pixels_per_view=256))
-        train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())
+        cfg = tiny_config(out, 2, device=device, devoxelize=devoxelize,
+                          data=DataConfig(dataset=shard_dataset, blend_top_k=8, pixels_per_view=256))
+        train(cfg, model_config=tiny_model_config(12, devoxelize), text_embeddings=text_stub())
         runs[device] = _metrics(out)
     assert len(runs["cpu"]) == len(runs["cuda"]) == 6
     for a, b in zip(runs["cpu"], runs["cuda"]):
