@@ -145,17 +145,21 @@ class OffsetPredictor:
         return scores + shift[None, :]
 
 
-def read_class_offsets(path) -> dict[str, float]:
-    """``{class name: offset}`` recorded in a bench report (``predictor.class_offsets`` of the JSON that
-    ``ovgaussian bench --class-offsets`` writes); a one-line ValueError naming the file and field otherwise."""
-    path = Path(path)
+def _read_report(path: Path) -> dict:
     try:
         report = json.loads(path.read_text())
     except OSError as err:
         raise ValueError(f"{path}: cannot read the bench report ({err.strerror or err})") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ValueError(f"{path}: not a JSON bench report ({err})") from None
-    record = report.get("predictor", {}).get("class_offsets") if isinstance(report, dict) else None
+    return report if isinstance(report, dict) else {}
+
+
+def read_class_offsets(path) -> dict[str, float]:
+    """``{class name: offset}`` recorded in a bench report (``predictor.class_offsets`` of the JSON that
+    ``ovgaussian bench --class-offsets`` writes); a one-line ValueError naming the file and field otherwise."""
+    path = Path(path)
+    record = _read_report(path).get("predictor", {}).get("class_offsets")
     if not isinstance(record, dict):
         raise ValueError(f"{path}: no predictor.class_offsets (a report of `ovgaussian bench --class-offsets`)")
     names, offsets = record.get("names"), record.get("offsets")
@@ -165,6 +169,15 @@ def read_class_offsets(path) -> dict[str, float]:
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in offsets):
         raise ValueError(f"{path}: predictor.class_offsets.offsets must be finite numbers")
     return {name: float(value) for name, value in zip(names, offsets)}
+
+
+def offsets_checkpoints(path) -> tuple[str, ...]:
+    """sha256 of the weights whose scores a bench report's class offsets were fitted on: ``predictor.
+    checkpoint_sha256``, then each ``predictor.ensemble`` member's; empty when the report does not record them."""
+    predictor = _read_report(Path(path)).get("predictor", {})
+    records = [predictor, *(predictor.get("ensemble") or [])]
+    digests = tuple(r.get("checkpoint_sha256") for r in records if isinstance(r, dict))
+    return digests if digests and all(isinstance(d, str) for d in digests) else ()
 
 
 def reference_fit_class_offsets(scores: Sequence[Sequence[float]], labels: Sequence[int], grid: Sequence[float]

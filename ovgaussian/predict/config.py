@@ -22,6 +22,10 @@ class PredictConfig:
     """Run folder of ``ovgaussian train``."""
     checkpoint: Optional[Path] = None
     """A checkpoint folder (RUN/checkpoints/epoch-XXXX); None takes the run's latest."""
+    ensemble_runs: tuple[Path, ...] = ()
+    """More runs that label the scene with ``run`` as one ensemble, their class scores averaged
+    (ovgaussian.predict.ensemble), as ``ovgaussian bench --ensemble-run`` scores them; each at its latest
+    checkpoint. Not with stacking_gamma."""
     vocabulary: tuple[str, ...] = ()
     """Free-text class names the Gaussians are labelled with (label i = vocabulary[i])."""
     prompt_ensemble: bool = False
@@ -29,7 +33,7 @@ class PredictConfig:
     stacking_gamma: float = 0.0
     """Open vocabulary, calibrated stacking: subtract this from the scores of the names the run was trained on (take the gamma that `ovgaussian bench --stacking-run` records); 0: plain argmax."""
     class_offsets: Optional[Path] = None
-    """A report of `ovgaussian bench --class-offsets` (its JSON): the per-class score offsets it records are added to the scores of the same class names (other names: 0), so predictions match what that bench scored. Not with stacking_gamma."""
+    """A report of `ovgaussian bench --class-offsets` (its JSON): the per-class score offsets it records are added to the scores of the same class names (other names: 0), so predictions match what that bench scored. The runs must be the checkpoints that bench scored (--run and each --ensemble-run; compared by the weights' sha256 the report records). Not with stacking_gamma."""
     colour_mode: Literal["f_dc", "rgb", "both"] = "both"
     """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
     red/green/blue properties, or both."""

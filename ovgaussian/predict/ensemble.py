@@ -2,20 +2,22 @@
 
 Each member encodes a scene into its own semantic vectors; the ensemble's vector of a Gaussian is the members'
 vectors side by side (``[N, S_1 + S_2 + ...]``), so rendering it for 2D renders each member's vectors (the blend is
-linear per channel). ``classify`` scores each member's columns with that member (phi, then cosine against its text
-embeddings) and averages the ``[M, K]`` scores. Runs trained with other seeds disagree most on a fitted splat's
-boundary Gaussians, where one run's decision is close to chance (BENCHMARKS.md, "Session 16").
+linear per channel). ``classify`` (class ids, the bench) and ``score_names`` (free-text names, ``ovgaussian
+predict``) score each member's columns with that member (phi, then cosine against its text embeddings) and average
+the ``[M, K]`` scores. Runs trained with other seeds disagree most on a fitted splat's boundary Gaussians, where one
+run's decision is close to chance (BENCHMARKS.md, "Session 16").
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 
 class EnsemblePredictor:
-    """The mean of the class scores of ``members`` (predictors with ``encode``/``classify``; see module docstring)."""
+    """The mean of the class scores of ``members`` (predictors with ``encode``/``classify``, and for ``predict``
+    ``encode_gaussians``/``score_names``; see module docstring)."""
 
     name = "ensemble"
 
@@ -27,20 +29,42 @@ class EnsemblePredictor:
         self.members = tuple(members)
         self.bounds = np.concatenate([[0], np.cumsum([int(w) for w in widths])])
 
-    def encode(self, scene) -> np.ndarray:
-        parts = [np.asarray(m.encode(scene), np.float32) for m in self.members]
+    @property
+    def trained_names(self) -> frozenset:
+        """Class names every member was trained on."""
+        return frozenset.intersection(*(frozenset(getattr(m, "trained_names", ())) for m in self.members))
+
+    @property
+    def checkpoint(self):
+        """The first member's checkpoint folder (the run given with ``--run``)."""
+        return getattr(self.members[0], "checkpoint", None)
+
+    def _join(self, encode: Callable) -> np.ndarray:
+        parts = [np.asarray(encode(m), np.float32) for m in self.members]
         for part, start, end in zip(parts, self.bounds[:-1], self.bounds[1:]):
             if part.ndim != 2 or part.shape[1] != end - start:
                 raise ValueError(f"ensemble: a member returned vectors of shape {part.shape}, expected width "
                                  f"{end - start}")
         return np.concatenate(parts, axis=1)
 
-    def classify(self, vectors: np.ndarray, class_ids: np.ndarray) -> np.ndarray:
+    def _mean(self, vectors: np.ndarray, score: Callable) -> np.ndarray:
         vectors = np.asarray(vectors)
         if vectors.ndim != 2 or vectors.shape[1] != self.bounds[-1]:
             raise ValueError(f"ensemble: vectors of shape {vectors.shape}, expected width {self.bounds[-1]}")
         total = None
         for member, start, end in zip(self.members, self.bounds[:-1], self.bounds[1:]):
-            scores = np.asarray(member.classify(vectors[:, start:end], class_ids), np.float64)
+            scores = np.asarray(score(member, vectors[:, start:end]), np.float64)
             total = scores if total is None else total + scores
         return (total / len(self.members)).astype(np.float32)
+
+    def encode(self, scene) -> np.ndarray:
+        return self._join(lambda member: member.encode(scene))
+
+    def encode_gaussians(self, gaussians) -> np.ndarray:
+        return self._join(lambda member: member.encode_gaussians(gaussians))
+
+    def classify(self, vectors: np.ndarray, class_ids: np.ndarray) -> np.ndarray:
+        return self._mean(vectors, lambda member, part: member.classify(part, class_ids))
+
+    def score_names(self, vectors: np.ndarray, names: Sequence[str]) -> np.ndarray:
+        return self._mean(vectors, lambda member, part: member.score_names(part, names))

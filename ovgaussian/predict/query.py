@@ -21,11 +21,12 @@ import numpy as np
 import torch
 
 from ovgaussian.openvocab.calibration import stack_scores
-from ovgaussian.openvocab.class_offsets import read_class_offsets
+from ovgaussian.openvocab.class_offsets import offsets_checkpoints, read_class_offsets
 from ovgaussian.run.checkpoint import load_trained_model
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.model.network import gaussian_attributes
 from ovgaussian.predict.config import PredictConfig
+from ovgaussian.predict.ensemble import EnsemblePredictor
 from ovgaussian.text.prompt_ensemble import PROMPT_TEMPLATES, ensemble_text_embeddings
 from ovgaussian.text.encoders import load_or_encode_texts
 from ovgaussian.run.config import TextConfig, config_from_dict
@@ -36,6 +37,7 @@ from seggaussian.core.constants import IGNORE_LABEL, SH_C0, read_class_names
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import format_for_output, read_gaussians, write_gaussians
 from seggaussian.labels.palette import build_legend, palette, write_legend
+from seggaussian.shards.files import sha256_file
 
 #: Lower bound of a decoded vector's norm before cosine similarity (a zero vector scores 0, not NaN).
 COSINE_NORM_EPS = 1e-12
@@ -296,6 +298,36 @@ def write_label_maps(folder: Path, label_maps: dict, num_classes: int) -> list[P
     return written
 
 
+def load_predictor(config: PredictConfig):
+    """The run's model (``config.checkpoint`` or its latest), or the ensemble of it and ``config.ensemble_runs``."""
+    templates = PROMPT_TEMPLATES if config.prompt_ensemble else ()
+    predictor = load_model_predictor(config.run, config.checkpoint, device=config.device, prompt_templates=templates)
+    if not config.ensemble_runs:
+        return predictor
+    if config.stacking_gamma > 0:
+        raise ValueError("predict: --ensemble-run with --stacking-gamma is not supported (bench chooses gamma for "
+                         "one run)")
+    members = [predictor] + [load_model_predictor(run, None, device=config.device, prompt_templates=templates)
+                             for run in config.ensemble_runs]
+    return EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
+
+
+def check_offsets_checkpoints(report: Path, predictor) -> None:
+    """Refuse class offsets fitted on other weights than the predictor's (its members' for an ensemble): offsets
+    fitted on one run's scores, or on an ensemble's, are wrong for any other. Compared by the sha256 of each
+    checkpoint's ``model.safetensors`` that the bench report records; a report without them is not checked."""
+    recorded = offsets_checkpoints(report)
+    checkpoints = [getattr(m, "checkpoint", None) for m in getattr(predictor, "members", (predictor,))]
+    if not recorded or any(c is None or not (Path(c) / "model.safetensors").is_file() for c in checkpoints):
+        return
+    given = [sha256_file(Path(c) / "model.safetensors") for c in checkpoints]
+    if sorted(given) != sorted(recorded):
+        raise ValueError(f"{report}: its class offsets were fitted on the scores of {len(recorded)} checkpoint(s) "
+                         f"(sha256 {', '.join(d[:12] for d in recorded)}), not on the {len(given)} given with --run"
+                         f"{' and --ensemble-run' if len(given) > 1 else ''} (sha256 "
+                         f"{', '.join(d[:12] for d in given)}); give the runs that bench scored")
+
+
 class PredictReport(NamedTuple):
     """What ``ovgaussian predict`` wrote: the labelled scene (``ply``: its path, in ``format``), PNGs, the
     legend files (empty without colouring), and the JSON summary."""
@@ -325,8 +357,9 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
     offsets = read_class_offsets(config.class_offsets) if config.class_offsets is not None else None
     gaussians, report, in_format = read_gaussians(scene_path, on_invalid=config.on_invalid)
     if predictor is None:
-        predictor = load_model_predictor(config.run, config.checkpoint, device=config.device,
-                                         prompt_templates=PROMPT_TEMPLATES if config.prompt_ensemble else ())
+        predictor = load_predictor(config)
+    if offsets is not None:
+        check_offsets_checkpoints(config.class_offsets, predictor)
     result = label_gaussians(predictor, gaussians, config, cameras, class_offsets=offsets)
     # the vocabulary goes into the header so the file explains its own labels
     comments = tuple(f"ovgaussian semantic {i} = {name}" for i, name in enumerate(result.vocabulary))
@@ -347,6 +380,8 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
         "legend": [str(p) for p in legend_files],
         "run": str(config.run),
         "checkpoint": None if predictor.checkpoint is None else str(predictor.checkpoint),
+        "ensemble": [{"run": str(run), "checkpoint": str(member.checkpoint)}
+                     for run, member in zip(config.ensemble_runs, getattr(predictor, "members", ())[1:])],
         "num_gaussians": int(len(gaussians)),
         "validation": getattr(report, "_asdict", lambda: str(report))() if report is not None else None,
         "vocabulary": list(result.vocabulary),

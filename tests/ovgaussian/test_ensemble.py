@@ -25,6 +25,12 @@ class _LinearMember:
     def classify(self, vectors, class_ids):
         return np.tanh(np.asarray(vectors) @ self.weights[:, : len(class_ids)])
 
+    # the same through predict's interface: Gaussians and free-text names
+    encode_gaussians = encode
+
+    def score_names(self, vectors, names):
+        return self.classify(vectors, np.arange(len(names)))
+
 
 def test_ensemble_scores_are_the_members_mean_also_after_a_linear_blend():
     """encode is the members' vectors side by side; classify of a linear blend of them (a rendered pixel) is the
@@ -39,6 +45,13 @@ def test_ensemble_scores_are_the_members_mean_also_after_a_linear_blend():
     blend = np.random.default_rng(4).random((7, 50)).astype(np.float32)  # 7 pixels' blend weights
     want = np.mean([m.classify(blend @ m.encode(scene), class_ids) for m in members], axis=0)
     np.testing.assert_allclose(ensemble.classify(blend @ vectors, class_ids), want, rtol=1e-5, atol=1e-6)
+    names = ["a", "b", "c"]  # predict's path: encode_gaussians and score_names
+    np.testing.assert_array_equal(ensemble.encode_gaussians(scene), vectors)
+    want = np.mean([m.score_names(blend @ m.encode_gaussians(scene), names) for m in members], axis=0)
+    np.testing.assert_allclose(ensemble.score_names(blend @ vectors, names), want, rtol=1e-5, atol=1e-6)
+    for member, trained in zip(members, (("a", "b"), ("a", "b", "c"), ("b", "a"))):
+        member.trained_names = frozenset(trained)
+    assert ensemble.trained_names == {"a", "b"}  # stacking lowers what every member was trained on
     single = EnsemblePredictor(members[:1], [4])
     np.testing.assert_allclose(single.classify(single.encode(scene), class_ids),
                                members[0].classify(members[0].encode(scene), class_ids), rtol=1e-6)
@@ -54,15 +67,15 @@ def test_ensemble_refuses_mismatched_widths():
         ensemble.classify(np.zeros((3, 4), np.float32), np.arange(2))
 
 
-def test_bench_scores_an_ensemble_of_runs(tmp_path):
-    """End to end on shards: ``ovgaussian bench --ensemble-run`` records every member's checkpoint; an ensemble of a
-    run with itself scores what the run alone scores; one with a second seed is scored; with --stacking-run or a
-    baseline predictor it is a one-line error."""
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory):
+    """Shards of two scenes and two one-epoch runs on them, seeds 0 and 1: (folder, data, run0, run1)."""
     from click.testing import CliRunner
 
     from cli.ovgaussian_cli import main
     from test_train import _write_shards, make_scene
 
+    tmp_path = tmp_path_factory.mktemp("ensemble")
     data = tmp_path / "data"
     _write_shards(data, [make_scene(s, per_box=20, views=2) for s in range(2)])
     for seed in (0, 1):
@@ -70,6 +83,18 @@ def test_bench_scores_an_ensemble_of_runs(tmp_path):
                                             "--pixels-per-view", "64", "--batch-scenes", "2", "--no-progress",
                                             "--seed", str(seed), "--out", str(tmp_path / f"run{seed}")])
         assert trained.exit_code == 0, trained.output
+    return tmp_path, data, tmp_path / "run0", tmp_path / "run1"
+
+
+def test_bench_scores_an_ensemble_of_runs(two_runs):
+    """End to end on shards: ``ovgaussian bench --ensemble-run`` records every member's checkpoint; an ensemble of a
+    run with itself scores what the run alone scores; one with a second seed is scored; with --stacking-run or a
+    baseline predictor it is a one-line error."""
+    from click.testing import CliRunner
+
+    from cli.ovgaussian_cli import main
+
+    tmp_path, data, _, _ = two_runs
     common = ["bench", "--data", str(data), "--run", str(tmp_path / "run0"), "--dim", "2d", "--metric", "NVA",
               "--max-views", "1", "--no-progress"]
 
@@ -92,3 +117,59 @@ def test_bench_scores_an_ensemble_of_runs(tmp_path):
     baseline = CliRunner().invoke(main, ["bench", "--data", str(data), "--predictor", "majority", "--ensemble-run",
                                          str(tmp_path / "run1"), "--no-progress"])
     assert baseline.exit_code != 0 and "does not apply" in baseline.output and "Traceback" not in baseline.output
+
+
+def test_predict_labels_with_an_ensemble_and_refuses_offsets_of_other_runs(two_runs, tmp_path):
+    """``ovgaussian predict --ensemble-run``: the labels are the argmax of the members' mean scores; a run with
+    itself labels as the run alone; class offsets of a bench report are taken only with the runs that report
+    scored (by checkpoint sha256), else a one-line error; with --stacking-gamma it is refused."""
+    from click.testing import CliRunner
+
+    from cli.ovgaussian_cli import main
+    from ovgaussian.predict.query import load_model_predictor
+    from seggaussian.io.formats import write_gaussians
+    from test_train import make_scene
+
+    _, data, run0, run1 = two_runs
+    gaussians = make_scene(5, per_box=20, views=1).gaussians
+    scene = tmp_path / "scene.ply"
+    write_gaussians(scene, gaussians, "ply")
+    names = ("chair", "table", "floor", "wall", "sofa")
+
+    def predict(out, *extra, ok=True):
+        result = CliRunner().invoke(main, ["predict", str(scene), "--run", str(run0), "--vocab", ", ".join(names),
+                                           "--out", str(tmp_path / out), "--json", *extra])
+        assert (result.exit_code == 0) == ok, result.output
+        return json.loads(result.stdout)
+
+    def labels(out):
+        from plyfile import PlyData
+
+        return np.asarray(PlyData.read(str(tmp_path / out))["vertex"]["semantic"])
+
+    alone = predict("alone.ply")
+    doubled = predict("doubled.ply", "--ensemble-run", str(run0))
+    mixed = predict("mixed.ply", "--ensemble-run", str(run1))
+    np.testing.assert_array_equal(labels("doubled.ply"), labels("alone.ply"))
+    members = [load_model_predictor(run) for run in (run0, run1)]
+    scores = np.mean([m.score_names(m.encode_gaussians(gaussians), names) for m in members], axis=0)
+    want = scores.argmax(axis=1)
+    margin = np.sort(scores, axis=1)
+    clear = margin[:, -1] - margin[:, -2] > 1e-5  # float ties may break either way
+    np.testing.assert_array_equal(labels("mixed.ply")[clear], want[clear])
+    assert [m["run"] for m in mixed["ensemble"]] == [str(run1)] and alone["ensemble"] == []
+
+    common = ["bench", "--data", str(data), "--run", str(run0), "--dim", "3d", "--metric", "CSA", "--no-progress",
+              "--class-offsets"]
+    for out, extra in (("single.json", []), ("pair.json", ["--ensemble-run", str(run1)])):
+        result = CliRunner().invoke(main, common + extra + ["--out", str(tmp_path / out)])
+        assert result.exit_code == 0, result.output
+    predict("with-pair.ply", "--ensemble-run", str(run1), "--class-offsets", str(tmp_path / "pair.json"))
+    predict("with-single.ply", "--class-offsets", str(tmp_path / "single.json"))
+    for extra, report in (([], "pair.json"), (["--ensemble-run", str(run1)], "single.json")):
+        bad = predict("bad.ply", *extra, "--class-offsets", str(tmp_path / report), ok=False)
+        assert str(tmp_path / report) in bad["error"] and "give the runs that bench scored" in bad["error"]
+        assert "\n" not in bad["error"]
+    assert not (tmp_path / "bad.ply").exists()
+    bad = predict("bad.ply", "--ensemble-run", str(run1), "--stacking-gamma", "0.1", ok=False)
+    assert "not supported" in bad["error"]
