@@ -29,8 +29,10 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 torch.cuda.is_available(), 'numba', numba.__version__, 'numpy', numpy.__version__)"; } 2>&1 | tee "$OUT/machine.txt"
 echo "== CUDA tests"
 timeout "${TEST_TIMEOUT:-240}" python3 -m pytest -q -p no:cacheprovider -m cuda -rs \
-    tests/ovgaussian/test_train.py tests/seggaussian/render/test_pixel_blend.py > "$OUT/pytest_cuda.log" 2>&1
+    tests/ovgaussian/test_train.py tests/ovgaussian/test_ensemble.py tests/seggaussian/render/test_pixel_blend.py \
+    > "$OUT/pytest_cuda.log" 2>&1
 echo "pytest exit $?"; tail -n 12 "$OUT/pytest_cuda.log"
+[ "${STEPS:-3}" = 0 ] && exit 0  # STEPS=0: the tests alone
 for devoxelize in ${DEVOXELIZE:-nearest}; do
   echo "== paper-scale step on the GPU ($devoxelize devoxelization)"
   timeout "${STEP_TIMEOUT:-300}" python3 benchmarks/bench_paper_step.py --device cuda --steps "${STEPS:-3}" \

@@ -173,3 +173,46 @@ def test_predict_labels_with_an_ensemble_and_refuses_offsets_of_other_runs(two_r
     assert not (tmp_path / "bad.ply").exists()
     bad = predict("bad.ply", "--ensemble-run", str(run1), "--stacking-gamma", "0.1", ok=False)
     assert "not supported" in bad["error"]
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs CUDA (no GPU on this machine)")
+def test_bench_and_predict_of_an_ensemble_on_cuda_follow_the_cpu(two_runs, tmp_path):
+    """The same ensemble scored and applied with ``--device cuda``: the bench's 3D and 2D scores and predict's
+    labels are the CPU's (labels compared where the CPU's top two scores are apart)."""
+    from click.testing import CliRunner
+
+    from cli.ovgaussian_cli import main
+    from ovgaussian.predict.query import load_model_predictor
+    from seggaussian.io.formats import write_gaussians
+    from test_train import make_scene
+
+    _, data, run0, run1 = two_runs
+    rows = {}
+    for device in ("cpu", "cuda"):
+        out = tmp_path / f"bench-{device}.json"
+        result = CliRunner().invoke(main, ["bench", "--data", str(data), "--run", str(run0), "--ensemble-run",
+                                           str(run1), "--metric", "CSA", "--dim", "both", "--max-views", "1",
+                                           "--no-progress", "--device", device, "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        rows[device] = json.loads(out.read_text())["row"]
+    for key in ("3d_CSA", "2d_CSA"):
+        assert rows["cuda"][key] == pytest.approx(rows["cpu"][key], abs=5e-3), (key, rows)
+    gaussians = make_scene(5, per_box=20, views=1).gaussians
+    scene = tmp_path / "scene.ply"
+    write_gaussians(scene, gaussians, "ply")
+    names = ("chair", "table", "floor", "wall", "sofa")
+    labels = {}
+    for device in ("cpu", "cuda"):
+        out = tmp_path / f"{device}.ply"
+        result = CliRunner().invoke(main, ["predict", str(scene), "--run", str(run0), "--ensemble-run", str(run1),
+                                           "--vocab", ", ".join(names), "--out", str(out), "--device", device])
+        assert result.exit_code == 0, result.output
+        from plyfile import PlyData
+
+        labels[device] = np.asarray(PlyData.read(str(out))["vertex"]["semantic"])
+    members = [load_model_predictor(run) for run in (run0, run1)]
+    scores = np.sort(np.mean([m.score_names(m.encode_gaussians(gaussians), names) for m in members], axis=0), axis=1)
+    clear = scores[:, -1] - scores[:, -2] > 1e-4
+    assert clear.mean() > 0.5
+    np.testing.assert_array_equal(labels["cuda"][clear], labels["cpu"][clear])
