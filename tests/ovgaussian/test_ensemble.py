@@ -175,44 +175,74 @@ def test_predict_labels_with_an_ensemble_and_refuses_offsets_of_other_runs(two_r
     assert "not supported" in bad["error"]
 
 
+def _stub_text_embeddings(device):
+    """``text_embeddings(names)`` for a predictor without a text encoder: a fixed unit vector per name (seeded by
+    the name), 12 wide as ``test_train.text_stub``."""
+    import zlib
+
+    import torch
+
+    def embeddings(names):
+        rows = [torch.randn(12, generator=torch.Generator().manual_seed(zlib.crc32(n.encode()))) for n in names]
+        return torch.nn.functional.normalize(torch.stack(rows), dim=1).to(device)
+
+    return embeddings
+
+
+@pytest.fixture(scope="module")
+def stub_text_runs(tmp_path_factory):
+    """Two one-epoch runs trained with stub text embeddings (no text encoder, which a GPU machine may lack), seeds 0
+    and 1: (data, run0, run1)."""
+    from ovgaussian.run.config import DataConfig
+    from ovgaussian.train.loop import train
+    from test_train import _write_shards, make_scene, text_stub, tiny_config, tiny_model_config
+
+    tmp_path = tmp_path_factory.mktemp("stub-text")
+    data = tmp_path / "data"
+    _write_shards(data, [make_scene(s, per_box=20, views=2) for s in range(2)])
+    for seed in (0, 1):
+        train(tiny_config(tmp_path / f"run{seed}", 1, seed=seed, data=DataConfig(dataset=data, blend_top_k=8,
+                                                                                  pixels_per_view=64)),
+              model_config=tiny_model_config(12), text_embeddings=text_stub())
+    return data, tmp_path / "run0", tmp_path / "run1"
+
+
+def _stub_ensemble(runs, device):
+    from ovgaussian.predict.query import load_model_predictor
+
+    members = [load_model_predictor(run, device=device) for run in runs]
+    for member in members:
+        member.text_embeddings = _stub_text_embeddings(device)
+    return EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs CUDA (no GPU on this machine)")
-def test_bench_and_predict_of_an_ensemble_on_cuda_follow_the_cpu(two_runs, tmp_path):
-    """The same ensemble scored and applied with ``--device cuda``: the bench's 3D and 2D scores and predict's
-    labels are the CPU's (labels compared where the CPU's top two scores are apart)."""
-    from click.testing import CliRunner
-
-    from cli.ovgaussian_cli import main
-    from ovgaussian.predict.query import load_model_predictor
-    from seggaussian.io.formats import write_gaussians
+def test_bench_and_predict_of_an_ensemble_on_cuda_follow_the_cpu(stub_text_runs):
+    """The same two-run ensemble scored (``run_bench``) and applied (``label_gaussians``) with its members on the GPU:
+    the bench's 2D score and predict's per-Gaussian scores and labels are the CPU's (labels compared where the CPU's top two scores
+    are apart)."""
+    from ovgaussian.bench.config import BenchConfig
+    from ovgaussian.bench.evaluate import run_bench
+    from ovgaussian.predict.config import PredictConfig
+    from ovgaussian.predict.query import label_gaussians
     from test_train import make_scene
 
-    _, data, run0, run1 = two_runs
-    rows = {}
-    for device in ("cpu", "cuda"):
-        out = tmp_path / f"bench-{device}.json"
-        result = CliRunner().invoke(main, ["bench", "--data", str(data), "--run", str(run0), "--ensemble-run",
-                                           str(run1), "--metric", "CSA", "--dim", "both", "--max-views", "1",
-                                           "--no-progress", "--device", device, "--out", str(out)])
-        assert result.exit_code == 0, result.output
-        rows[device] = json.loads(out.read_text())["row"]
-    for key in ("3d_CSA", "2d_CSA"):
-        assert rows["cuda"][key] == pytest.approx(rows["cpu"][key], abs=5e-3), (key, rows)
+    data, run0, run1 = stub_text_runs
     gaussians = make_scene(5, per_box=20, views=1).gaussians
-    scene = tmp_path / "scene.ply"
-    write_gaussians(scene, gaussians, "ply")
     names = ("chair", "table", "floor", "wall", "sofa")
-    labels = {}
+    rows, labels, scores = {}, {}, {}
     for device in ("cpu", "cuda"):
-        out = tmp_path / f"{device}.ply"
-        result = CliRunner().invoke(main, ["predict", str(scene), "--run", str(run0), "--ensemble-run", str(run1),
-                                           "--vocab", ", ".join(names), "--out", str(out), "--device", device])
-        assert result.exit_code == 0, result.output
-        from plyfile import PlyData
-
-        labels[device] = np.asarray(PlyData.read(str(out))["vertex"]["semantic"])
-    members = [load_model_predictor(run) for run in (run0, run1)]
-    scores = np.sort(np.mean([m.score_names(m.encode_gaussians(gaussians), names) for m in members], axis=0), axis=1)
-    clear = scores[:, -1] - scores[:, -2] > 1e-4
+        ensemble = _stub_ensemble((run0, run1), device)
+        config = BenchConfig(dataset=data, run=run0, metrics=("NVA",), dims=("2d",), max_views_per_scene=1,
+                             progress=False, device=device)  # the test shards hold a train split only
+        rows[device] = run_bench(config, predictor=ensemble).payload["row"]
+        labels[device] = label_gaussians(ensemble, gaussians, PredictConfig(vocabulary=names, device=device)).labels
+        scores[device] = ensemble.score_names(ensemble.encode_gaussians(gaussians), names)
+    assert rows["cuda"]["2d_NVA"] is not None
+    assert rows["cuda"]["2d_NVA"] == pytest.approx(rows["cpu"]["2d_NVA"], abs=5e-3), rows
+    np.testing.assert_allclose(scores["cuda"], scores["cpu"], atol=1e-4)
+    top = np.sort(scores["cpu"], axis=1)
+    clear = top[:, -1] - top[:, -2] > 1e-4
     assert clear.mean() > 0.5
     np.testing.assert_array_equal(labels["cuda"][clear], labels["cpu"][clear])
