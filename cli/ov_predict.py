@@ -45,14 +45,14 @@ from ovgaussian.predict.config import PredictConfig
 @config_option(PredictConfig, "device", "--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @json_option
 @guarded
-def command(scene, run, checkpoint, ensemble_runs, vocab, out, output_format, spz_version, color_by, cameras, views_dir, colour_mode,
-            on_invalid, prompt_ensemble, stacking_gamma, class_offsets, min_alpha, device, as_json):
+def command(scene, run, checkpoint, ensemble_runs, vocab, out, output_format, spz_version, color_by, cameras, views_dir,
+            colour_mode, on_invalid, prompt_ensemble, stacking_gamma, class_offsets, min_alpha, device, as_json):
     """Open-vocabulary segmentation of SCENE (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat) with a trained run."""
     from ovgaussian.predict.query import parse_vocabulary, run_predict
 
     names = parse_vocabulary(vocab)
-    config = PredictConfig(run=run, checkpoint=checkpoint, ensemble_runs=tuple(ensemble_runs), vocabulary=names, colour_mode=colour_mode,
-                           min_alpha=min_alpha, on_invalid=on_invalid, color_by=color_by,
+    config = PredictConfig(run=run, checkpoint=checkpoint, ensemble_runs=tuple(ensemble_runs), vocabulary=names,
+                           colour_mode=colour_mode, min_alpha=min_alpha, on_invalid=on_invalid, color_by=color_by,
                            output_format=output_format, spz_version=int(spz_version),
                            prompt_ensemble=prompt_ensemble, stacking_gamma=stacking_gamma, class_offsets=class_offsets,
                            device=device)

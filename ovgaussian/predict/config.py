@@ -33,7 +33,10 @@ class PredictConfig:
     stacking_gamma: float = 0.0
     """Open vocabulary, calibrated stacking: subtract this from the scores of the names the run was trained on (take the gamma that `ovgaussian bench --stacking-run` records); 0: plain argmax."""
     class_offsets: Optional[Path] = None
-    """A report of `ovgaussian bench --class-offsets` (its JSON): the per-class score offsets it records are added to the scores of the same class names (other names: 0), so predictions match what that bench scored. The runs must be the checkpoints that bench scored (--run and each --ensemble-run; compared by the weights' sha256 the report records). Not with stacking_gamma."""
+    """A report of `ovgaussian bench --class-offsets` (its JSON): the per-class score offsets it records are added to
+    the scores of the same class names (other names: 0), so predictions match what that bench scored. The runs must be
+    the checkpoints that bench scored (--run and each --ensemble-run; compared by the weights' sha256 the report
+    records). Not with stacking_gamma."""
     colour_mode: Literal["f_dc", "rgb", "both"] = "both"
     """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
     red/green/blue properties, or both."""
