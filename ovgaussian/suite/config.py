@@ -72,6 +72,10 @@ class Table1Row:
     """Names of more runs of :data:`RUNS` scored with ``run`` as one ensemble, their class scores averaged
     (``BenchConfig.ensemble_runs``): the same recipe trained with other seeds. Such rows are scored only with
     ``SuiteConfig.ensemble``."""
+    fit_recipe: bool = False
+    """The profile's method for fitted splats (issue #27): this row's pair with the control of the same method
+    decides the 90 % check, and the other pairs are reported in its detail. Without this row in the profile
+    (``--no-ensemble``) the full model's plain pair decides."""
 
 
 @dataclass(frozen=True)
@@ -112,7 +116,8 @@ RUNS = (
 #: Table 1: both non-learned baselines, the full model, then one line per open-vocabulary method (#16a), the oracle
 #: controls of issue #27 (each method on fitted splats beside the same method trained and scored on oracle
 #: Gaussians), and the two-seed ensembles (the fitted run's score spreads by up to 3.3 points between training
-#: seeds, the control's by 0.3: BENCHMARKS.md, "Session 16").
+#: seeds, the control's by 0.3: BENCHMARKS.md, "Session 16"). The two-seed ensemble with class offsets is the method
+#: for fitted splats: it was chosen in session 16 on retrains, and the profile of session 17 confirmed it.
 TABLE1_ROWS = (
     Table1Row("majority (baseline)", predictor="majority"),
     Table1Row("nearest-colour (baseline)", predictor="nearest-colour"),
@@ -129,7 +134,7 @@ TABLE1_ROWS = (
     Table1Row("control, 2 training seeds (ensemble)", run="full-oracle", ensemble=("full-oracle-seed1",),
               scored_on="oracle"),
     Table1Row("full, 2 training seeds + class offsets", run="full", ensemble=("full-seed1",),
-              options=(("class_offsets", True),)),
+              options=(("class_offsets", True),), fit_recipe=True),
     Table1Row("control, 2 training seeds + class offsets", run="full-oracle", ensemble=("full-oracle-seed1",),
               options=(("class_offsets", True),), scored_on="oracle"),
 )

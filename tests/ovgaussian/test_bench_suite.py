@@ -240,15 +240,25 @@ def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the
                      ("full + class offsets", "control + class offsets"),
                      ("full, 2 training seeds (ensemble)", "control, 2 training seeds (ensemble)"),
                      ("full, 2 training seeds + class offsets", "control, 2 training seeds + class offsets")]
+    assert [r.label for r in TABLE1_ROWS if r.fit_recipe] == ["full, 2 training seeds + class offsets"]
     reports = {"full": payload({k: 0.45 for k in ALL}), "control": payload({k: 0.48 for k in ALL}),
                "full + offsets": payload({k: 0.40 for k in ALL}), "control + offsets": payload({k: 0.50 for k in ALL})}
-    result = S.control_checks(reports, [("full", "control"), ("full + offsets", "control + offsets")], "fit")
-    (name, (ok, detail)), (name2, (ok2, detail2)) = result.items()
-    assert ok and "94 %" in detail and "fitted 45.0" in detail
-    assert not ok2 and "80 %" in detail2 and name2 == f"{name} (full + offsets)"
+    both = [("full", "control"), ("full + offsets", "control + offsets")]
+    # without a recipe the full model's pair decides; the other pair is in the detail
+    ((name, (ok, detail)),) = S.control_checks(reports, both, "fit").items()
+    assert ok and name.endswith("(full)") and "full: fitted 45.0 [43.0, 47.0] vs oracle 48.0" in detail
+    assert "93.8 %" in detail and "the other methods: full + offsets: fitted 40.0" in detail and "80.0 %" in detail
+    # the recipe's pair decides, whatever the others give
+    ((name, (ok, detail)),) = S.control_checks(reports, both, "fit", recipe="full + offsets").items()
+    assert not ok and name.endswith("(full + offsets)") and detail.startswith("full + offsets: fitted 40.0")
+    reports["full + offsets"] = payload({k: 0.46 for k in ALL})
     reports["full"] = payload({k: 0.40 for k in ALL})
-    assert not S.control_checks(reports, [("full", "control")], "fit")[name][0]
+    ((name, (ok, detail)),) = S.control_checks(reports, both, "fit", recipe="full + offsets").items()
+    assert ok and "92.0 %" in detail and "full: fitted 40.0" in detail
+    assert not list(S.control_checks(reports, both, "fit").values())[0][0]  # 40 / 48: the full pair alone fails
+    assert S.control_checks(reports, both, "fit", recipe="missing") == S.control_checks(reports, both, "fit")
     assert S.control_checks(reports, [("full", "control")], "oracle") == {}  # an oracle profile has no such check
+    assert S.control_checks(reports, [], "fit") == {}
     assert SuiteConfig().splats == "fit" and not SuiteConfig().ablation
 
 
