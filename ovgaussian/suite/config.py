@@ -178,8 +178,8 @@ class SuiteConfig:
     ``splats="oracle"``)."""
     epochs: int = 45
     """Epochs of every run (45 x 15 steps of 3 rooms; one schedule for all runs). With it the whole profile, the 72
-    room fits included, runs from nothing within 60 minutes on 2 cores; what 45 buys against 30 is in BENCHMARKS.md,
-    "Session 15"."""
+    room fits and the six trainings included, runs from nothing within the 75 minutes of issue #27 on 2 cores (its
+    times: BENCHMARKS.md, "Session 17"); what 45 buys against 30 is in BENCHMARKS.md, "Session 15"."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
@@ -218,7 +218,8 @@ class SuiteConfig:
     lengthen it: its time with them is not yet measured on a quiet machine)."""
     ensemble: bool = True
     """Also train the full model and its oracle control with a second seed (``seed`` + 1) and score the Table-1
-    rows of the two-seed ensemble (two more trainings; about a quarter of the profile's time)."""
+    rows of the two-seed ensemble, whose pair with class offsets decides the 90 % check (two more trainings and four
+    rows; what they cost: BENCHMARKS.md, "Session 17")."""
     jobs: int = 2
     """Processes working at once: scenes of the build, then training runs and bench rows, a row once the runs it
     scores are done (each process with cpu_count // jobs torch and numba threads)."""
