@@ -155,11 +155,16 @@ def _read_report(path: Path) -> dict:
     return report if isinstance(report, dict) else {}
 
 
+def _predictor_record(path: Path) -> dict:
+    predictor = _read_report(path).get("predictor")
+    return predictor if isinstance(predictor, dict) else {}
+
+
 def read_class_offsets(path) -> dict[str, float]:
     """``{class name: offset}`` recorded in a bench report (``predictor.class_offsets`` of the JSON that
     ``ovgaussian bench --class-offsets`` writes); a one-line ValueError naming the file and field otherwise."""
     path = Path(path)
-    record = _read_report(path).get("predictor", {}).get("class_offsets")
+    record = _predictor_record(path).get("class_offsets")
     if not isinstance(record, dict):
         raise ValueError(f"{path}: no predictor.class_offsets (a report of `ovgaussian bench --class-offsets`)")
     names, offsets = record.get("names"), record.get("offsets")
@@ -174,8 +179,9 @@ def read_class_offsets(path) -> dict[str, float]:
 def offsets_checkpoints(path) -> tuple[str, ...]:
     """sha256 of the weights whose scores a bench report's class offsets were fitted on: ``predictor.
     checkpoint_sha256``, then each ``predictor.ensemble`` member's; empty when the report does not record them."""
-    predictor = _read_report(Path(path)).get("predictor", {})
-    records = [predictor, *(predictor.get("ensemble") or [])]
+    predictor = _predictor_record(Path(path))
+    members = predictor.get("ensemble")
+    records = [predictor, *(members if isinstance(members, list) else [])]
     digests = tuple(r.get("checkpoint_sha256") for r in records if isinstance(r, dict))
     return digests if digests and all(isinstance(d, str) for d in digests) else ()
 

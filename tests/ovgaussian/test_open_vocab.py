@@ -266,7 +266,16 @@ def test_predict_adds_the_class_offsets_of_a_bench_report(tmp_path):
     (tmp_path / "plain.json").write_text(json.dumps({"predictor": {"kind": "model"}}))
     (tmp_path / "broken.json").write_text("{")
     (tmp_path / "nan.json").write_text('{"predictor": {"class_offsets": {"names": ["a"], "offsets": [NaN]}}}')
+    from ovgaussian.openvocab.class_offsets import offsets_checkpoints
+
+    assert offsets_checkpoints(report) == ()  # no checkpoint recorded: nothing to compare
+    (tmp_path / "pair.json").write_text(json.dumps({"predictor": {"checkpoint_sha256": "a", "ensemble": [
+        {"checkpoint_sha256": "b"}]}}))
+    assert offsets_checkpoints(tmp_path / "pair.json") == ("a", "b")
+    (tmp_path / "odd.json").write_text('{"predictor": "model"}')
+    (tmp_path / "list.json").write_text('[1, 2]')
     for name, message in (("plain.json", "no predictor.class_offsets"), ("broken.json", "not a JSON"),
+                          ("odd.json", "no predictor.class_offsets"), ("list.json", "no predictor.class_offsets"),
                           ("nan.json", "finite"), ("missing.json", "cannot read")):
         with pytest.raises(ValueError, match=message) as err:
             read_class_offsets(tmp_path / name)
