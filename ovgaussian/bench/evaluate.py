@@ -40,12 +40,11 @@ from ovgaussian.bench.config import (
 from ovgaussian.bench.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
 from ovgaussian.openvocab.calibration import Calibration, StackedPredictor, calibrate
 from ovgaussian.openvocab.class_offsets import OffsetPredictor, fit_offsets
-from ovgaussian.run.checkpoint import CONFIG_NAME, read_json
+from ovgaussian.run.checkpoint import CONFIG_NAME, read_json, weights_sha256
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.openvocab.feature_synthesis import fit_generative_predictor
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
-from ovgaussian.predict.ensemble import EnsemblePredictor
-from ovgaussian.predict.query import load_model_predictor
+from ovgaussian.predict.query import load_ensemble, load_model_predictor
 from ovgaussian.text.prompt_ensemble import PROMPT_TEMPLATES
 from ovgaussian.run.config import config_to_dict
 from ovgaussian.predict.view_labels import BlendFunctions, default_blend_functions, stream_view_labels
@@ -384,9 +383,8 @@ def _train_scenes(config: BenchConfig):
 
 def _checkpoint_record(run: Path, predictor) -> dict:
     """The report's record of a model predictor: its run, checkpoint folder and the weights' sha256 (None if absent)."""
-    weights = Path(predictor.checkpoint) / "model.safetensors"
     return {"run": str(run), "checkpoint": str(predictor.checkpoint),
-            "checkpoint_sha256": sha256_file(weights) if weights.is_file() else None}
+            "checkpoint_sha256": weights_sha256(predictor.checkpoint)}
 
 
 def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
@@ -401,11 +399,9 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
         if config.ensemble_runs:
             if config.generative or config.stacking_run is not None:
                 raise ValueError("bench: --ensemble-run is not supported with --generative or --stacking-run")
-            members = [predictor] + [load_model_predictor(run, None, device=config.device, prompt_templates=templates)
-                                     for run in config.ensemble_runs]
+            predictor = load_ensemble(predictor, config.ensemble_runs, config.device, templates)
             description["ensemble"] = [_checkpoint_record(run, member)
-                                       for run, member in zip(config.ensemble_runs, members[1:])]
-            predictor = EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
+                                       for run, member in zip(config.ensemble_runs, predictor.members[1:])]
         if config.generative:
             train_scenes = _train_scenes(config)
             predictor, record = fit_generative_predictor(predictor, train_scenes, benchmark_vocabulary(config.num_classes),

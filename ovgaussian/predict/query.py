@@ -22,7 +22,7 @@ import torch
 
 from ovgaussian.openvocab.calibration import stack_scores
 from ovgaussian.openvocab.class_offsets import offsets_checkpoints, read_class_offsets
-from ovgaussian.run.checkpoint import load_trained_model
+from ovgaussian.run.checkpoint import load_trained_model, weights_sha256
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.model.network import gaussian_attributes
 from ovgaussian.predict.config import PredictConfig
@@ -37,7 +37,6 @@ from seggaussian.core.constants import IGNORE_LABEL, SH_C0, read_class_names
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import format_for_output, read_gaussians, write_gaussians
 from seggaussian.labels.palette import build_legend, palette, write_legend
-from seggaussian.shards.files import sha256_file
 
 #: Lower bound of a decoded vector's norm before cosine similarity (a zero vector scores 0, not NaN).
 COSINE_NORM_EPS = 1e-12
@@ -307,8 +306,14 @@ def load_predictor(config: PredictConfig):
     if config.stacking_gamma > 0:
         raise ValueError("predict: --ensemble-run with --stacking-gamma is not supported (bench chooses gamma for "
                          "one run)")
-    members = [predictor] + [load_model_predictor(run, None, device=config.device, prompt_templates=templates)
-                             for run in config.ensemble_runs]
+    return load_ensemble(predictor, config.ensemble_runs, config.device, templates)
+
+
+def load_ensemble(first: ModelPredictor, runs: Sequence[Path], device: str = "cpu",
+                  prompt_templates: Sequence[str] = ()) -> EnsemblePredictor:
+    """``first`` and the latest checkpoint of each of ``runs`` (same device and prompts) as one ensemble."""
+    members = [first] + [load_model_predictor(run, None, device=device, prompt_templates=prompt_templates)
+                         for run in runs]
     return EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
 
 
@@ -317,11 +322,10 @@ def check_offsets_checkpoints(report: Path, predictor) -> None:
     fitted on one run's scores, or on an ensemble's, are wrong for any other. Compared by the sha256 of each
     checkpoint's ``model.safetensors`` that the bench report records; a report without them is not checked."""
     recorded = offsets_checkpoints(report)
-    checkpoints = [getattr(m, "checkpoint", None) for m in getattr(predictor, "members", (predictor,))]
-    if not recorded or any(c is None or not (Path(c) / "model.safetensors").is_file() for c in checkpoints):
+    if not recorded:
         return
-    given = [sha256_file(Path(c) / "model.safetensors") for c in checkpoints]
-    if sorted(given) != sorted(recorded):
+    given = [weights_sha256(getattr(m, "checkpoint", None)) for m in getattr(predictor, "members", (predictor,))]
+    if None not in given and sorted(given) != sorted(recorded):
         raise ValueError(f"{report}: its class offsets were fitted on the scores of {len(recorded)} checkpoint(s) "
                          f"(sha256 {', '.join(d[:12] for d in recorded)}), not on the {len(given)} given with --run"
                          f"{' and --ensemble-run' if len(given) > 1 else ''} (sha256 "

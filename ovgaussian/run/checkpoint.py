@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, NamedTuple
 from ovgaussian.model.network import OVGaussianNet
 from ovgaussian.model.config import LEGACY_FIELD_VALUES, OVGaussianNetConfig
 from ovgaussian.run.config import config_from_dict
+from seggaussian.shards.files import sha256_file
 from seggaussian.util.atomic import atomic_dir, atomic_path, remove_dir_atomic, sweep_temps, write_json_atomic
 from seggaussian.util.jsonsafe import NAN_IS_ERROR
 
@@ -101,6 +102,13 @@ def save_checkpoint(run_dir: Path, epoch: int, net, optimizer, state: dict) -> P
     write_json_atomic(run_dir / CHECKPOINTS_DIR / LATEST_NAME,
                       {"epoch": epoch, "path": str(folder.relative_to(run_dir))}, nan=NAN_IS_ERROR)
     return folder
+
+
+def weights_sha256(checkpoint: Path | None) -> str | None:
+    """sha256 of a checkpoint folder's ``model.safetensors`` (what bench reports record of the weights they scored);
+    None without a folder or weights."""
+    weights = None if checkpoint is None else Path(checkpoint) / "model.safetensors"
+    return sha256_file(weights) if weights is not None and weights.is_file() else None
 
 
 def checkpoint_folders(run_dir: Path) -> dict[int, Path]:
