@@ -479,6 +479,12 @@ def check_settings(config: SuiteConfig) -> None:
                          "use a new --out, or the settings recorded in " + SETTINGS_NAME)
 
 
+def row_runs(row: Table1Row) -> tuple[str, ...]:
+    """Names of the runs of :data:`RUNS` a Table-1 row scores: its run, the calibration run of its stacking, and its
+    ensemble's other members."""
+    return tuple(name for name in (row.run, row.stacking_run, *row.ensemble) if name is not None)
+
+
 def table1_rows(config: SuiteConfig) -> tuple[Table1Row, ...]:
     """The Table-1 rows of this profile: every row of :data:`TABLE1_ROWS`, less the control rows when the profile
     itself runs on oracle Gaussians (they would repeat the full run's row), and less the ensemble rows without
@@ -512,7 +518,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     dataset = data.splats
     sizes = split_sizes(dataset)
     rows = table1_rows(config)
-    needed = {name for row in rows for name in (row.run, row.stacking_run, *row.ensemble) if name is not None}
+    needed = {name for row in rows for name in row_runs(row)}
     if config.ablation:
         needed |= {row.run for row in ABLATION_ROWS}
     specs = [spec for spec in RUNS if spec.name in needed]
@@ -524,7 +530,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     tasks += [Task(f"bench: {row.label}", bench_row,
                    (config, bench_config(config, data.oracle if row.scored_on == "oracle" else dataset, row),
                     reports_dir / f"table1-{index:02d}.json"),
-                   tuple(f"train: {name}" for name in (row.run, row.stacking_run, *row.ensemble) if name is not None))
+                   tuple(f"train: {name}" for name in row_runs(row)))
               for index, row in enumerate(rows)]
     # a run scored by a Table-1 row without an open-vocabulary method needs no bench of its own for Table 2
     plain_rows = {r.run: r.label for r in rows if r.run is not None and not r.options and not r.stacking_run
