@@ -32,7 +32,7 @@ import numpy as np
 
 from ovgaussian.bench.evaluate import run_bench
 from ovgaussian.bench.config import BenchConfig, TABLE1_COLUMNS
-from ovgaussian.bench.bootstrap import Interval, overlaps
+from ovgaussian.bench.bootstrap import Interval, bootstrap_ratio, overlaps
 from ovgaussian.run.checkpoint import latest_checkpoint
 from ovgaussian.metrics import UnseenShare, unseen_share
 from ovgaussian.suite.config import ABLATION_ROWS, RUNS, TABLE1_ROWS, RunSpec, SuiteConfig, Table1Row
@@ -395,6 +395,18 @@ def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run
 FIT_TO_ORACLE_MIN_SHARE = 0.9
 
 
+def paired_csa_ratio(fitted: dict, control: dict) -> Interval | None:
+    """3D CSA of ``fitted`` over ``control`` (bench payloads) with its paired bootstrap interval over the val rooms
+    (``bootstrap_ratio``), or None when the two did not score the same rooms in the same order or hold no per-room
+    matrices (a report of an older bench)."""
+    rooms = [payload.get("dataset", {}).get("scenes", {}).get("val") for payload in (fitted, control)]
+    mats = [payload.get("scene_confusion", {}).get("val_3d") for payload in (fitted, control)]
+    if not rooms[0] or rooms[0] != rooms[1] or any(m is None or len(m) != len(rooms[0]) for m in mats):
+        return None
+    top, bottom = (np.asarray(m, dtype=np.int64) for m in mats)
+    return bootstrap_ratio(top, bottom) if top.shape == bottom.shape else None
+
+
 def control_checks(reports: dict, pairs: Sequence[tuple[str, str]], splats: str, recipe: str | None = None) -> dict:
     """The 90 % check of issue #27: a method on fitted splats against its control (the same method trained and
     scored on the rooms' oracle Gaussians), its 3D CSA on the splats at least ``FIT_TO_ORACLE_MIN_SHARE`` of the
@@ -408,6 +420,10 @@ def control_checks(reports: dict, pairs: Sequence[tuple[str, str]], splats: str,
         control = interval_of(reports[pair[1]], "3d", "CSA").value
         ok = mine is not None and bool(control) and mine >= FIT_TO_ORACLE_MIN_SHARE * control
         ratio = f"{100 * mine / control:.1f} %" if mine is not None and control else "-"
+        paired = paired_csa_ratio(reports[pair[0]], reports[pair[1]])
+        if paired is not None and paired.low is not None:
+            ratio += (f" (paired 95 % interval over the {paired.scenes} val rooms: {100 * paired.low:.1f}-"
+                      f"{100 * paired.high:.1f} %)")
         return ok, (f"{pair[0]}: fitted {_cell(interval_of(reports[pair[0]], '3d', 'CSA'))} vs oracle "
                     f"{_cell(interval_of(reports[pair[1]], '3d', 'CSA'))}: {ratio}")
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ovgaussian.metrics import scores_from_confusion
 from ovgaussian.suite import profile as S
 from ovgaussian.suite.config import ABLATION_ROWS, RUNS, TABLE1_ROWS, SuiteConfig, Table1Row
 
@@ -264,6 +265,37 @@ def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the
     assert S.control_checks(reports, [("full", "control")], "oracle") == {}  # an oracle profile has no such check
     assert S.control_checks(reports, [], "fit") == {}
     assert SuiteConfig().splats == "fit" and not SuiteConfig().ablation
+
+
+def test_the_check_gives_the_ratio_with_its_interval_paired_over_the_same_val_rooms():
+    rng = np.random.default_rng(0)
+    k = 3
+    control = rng.integers(0, 5, size=(6, k, k + 1))
+    control[:, np.arange(k), np.arange(k)] += rng.integers(20, 60, size=(6, k))
+    fitted = control.copy()
+    fitted[:, np.arange(k), np.arange(k)] -= 8  # every room loses the same share of its hits to misses
+    fitted[:, np.arange(k), k] += 8
+    rooms = [f"room{i}" for i in range(6)]
+
+    def with_rooms(value, mats, ids):
+        report = payload({key: value for key in ALL})
+        report["dataset"] = {"scenes": {"val": ids}}
+        report["scene_confusion"] = {"val_3d": mats.tolist()}
+        return report
+
+    top, bottom = scores_from_confusion(fitted.sum(0)).miou, scores_from_confusion(control.sum(0)).miou
+    reports = {"full": with_rooms(top, fitted, rooms), "control": with_rooms(bottom, control, rooms)}
+    interval = S.paired_csa_ratio(reports["full"], reports["control"])
+    assert interval.value == pytest.approx(top / bottom) and interval.scenes == 6
+    assert interval.low <= interval.value <= interval.high
+    ((_, (_, detail)),) = S.control_checks(reports, [("full", "control")], "fit").items()
+    assert f"paired 95 % interval over the 6 val rooms: {100 * interval.low:.1f}-{100 * interval.high:.1f} %" in detail
+    # other rooms, or another order, or no per-room matrices: no paired interval, the ratio alone
+    reports["control"] = with_rooms(bottom, control, rooms[::-1])
+    assert S.paired_csa_ratio(reports["full"], reports["control"]) is None
+    ((_, (_, detail)),) = S.control_checks(reports, [("full", "control")], "fit").items()
+    assert "paired" not in detail and f"{100 * top / bottom:.1f} %" in detail
+    assert S.paired_csa_ratio(payload({key: 0.4 for key in ALL}), reports["control"]) is None
 
 
 def test_ensemble_rows_score_the_run_with_its_other_seeds_and_are_opt_out():

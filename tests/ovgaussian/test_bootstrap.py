@@ -8,7 +8,8 @@ from types import SimpleNamespace
 from ovgaussian.bench import baselines as baseline
 from ovgaussian.bench.evaluate import evaluate, metric_interval, result_to_dict
 from ovgaussian.bench.bootstrap import (
-    bootstrap_miou, bootstrap_miou_reference, draw_scene_counts, miou_of_stack, overlaps,
+    bootstrap_miou, bootstrap_miou_reference, bootstrap_ratio, bootstrap_ratio_reference, draw_scene_counts,
+    miou_of_stack, overlaps,
 )
 from ovgaussian.metrics import scores_from_confusion
 from ovgaussian.text.vocabulary import make_vocabulary
@@ -85,6 +86,44 @@ def test_interval_narrows_with_more_scenes_and_covers_the_truth():
     small, large = bootstrap_miou(scenes(5), draws=1000), bootstrap_miou(scenes(80), draws=1000)
     assert (large.high - large.low) < (small.high - small.low)
     assert large.low < large.value < large.high
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_paired_ratio_equals_the_loop(seed):
+    rng = np.random.default_rng(seed)
+    top, bottom = random_scenes(rng, 9, 6, empty_classes=(4,)), random_scenes(rng, 9, 6, empty_classes=(4,))
+    fast = bootstrap_ratio(top, bottom, draws=300, seed=seed)
+    slow = bootstrap_ratio_reference(top, bottom, draws=300, seed=seed)
+    assert fast.value == pytest.approx(slow.value, abs=1e-12)
+    assert (fast.low, fast.high, fast.draws) == pytest.approx((slow.low, slow.high, slow.draws), abs=1e-12)
+    assert fast.value == pytest.approx(scores_from_confusion(top.sum(0)).miou / scores_from_confusion(bottom.sum(0)).miou)
+    assert fast.low <= fast.value <= fast.high
+
+
+def test_paired_ratio_is_tighter_than_unpaired_when_the_rooms_carry_the_spread():
+    # Both sides score the same rooms; a room hard for one is hard for the other (the numerator is the
+    # denominator with a tenth of every diagonal moved to a miss). The paired ratio stays near its value; the
+    # two mIoUs' own intervals are wide.
+    rng = np.random.default_rng(1)
+    bottom = random_scenes(rng, 12, 5)
+    bottom[1::2, np.arange(5), np.arange(5)] //= 6  # every other room hard
+    top = bottom.copy()
+    moved = top[:, np.arange(5), np.arange(5)] // 10
+    top[:, np.arange(5), np.arange(5)] -= moved
+    top[:, np.arange(5), 5] += moved
+    paired = bootstrap_ratio(top, bottom, draws=500)
+    alone = bootstrap_miou(bottom, draws=500)
+    assert paired.high - paired.low < 0.5 * (alone.high - alone.low) / alone.value
+
+
+def test_paired_ratio_refuses_unpaired_sets_and_has_no_interval_for_one_room():
+    rng = np.random.default_rng(2)
+    with pytest.raises(ValueError, match="same scenes"):
+        bootstrap_ratio(random_scenes(rng, 4, 3), random_scenes(rng, 5, 3))
+    one = bootstrap_ratio(random_scenes(rng, 1, 3), random_scenes(rng, 1, 3))
+    assert one.value is not None and one.low is None and one.high is None
+    empty = np.zeros((3, 3, 4), np.int64)
+    assert bootstrap_ratio(random_scenes(rng, 3, 3), empty).value is None
 
 
 def test_overlap():
