@@ -411,7 +411,8 @@ def control_checks(reports: dict, pairs: Sequence[tuple[str, str]], splats: str,
     """The 90 % check of issue #27: a method on fitted splats against its control (the same method trained and
     scored on the rooms' oracle Gaussians), its 3D CSA on the splats at least ``FIT_TO_ORACLE_MIN_SHARE`` of the
     control's. ``pairs``: ``(fitted, control)`` Table-1 labels; the pair whose fitted row is ``recipe`` (the
-    profile's method for fitted splats) decides, else the first (the full model's). The detail gives every pair."""
+    profile's method for fitted splats) decides, else the first (the full model's). The detail gives every pair, each
+    ratio with its paired 95 % interval over the val rooms (``paired_csa_ratio``); the rule reads the ratio alone."""
     if splats != "fit" or not pairs:
         return {}
 
