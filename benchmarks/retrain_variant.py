@@ -32,6 +32,8 @@ def main() -> int:
     parser.add_argument("--input-encoding", choices=("raw", "robust"), default=None)
     parser.add_argument("--pool-weighting", choices=("mean", "opacity"), default=None)
     parser.add_argument("--devoxelize", choices=("nearest", "trilinear"), default=None)
+    parser.add_argument("--voxel-geometry", action=argparse.BooleanOptionalAction, default=None,
+                        help="give the backbone the centres' offset and covariance in each voxel")
     parser.add_argument("--seed", type=int, default=None,
                         help="override the run's seed (network initialization, scene order, sampling): the "
                              "run-to-run spread")
@@ -54,7 +56,8 @@ def main() -> int:
     saved = config_from_dict(TrainConfig, json.loads((args.run / "config.json").read_text())["train"])
     changes = {k: v for k, v in (("input_encoding", args.input_encoding), ("pool_weighting", args.pool_weighting),
                                  ("devoxelize", args.devoxelize), ("seed", args.seed), ("epochs", args.epochs),
-                                 ("voxel_size", args.voxel_size)) if v is not None}
+                                 ("voxel_size", args.voxel_size), ("voxel_geometry", args.voxel_geometry))
+               if v is not None}
     config = dataclasses.replace(saved, out=args.out / "run", progress=False, **changes)
     if args.loss_gaussians is not None:
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, loss_gaussians=args.loss_gaussians))

@@ -13,6 +13,8 @@ MINKUNET34C_BLOCKS = (2, 3, 4, 6, 2, 2, 2, 2)
 SLIM_WIDTHS = tuple(w // 4 for w in MINKUNET34C_WIDTHS)
 #: Number of per-Gaussian attributes from ``gaussian_attributes``: colour 3, opacity 1, scales 3, quats 4.
 NUM_GAUSSIAN_ATTRIBUTES = 11
+#: Voxel inputs added by ``voxel_geometry``: the centres' mean offset (3) and covariance (6) inside the voxel.
+VOXEL_GEOMETRY_WIDTH = 9
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,12 @@ class OVGaussianNetConfig:
     """How a Gaussian reads the backbone's voxel features: ``nearest`` (its own voxel's row: every Gaussian of a voxel
     gets the same) or ``trilinear`` (a blend of the occupied voxels whose centres surround it, weighted by its
     position: ``ovgaussian.sparse.devoxelize``)."""
+    voxel_geometry: bool = False
+    """Append to each voxel's pooled inputs how its Gaussians' centres lie inside it: their mean offset from the voxel
+    centre (3, in voxel edges, times 2) and their covariance (6: xx, yy, zz, xy, xz, yz, in voxel edges squared, times
+    12), weighted as the pooling (``voxel_geometry_features``). A surface through the voxel shows as a flat covariance
+    whose thin axis is its normal, which fitted Gaussians' own rotations do not give (the backbone sees
+    ``num_attributes + 9`` inputs; the adapter's are unchanged)."""
     semantic_width: int = 16
     """Width of the per-Gaussian semantic vector s (paper: 16); also the backbone's output width."""
     use_adapter: bool = True
@@ -88,6 +96,11 @@ class OVGaussianNetConfig:
         """Per-Gaussian input width: 11, or 14 with coordinates."""
         return NUM_GAUSSIAN_ATTRIBUTES + (3 if self.use_coordinates else 0)
 
+    @property
+    def backbone_inputs(self) -> int:
+        """Input width of the sparse U-Net: the pooled attributes, plus 9 with ``voxel_geometry``."""
+        return self.num_attributes + (VOXEL_GEOMETRY_WIDTH if self.voxel_geometry else 0)
+
     @classmethod
     def slim(cls, **overrides) -> "OVGaussianNetConfig":
         """A quarter of the MinkUNet34C widths with a 3^3 stem (tests, CPU training)."""
@@ -98,4 +111,5 @@ class OVGaussianNetConfig:
 
 #: Values of the fields added after runs were first saved, for a run folder whose config lacks them: such a run
 #: was trained with these behaviours (``ovgaussian.run.checkpoint`` loads it with them, not with today's defaults).
-LEGACY_FIELD_VALUES = {"input_encoding": "raw", "pool_weighting": "mean", "devoxelize": "nearest"}
+LEGACY_FIELD_VALUES = {"input_encoding": "raw", "pool_weighting": "mean", "devoxelize": "nearest",
+                       "voxel_geometry": False}

@@ -37,7 +37,8 @@ from ovgaussian.model.narrow_linear import narrow_linear
 from ovgaussian.model.relu_mlp import relu_mlp
 from ovgaussian.model.token_attention import token_attention_packed
 from ovgaussian.sparse import (
-    DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxelize_points,
+    DownConv3d, SparseBatchNorm, SparseVoxels, SubmanifoldConv3d, UpConv3d, VoxelSites, voxel_geometry_features,
+    voxelize_points,
 )
 from ovgaussian.sparse.devoxelize import PointGather, trilinear_gather
 from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX, QUAT_NORM_EPS, SH_C0
@@ -351,7 +352,7 @@ class OVGaussianNet(nn.Module):
         self.config = config
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed)
-            self.backbone = SparseUNet(config.num_attributes, config.semantic_width, config)
+            self.backbone = SparseUNet(config.backbone_inputs, config.semantic_width, config)
             if config.use_adapter:
                 self.adapter = VoxelToPointAdapter(config)
             else:
@@ -396,9 +397,14 @@ class OVGaussianNet(nn.Module):
         [N, K]), network inputs [N, A])`` (inputs checked and encoded, voxelized, the sparse U-Net; the gather is
         ``config.devoxelize``'s)."""
         attributes = self.prepare_inputs(means, attributes, batch_index)
+        weights = self.pool_weights(attributes)
         vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
-                              weights=self.pool_weights(attributes))
-        voxel_features = self.backbone(vox.voxels)  # first: it builds the sites' kernel maps the trilinear gather reads
+                              weights=weights)
+        voxels = vox.voxels
+        if self.config.voxel_geometry:
+            geometry = voxel_geometry_features(vox.point_offsets, vox.point_to_voxel, len(voxels.sites), weights)
+            voxels = voxels.replace(torch.cat([voxels.features, geometry.to(voxels.features.dtype)], dim=1))
+        voxel_features = self.backbone(voxels)  # first: it builds the sites' kernel maps the trilinear gather reads
         if self.config.devoxelize == "trilinear":
             point_gather = trilinear_gather(vox.voxels.sites, vox.point_to_voxel, vox.point_offsets)
         else:

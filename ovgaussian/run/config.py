@@ -165,6 +165,9 @@ class TrainConfig:
     """How a Gaussian reads the voxel features: its own voxel's (``nearest``: all Gaussians of a voxel alike) or a
     ``trilinear`` blend of the occupied voxels around it, by its position (Gaussians at a boundary lean to the side
     they lie on)."""
+    voxel_geometry: bool = False
+    """Also give the backbone how the Gaussians' centres lie in each voxel (their mean offset and covariance: a
+    surface's orientation, which a fitted splat's own rotations do not carry); off: the pooled attributes alone."""
     progress: bool = True
     """Show a tqdm progress bar with the running losses."""
     keep_checkpoints: int = 2

@@ -168,3 +168,24 @@ def voxelize_points(
         totals = features.new_zeros(m).index_add_(0, inverse, w)
         pooled = pooled / totals[:, None]
     return Voxelization(SparseVoxels(pooled, sites), inverse, sizes.float(), lo.float(), offsets)
+
+
+def voxel_geometry_features(
+    point_offsets: Tensor,  # [N, 3] positions inside the voxels, in [0, 1] (Voxelization.point_offsets)
+    point_to_voxel: Tensor,  # [N] int64 voxel row of each point
+    num_voxels: int,
+    weights: "Tensor | None" = None,  # [N] positive, as the pooling's; None: every point counts once
+) -> Tensor:  # [M, 9] float32
+    """How the points lie inside each voxel: ``[2 m, 12 C]`` with ``m`` the weighted mean of ``u = offset - 0.5``
+    (``[3]``, so ``2 m`` in [-1, 1]) and ``C = E[u u^T] - m m^T`` its weighted covariance as ``xx, yy, zz, xy, xz,
+    yz`` (points spread uniformly along an axis give ``12 C = 1`` there; a plane through the voxel gives 0 along its
+    normal). A voxel with one point has covariance 0. No gradient flows (positions are not network outputs)."""
+    u = point_offsets.detach().float() - 0.5
+    w = (torch.ones(u.shape[0], dtype=u.dtype, device=u.device) if weights is None
+         else weights.detach().to(u.dtype))
+    i, j = (0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)
+    totals = u.new_zeros(num_voxels).index_add_(0, point_to_voxel, w).clamp_min(1e-30)
+    mean = u.new_zeros(num_voxels, 3).index_add_(0, point_to_voxel, u * w[:, None]) / totals[:, None]
+    d = u - mean[point_to_voxel]  # centred first, so a voxel of one point has covariance exactly 0
+    covariance = u.new_zeros(num_voxels, 6).index_add_(0, point_to_voxel, d[:, i] * d[:, j] * w[:, None])
+    return torch.cat([2.0 * mean, 12.0 * covariance / totals[:, None]], dim=1)

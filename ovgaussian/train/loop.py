@@ -98,7 +98,8 @@ def make_model_config(config: TrainConfig, text_width: int) -> OVGaussianNetConf
     """The network config of the preset, with ``embedding_width`` = text width and the adapter switch."""
     fields = dict(embedding_width=int(text_width), use_adapter=config.use_adapter, seed=config.seed,
                   use_coordinates=config.use_coordinates, input_encoding=config.input_encoding,
-                  pool_weighting=config.pool_weighting, devoxelize=config.devoxelize)
+                  pool_weighting=config.pool_weighting, devoxelize=config.devoxelize,
+                  voxel_geometry=config.voxel_geometry)
     if config.voxel_size is not None:
         fields["voxel_size"] = float(config.voxel_size)
     if config.model_preset == "slim":
