@@ -76,6 +76,14 @@ def miou_of_stack(
     return np.where(scored > 0, total / np.maximum(scored, 1), np.nan)
 
 
+def _drawn_mious(per_scene: np.ndarray, weights: np.ndarray, classes: np.ndarray) -> np.ndarray:
+    """``[B]`` mIoU of each draw: the per-scene matrices ``[S, K, K+1]`` summed with the draw's scene counts
+    (``weights [B, S]``)."""
+    s, k = per_scene.shape[0], per_scene.shape[1]
+    stacked = (weights @ per_scene.reshape(s, -1)).reshape(weights.shape[0], k, k + 1)  # [B, K, K+1]
+    return miou_of_stack(stacked, classes)
+
+
 def _interval(values: np.ndarray, confidence: float) -> tuple[float | None, float | None, int]:
     finite = values[np.isfinite(values)]
     if finite.size == 0:
@@ -110,9 +118,7 @@ def bootstrap_miou(
     if s < 2 or classes.size == 0:
         return Interval(value, None, None, 0, s)
     weights = draw_scene_counts(s, draws, seed)  # [B, S]
-    flat = per_scene.reshape(s, -1)
-    stacked = (weights @ flat).reshape(draws, k, k + 1)  # [B, K, K+1]
-    low, high, used = _interval(miou_of_stack(stacked, classes), confidence)
+    low, high, used = _interval(_drawn_mious(per_scene, weights, classes), confidence)
     return Interval(value, low, high, used, s)
 
 
@@ -161,8 +167,7 @@ def bootstrap_ratio(
     if s < 2 or classes.size == 0:
         return Interval(value, None, None, 0, s)
     weights = draw_scene_counts(s, draws, seed)  # [B, S], one draw for both sides
-    top = miou_of_stack((weights @ numerator.reshape(s, -1)).reshape(draws, k, k + 1), classes)
-    bottom = miou_of_stack((weights @ denominator.reshape(s, -1)).reshape(draws, k, k + 1), classes)
+    top, bottom = _drawn_mious(numerator, weights, classes), _drawn_mious(denominator, weights, classes)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratios = np.where(bottom > 0, top / np.where(bottom > 0, bottom, 1.0), np.nan)
     low, high, used = _interval(ratios, confidence)

@@ -417,16 +417,15 @@ def control_checks(reports: dict, pairs: Sequence[tuple[str, str]], splats: str,
         return {}
 
     def share(pair: tuple[str, str]) -> tuple[bool, str]:
-        mine = interval_of(reports[pair[0]], "3d", "CSA").value
-        control = interval_of(reports[pair[1]], "3d", "CSA").value
+        fitted, oracle = (interval_of(reports[label], "3d", "CSA") for label in pair)
+        mine, control = fitted.value, oracle.value
         ok = mine is not None and bool(control) and mine >= FIT_TO_ORACLE_MIN_SHARE * control
         ratio = f"{100 * mine / control:.1f} %" if mine is not None and control else "-"
         paired = paired_csa_ratio(reports[pair[0]], reports[pair[1]])
         if paired is not None and paired.low is not None:
             ratio += (f" (paired 95 % interval over the {paired.scenes} val rooms: {100 * paired.low:.1f}-"
                       f"{100 * paired.high:.1f} %)")
-        return ok, (f"{pair[0]}: fitted {_cell(interval_of(reports[pair[0]], '3d', 'CSA'))} vs oracle "
-                    f"{_cell(interval_of(reports[pair[1]], '3d', 'CSA'))}: {ratio}")
+        return ok, f"{pair[0]}: fitted {_cell(fitted)} vs oracle {_cell(oracle)}: {ratio}"
 
     decisive = next((pair for pair in pairs if pair[0] == recipe), pairs[0])
     ok, detail = share(decisive)

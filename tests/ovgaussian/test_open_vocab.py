@@ -247,7 +247,7 @@ def test_predict_adds_the_class_offsets_of_a_bench_report(tmp_path):
     report without them, a broken file and offsets with a stacking gamma are refused in one line."""
     import json
 
-    from ovgaussian.openvocab.class_offsets import read_class_offsets
+    from ovgaussian.openvocab.class_offsets import offsets_checkpoints, read_class_offsets
     from ovgaussian.predict.config import PredictConfig
     from ovgaussian.predict.query import label_gaussians
 
@@ -266,8 +266,6 @@ def test_predict_adds_the_class_offsets_of_a_bench_report(tmp_path):
     (tmp_path / "plain.json").write_text(json.dumps({"predictor": {"kind": "model"}}))
     (tmp_path / "broken.json").write_text("{")
     (tmp_path / "nan.json").write_text('{"predictor": {"class_offsets": {"names": ["a"], "offsets": [NaN]}}}')
-    from ovgaussian.openvocab.class_offsets import offsets_checkpoints
-
     assert offsets_checkpoints(report) == ()  # no checkpoint recorded: nothing to compare
     (tmp_path / "pair.json").write_text(json.dumps({"predictor": {"checkpoint_sha256": "a", "ensemble": [
         {"checkpoint_sha256": "b"}]}}))
