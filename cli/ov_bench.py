@@ -21,6 +21,8 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "prompt_ensemble", "--prompt-ensemble", is_flag=True)
 @config_option(BenchConfig, "class_offsets", "--class-offsets", is_flag=True)
 @config_option(BenchConfig, "generative", "--generative", is_flag=True)
+@config_option(BenchConfig, "faint_neighbours", "--faint-neighbours", type=click.IntRange(min=0), default=0,
+               show_default=True)
 @config_option(BenchConfig, "ensemble_runs", "--ensemble-run", "ensemble_runs",
                type=click.Path(path_type=Path, file_okay=False), multiple=True)
 @config_option(BenchConfig, "stacking_run", "--stacking-run", type=click.Path(path_type=Path, file_okay=False),
@@ -42,7 +44,7 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets, generative, ensemble_runs,
+def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets, generative, faint_neighbours, ensemble_runs,
             stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
             out, label, verify, device, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
@@ -55,6 +57,7 @@ def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets,
         raise click.UsageError("--run is required with --predictor model")
     config = BenchConfig(dataset=dataset, run=run, checkpoint=checkpoint, predictor=predictor,
                          prompt_ensemble=prompt_ensemble, class_offsets=class_offsets, generative=generative,
+                         faint_neighbours=faint_neighbours,
                          stacking_run=stacking_run, ensemble_runs=tuple(ensemble_runs),
                          metrics=metrics,
                          dims=dims, num_classes=int(num_classes), min_alpha=min_alpha, max_views_per_scene=max_views,

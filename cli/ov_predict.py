@@ -41,12 +41,15 @@ from ovgaussian.predict.config import PredictConfig
                show_default=True)
 @config_option(PredictConfig, "class_offsets", "--class-offsets", type=click.Path(path_type=Path, dir_okay=False),
                default=None)
+@config_option(PredictConfig, "faint_neighbours", "--faint-neighbours", type=click.IntRange(min=0), default=0,
+               show_default=True)
 @config_option(PredictConfig, "min_alpha", "--min-alpha", type=float, default=DEFAULT_MIN_ALPHA, show_default=True)
 @config_option(PredictConfig, "device", "--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @json_option
 @guarded
 def command(scene, run, checkpoint, ensemble_runs, vocab, out, output_format, spz_version, color_by, cameras, views_dir,
-            colour_mode, on_invalid, prompt_ensemble, stacking_gamma, class_offsets, min_alpha, device, as_json):
+            colour_mode, on_invalid, prompt_ensemble, stacking_gamma, class_offsets, faint_neighbours, min_alpha, device,
+            as_json):
     """Open-vocabulary segmentation of SCENE (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat) with a trained run."""
     from ovgaussian.predict.query import parse_vocabulary, run_predict
 
@@ -55,7 +58,7 @@ def command(scene, run, checkpoint, ensemble_runs, vocab, out, output_format, sp
                            colour_mode=colour_mode, min_alpha=min_alpha, on_invalid=on_invalid, color_by=color_by,
                            output_format=output_format, spz_version=int(spz_version),
                            prompt_ensemble=prompt_ensemble, stacking_gamma=stacking_gamma, class_offsets=class_offsets,
-                           device=device)
+                           faint_neighbours=faint_neighbours, device=device)
     report = run_predict(scene, out, config, cameras_path=cameras, views_dir=views_dir)
     shares = sorted(report.summary["shares"].items(), key=lambda kv: -kv[1])
     details = "\n".join(f"{name:>24s}  {100 * share:6.2f}%  ({report.summary['counts'][name]})" for name, share in shares)

@@ -45,6 +45,11 @@ class BenchConfig:
     """Open vocabulary, calibrated stacking: a run trained with --holdout-classes; gamma is chosen with it on the train split (never on unseen labels), recorded in the report, and subtracted from the seen classes' scores (ovgaussian.openvocab.calibration)."""
     class_offsets: bool = False
     """Per-class score offsets: chosen on the train split to maximize its mIoU (training classes only, unseen labels never read), recorded in the report, and added to the model's scores before the argmax (ovgaussian.openvocab.class_offsets). Not with stacking_run."""
+    faint_neighbours: int = 0
+    """Blend each Gaussian's semantic vector with those of its this many nearest Gaussians (itself included), by its
+    opacity, before scoring in 3D and rendering in 2D: an opaque one keeps its own, a faint one takes mostly its
+    opaque neighbours' (ovgaussian.predict.faint_blend); 0 or 1: off. Applies to the model and every ensemble member,
+    and to the train-split scores that class offsets are fitted on."""
     generative: bool = False
     """Open vocabulary, generative zero-shot synthesis: a generator learns text embedding -> feature on the seen classes of the train split, synthesizes unseen-class features, and a classifier retrained on real seen + synthetic unseen features scores (ovgaussian.openvocab.feature_synthesis)."""
     synthesis: SynthesisConfig = field(default_factory=SynthesisConfig)

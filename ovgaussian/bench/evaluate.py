@@ -394,8 +394,9 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
             raise ValueError("bench: --run is needed to score the model (or pick a baseline --predictor)")
         templates = PROMPT_TEMPLATES if config.prompt_ensemble else ()
         predictor = load_model_predictor(config.run, config.checkpoint, device=config.device,
-                                         prompt_templates=templates)
-        description = {"kind": "model", **_checkpoint_record(config.run, predictor), "prompt_templates": list(templates)}
+                                         prompt_templates=templates, faint_neighbours=config.faint_neighbours)
+        description = {"kind": "model", **_checkpoint_record(config.run, predictor), "prompt_templates": list(templates),
+                       "faint_neighbours": config.faint_neighbours}
         if config.ensemble_runs:
             if config.generative or config.stacking_run is not None:
                 raise ValueError("bench: --ensemble-run is not supported with --generative or --stacking-run")

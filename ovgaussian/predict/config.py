@@ -37,6 +37,10 @@ class PredictConfig:
     the scores of the same class names (other names: 0), so predictions match what that bench scored. The runs must be
     the checkpoints that bench scored (--run and each --ensemble-run; compared by the weights' sha256 the report
     records). Not with stacking_gamma."""
+    faint_neighbours: int = 0
+    """Blend each Gaussian's semantic vector with those of its this many nearest Gaussians (itself included), by its
+    opacity: an opaque one keeps its own, a faint one takes mostly its opaque neighbours' (ovgaussian.predict.
+    faint_blend); 0 or 1: off. Give the value the bench scored with, so predictions match its report."""
     colour_mode: Literal["f_dc", "rgb", "both"] = "both"
     """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
     red/green/blue properties, or both."""

@@ -27,6 +27,7 @@ from ovgaussian.run.devices import resolve_device
 from ovgaussian.model.network import gaussian_attributes
 from ovgaussian.predict.config import PredictConfig
 from ovgaussian.predict.ensemble import EnsemblePredictor
+from ovgaussian.predict.faint_blend import faint_blend
 from ovgaussian.text.prompt_ensemble import PROMPT_TEMPLATES, ensemble_text_embeddings
 from ovgaussian.text.encoders import load_or_encode_texts
 from ovgaussian.run.config import TextConfig, config_from_dict
@@ -55,8 +56,10 @@ class ModelPredictor:
     name = "model"
 
     def __init__(self, model, text_config, *, checkpoint: Path | None = None, text_cache: Path | None = None,
-                 device: str = "cpu", prompt_templates: Sequence[str] = (), trained_names: Sequence[str] = ()) -> None:
+                 device: str = "cpu", prompt_templates: Sequence[str] = (), trained_names: Sequence[str] = (),
+                 faint_neighbours: int = 0) -> None:
         self.model = model.eval().to(device)
+        self.faint_neighbours = int(faint_neighbours)  # > 1: faint Gaussians blend with their neighbours (faint_blend)
         self.prompt_templates = tuple(prompt_templates)  # non-empty: a prompt ensemble (prompt_ensemble.py)
         self.trained_names: frozenset[str] = frozenset(trained_names)  # the classes the run was trained on
         self.text_config = text_config
@@ -68,7 +71,8 @@ class ModelPredictor:
 
     # --- per-Gaussian vectors ------------------------------------------------------------------
     def encode_gaussians(self, gaussians) -> np.ndarray:
-        """``[N, S]`` float32 semantic vectors of a ``Gaussians`` (one scene, no augmentation)."""
+        """``[N, S]`` float32 semantic vectors of a ``Gaussians`` (one scene, no augmentation); with
+        ``faint_neighbours`` > 1, each blended with its nearest Gaussians' by its opacity (``faint_blend``)."""
         n = len(gaussians)
         if n == 0:
             return np.zeros((0, self.model.config.semantic_width), np.float32)
@@ -84,6 +88,9 @@ class ModelPredictor:
         out = semantic.detach().cpu().numpy().astype(np.float32)
         if not np.isfinite(out).all():
             raise ValueError("the network produced non-finite semantic vectors (diverged checkpoint?)")
+        if self.faint_neighbours > 1:
+            out = faint_blend(means64, np.asarray(gaussians.opacities(), np.float64).reshape(-1), out,
+                              self.faint_neighbours)
         return out
 
     def encode(self, scene) -> np.ndarray:
@@ -121,16 +128,17 @@ class ModelPredictor:
 
 
 def load_model_predictor(run: Path, checkpoint: Path | None = None, device: str = "cpu",
-                         prompt_templates: Sequence[str] = ()) -> ModelPredictor:
+                         prompt_templates: Sequence[str] = (), faint_neighbours: int = 0) -> ModelPredictor:
     """The model of a training run (its latest checkpoint folder unless ``checkpoint`` is given); a non-empty
-    ``prompt_templates`` scores against a prompt ensemble."""
+    ``prompt_templates`` scores against a prompt ensemble; ``faint_neighbours``: see ``ModelPredictor``."""
     run = Path(run)
     resolve_device(device)
     trained = load_trained_model(run, checkpoint, device=device)
     text_config = config_from_dict(TextConfig, trained.run_config.get("train", {}).get("text", {}))
     return ModelPredictor(trained.net, text_config, checkpoint=trained.checkpoint, text_cache=run / "caches",
                           device=device, prompt_templates=prompt_templates,
-                          trained_names=trained.run_config.get("vocabulary", {}).get("names", ()))
+                          trained_names=trained.run_config.get("vocabulary", {}).get("names", ()),
+                          faint_neighbours=faint_neighbours)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -300,7 +308,8 @@ def write_label_maps(folder: Path, label_maps: dict, num_classes: int) -> list[P
 def load_predictor(config: PredictConfig):
     """The run's model (``config.checkpoint`` or its latest), or the ensemble of it and ``config.ensemble_runs``."""
     templates = PROMPT_TEMPLATES if config.prompt_ensemble else ()
-    predictor = load_model_predictor(config.run, config.checkpoint, device=config.device, prompt_templates=templates)
+    predictor = load_model_predictor(config.run, config.checkpoint, device=config.device, prompt_templates=templates,
+                                     faint_neighbours=config.faint_neighbours)
     if not config.ensemble_runs:
         return predictor
     if config.stacking_gamma > 0:
@@ -311,9 +320,10 @@ def load_predictor(config: PredictConfig):
 
 def load_ensemble(first: ModelPredictor, runs: Sequence[Path], device: str = "cpu",
                   prompt_templates: Sequence[str] = ()) -> EnsemblePredictor:
-    """``first`` and the latest checkpoint of each of ``runs`` (same device and prompts) as one ensemble."""
-    members = [first] + [load_model_predictor(run, None, device=device, prompt_templates=prompt_templates)
-                         for run in runs]
+    """``first`` and the latest checkpoint of each of ``runs`` (same device, prompts and faint blend) as one
+    ensemble."""
+    members = [first] + [load_model_predictor(run, None, device=device, prompt_templates=prompt_templates,
+                                              faint_neighbours=first.faint_neighbours) for run in runs]
     return EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
 
 

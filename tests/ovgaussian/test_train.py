@@ -358,7 +358,8 @@ def test_training_decreases_loss_and_resume_continues_the_same_curve(scenes, tmp
     assert torch.get_num_threads() == threads_before  # the loop's cap is lifted when train returns
 
 
-def _write_shards(dataset: Path, records) -> None:
+def _write_shards(dataset: Path, records, splits: dict | None = None) -> None:
+    """Shards of ``records``, every scene in ``train`` unless ``splits`` ({scene_id: split}) says otherwise."""
     from seggaussian import shards
     from seggaussian.shards.config import ShardConfig
 
@@ -374,7 +375,8 @@ def _write_shards(dataset: Path, records) -> None:
             paths[table] = folder / f"{table}.parquet"
             shards.write_parquet_atomic(paths[table], table, [t], config)
         fragments[rec.scene_id] = {"fragments": paths}
-    shards.write_dataset(dataset, {r.scene_id: "train" for r in records}, fragments, config, NAMES, "test")
+    shards.write_dataset(dataset, {r.scene_id: (splits or {}).get(r.scene_id, "train") for r in records}, fragments,
+                         config, NAMES, "test")
 
 
 @pytest.fixture(scope="module")
