@@ -200,7 +200,8 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
     return TrainConfig(
         out=run_dir(config, spec.name), epochs=config.epochs, batch_scenes=config.batch_scenes,
         seed=config.seed + spec.seed_offset, model_preset=config.model_preset, use_adapter=spec.use_adapter,
-        voxel_size=config.voxel_size, use_coordinates=config.use_coordinates, progress=False,
+        voxel_size=config.voxel_size, use_coordinates=config.use_coordinates,
+        voxel_geometry=config.voxel_geometry, progress=False,
         data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
                         holdout_classes=spec.holdout_classes, loss_gaussians=config.loss_gaussians,
                         scene_cache_size=config.scene_cache_size),
@@ -475,7 +476,7 @@ SETTINGS_NAME = "suite-settings.json"
 #: whether the ensemble rows are scored too (they add runs and rows, and change none that exist).
 SETTINGS_IGNORED = ("out", "progress", "jobs", "ensemble")
 #: SuiteConfig fields added after profile folders were first made, with the value every folder made before had.
-SETTINGS_ADDED = {"lovasz_weight": 0.0}
+SETTINGS_ADDED = {"lovasz_weight": 0.0, "voxel_geometry": False}
 
 
 def check_settings(config: SuiteConfig) -> None:
