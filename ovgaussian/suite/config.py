@@ -202,10 +202,10 @@ class SuiteConfig:
     """Voxel edge in metres of the network's finest level."""
     use_coordinates: bool = True
     """Give the network the normalized Gaussian positions."""
-    voxel_geometry: bool = True
+    voxel_geometry: bool = False
     """Give the backbone how each voxel's Gaussians lie inside it (``OVGaussianNetConfig.voxel_geometry``: the
-    centres' mean offset and covariance). Chosen for fitted splats: on the seed-1 rooms it raised the method's
-    two-seed pair and every run's 3D CDA (BENCHMARKS.md, "Session 18" and "Session 19")."""
+    centres' mean offset and covariance). What it changed on the profile's rooms, and why it is off:
+    BENCHMARKS.md, "Session 18" and "Session 19"."""
     class_balance: float = 0.75
     """Exponent of the class weights of the text cross-entropies. Measured on the full run (20 epochs, same data,
     val 3D IoU): 0.5 -> 0.75 raises box 4.3 -> 18.8, monitor 6.5 -> 15.1, chair 22.3 -> 25.5 at the same 3D CSA

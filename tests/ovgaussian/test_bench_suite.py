@@ -117,9 +117,9 @@ def test_every_run_shares_the_schedule_and_differs_only_in_its_switches():
     assert {c.loss.lovasz_weight for c in configs.values()} == {config.lovasz_weight}
     lovasz = SuiteConfig(out=Path("/tmp/profile"), lovasz_weight=0.5)
     assert {S.train_config(lovasz, spec, Path("/tmp/d")).loss.lovasz_weight for spec in RUNS} == {0.5}
-    assert {c.voxel_geometry for c in configs.values()} == {True}
-    flat = SuiteConfig(out=Path("/tmp/profile"), voxel_geometry=False)
-    assert {S.train_config(flat, spec, Path("/tmp/d")).voxel_geometry for spec in RUNS} == {False}
+    assert {c.voxel_geometry for c in configs.values()} == {False}
+    shaped = SuiteConfig(out=Path("/tmp/profile"), voxel_geometry=True)
+    assert {S.train_config(shaped, spec, Path("/tmp/d")).voxel_geometry for spec in RUNS} == {True}
 
 
 def test_bench_suite_cli_maps_its_options_loss_gaussians_0_to_every_gaussian_lovasz_weight_and_ensemble(monkeypatch, tmp_path):
@@ -144,8 +144,10 @@ def test_bench_suite_cli_maps_its_options_loss_gaussians_0_to_every_gaussian_lov
     assert seen.pop().ensemble is True
     CliRunner().invoke(command, ["--out", str(tmp_path), "--no-ensemble"])
     assert seen.pop().ensemble is False
-    CliRunner().invoke(command, ["--out", str(tmp_path), "--no-voxel-geometry"])
+    CliRunner().invoke(command, ["--out", str(tmp_path)])
     assert seen.pop().voxel_geometry is False
+    CliRunner().invoke(command, ["--out", str(tmp_path), "--voxel-geometry"])
+    assert seen.pop().voxel_geometry is True
 
 
 def test_calibrated_stacking_row_uses_the_calibration_run_and_is_checked_for_ova():
@@ -221,11 +223,11 @@ def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
     check_settings(replace(config, lovasz_weight=0.0))
     with pytest.raises(ValueError, match=r"lovasz_weight 0\.0 -> 1\.0"):
         check_settings(replace(config, lovasz_weight=1.0))
-    # likewise voxel geometry, added in session 19: a folder without it was trained without it
+    # likewise voxel geometry, added in session 19: a folder recorded without it was trained without it
     (tmp_path / SETTINGS_NAME).write_text(json.dumps({k: v for k, v in recorded.items() if k != "voxel_geometry"}))
     check_settings(replace(config, voxel_geometry=False))
     with pytest.raises(ValueError, match=r"voxel_geometry False -> True"):
-        check_settings(config)
+        check_settings(replace(config, voxel_geometry=True))
 
 
 def test_a_rerun_keeps_the_times_of_the_invocations_before_it(tmp_path):
