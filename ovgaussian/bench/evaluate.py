@@ -369,7 +369,8 @@ def calibrate_stacking(config: BenchConfig, templates=()) -> Calibration:
     holdout = tuple(data.get("holdout_classes") or ())
     if not holdout:
         raise ValueError(f"{config.stacking_run}: not a calibration run (trained without --holdout-classes)")
-    calibrator = load_model_predictor(config.stacking_run, device=config.device, prompt_templates=templates)
+    calibrator = load_model_predictor(config.stacking_run, device=config.device, prompt_templates=templates,
+                                      faint_neighbours=config.faint_neighbours)  # scored as the main run is
     return calibrate(calibrator, _train_scenes(config), training_vocabulary(config.num_classes), holdout)
 
 

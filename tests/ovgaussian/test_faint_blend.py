@@ -169,3 +169,26 @@ def test_predict_and_bench_apply_the_blend(tmp_path):
     np.testing.assert_allclose(single.encode(scene), blended, atol=1e-5)
     pair, _ = make_predictor(BenchConfig(dataset=data, run=run, ensemble_runs=(run,), faint_neighbours=8))
     np.testing.assert_allclose(pair.encode(scene), np.concatenate([blended, blended], axis=1), atol=1e-5)
+
+
+def test_calibrated_stacking_scores_its_calibration_run_with_the_same_blend(monkeypatch):
+    """Gamma is chosen on the calibration run's scores: with ``--faint-neighbours`` they are blended as the main
+    run's are, or the gamma would be fitted on other scores than it is applied to."""
+    from pathlib import Path
+
+    from ovgaussian.bench import evaluate
+    from ovgaussian.bench.config import BenchConfig
+
+    seen = {}
+
+    def fake_load(run, *args, **kwargs):
+        seen.update(kwargs, run=run)
+        return "calibrator"
+
+    monkeypatch.setattr(evaluate, "read_json", lambda path: {"train": {"data": {"holdout_classes": ["chair"]}}})
+    monkeypatch.setattr(evaluate, "load_model_predictor", fake_load)
+    monkeypatch.setattr(evaluate, "calibrate", lambda predictor, scenes, vocabulary, holdout: (predictor, holdout))
+    monkeypatch.setattr(evaluate, "_train_scenes", lambda config: [])
+    config = BenchConfig(stacking_run=Path("calibration"), faint_neighbours=8)
+    assert evaluate.calibrate_stacking(config) == ("calibrator", ("chair",))
+    assert seen["faint_neighbours"] == 8 and seen["run"] == Path("calibration")
