@@ -186,6 +186,16 @@ def offsets_checkpoints(path) -> tuple[str, ...]:
     return digests if digests and all(isinstance(d, str) for d in digests) else ()
 
 
+def offsets_faint_neighbours(path) -> int:
+    """The ``--faint-neighbours`` of the bench whose scores a report's class offsets were fitted on:
+    ``predictor.faint_neighbours``; 0 (no blend) for a report written before the option existed. 0 and 1 both
+    mean off and read as 0."""
+    value = _predictor_record(Path(path)).get("faint_neighbours", 0)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise ValueError(f"{path}: predictor.faint_neighbours must be a non-negative integer")
+    return value if value > 1 else 0
+
+
 def reference_fit_class_offsets(scores: Sequence[Sequence[float]], labels: Sequence[int], grid: Sequence[float]
                                 ) -> tuple[tuple[float, ...], float]:
     """Exhaustive search (tests): the offsets on ``grid`` for every column (the first column fixed at 0) with the

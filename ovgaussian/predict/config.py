@@ -40,7 +40,8 @@ class PredictConfig:
     faint_neighbours: int = 0
     """Blend each Gaussian's semantic vector with those of its this many nearest Gaussians (itself included), by its
     opacity: an opaque one keeps its own, a faint one takes mostly its opaque neighbours' (ovgaussian.predict.
-    faint_blend); 0 or 1: off. Give the value the bench scored with, so predictions match its report."""
+    faint_blend); 0 or 1: off. With class_offsets it must be the value that bench scored with (another is
+    refused: the offsets were fitted on its scores)."""
     colour_mode: Literal["f_dc", "rgb", "both"] = "both"
     """Where the per-class colours go: overwrite the SH colour (f_dc, f_rest zeroed), add uchar
     red/green/blue properties, or both."""

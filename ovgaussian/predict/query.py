@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ovgaussian.openvocab.calibration import stack_scores
-from ovgaussian.openvocab.class_offsets import offsets_checkpoints, read_class_offsets
+from ovgaussian.openvocab.class_offsets import offsets_checkpoints, offsets_faint_neighbours, read_class_offsets
 from ovgaussian.run.checkpoint import load_trained_model, weights_sha256
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.model.network import gaussian_attributes
@@ -327,19 +327,24 @@ def load_ensemble(first: ModelPredictor, runs: Sequence[Path], device: str = "cp
     return EnsemblePredictor(members, [m.model.config.semantic_width for m in members])
 
 
-def check_offsets_checkpoints(report: Path, predictor) -> None:
-    """Refuse class offsets fitted on other weights than the predictor's (its members' for an ensemble): offsets
-    fitted on one run's scores, or on an ensemble's, are wrong for any other. Compared by the sha256 of each
-    checkpoint's ``model.safetensors`` that the bench report records; a report without them is not checked."""
+def check_offsets_source(report: Path, predictor) -> None:
+    """Refuse class offsets fitted on other scores than the predictor gives: on other weights than the predictor's
+    (its members' for an ensemble; compared by the sha256 of each checkpoint's ``model.safetensors`` that the bench
+    report records, not checked when it records none), or with another ``--faint-neighbours`` blend of the vectors
+    (a report without the field was scored without the blend)."""
+    members = getattr(predictor, "members", (predictor,))
     recorded = offsets_checkpoints(report)
-    if not recorded:
-        return
-    given = [weights_sha256(getattr(m, "checkpoint", None)) for m in getattr(predictor, "members", (predictor,))]
-    if None not in given and sorted(given) != sorted(recorded):
+    given = [weights_sha256(getattr(m, "checkpoint", None)) for m in members]
+    if recorded and None not in given and sorted(given) != sorted(recorded):
         raise ValueError(f"{report}: its class offsets were fitted on the scores of {len(recorded)} checkpoint(s) "
                          f"(sha256 {', '.join(d[:12] for d in recorded)}), not on the {len(given)} given with --run"
                          f"{' and --ensemble-run' if len(given) > 1 else ''} (sha256 "
                          f"{', '.join(d[:12] for d in given)}); give the runs that bench scored")
+    fitted_with = offsets_faint_neighbours(report)
+    blend = max(getattr(m, "faint_neighbours", 0) for m in members)
+    if fitted_with != (blend if blend > 1 else 0):
+        raise ValueError(f"{report}: its class offsets were fitted on scores with --faint-neighbours {fitted_with}, "
+                         f"not {blend}; give the value that bench scored with")
 
 
 class PredictReport(NamedTuple):
@@ -373,7 +378,7 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
     if predictor is None:
         predictor = load_predictor(config)
     if offsets is not None:
-        check_offsets_checkpoints(config.class_offsets, predictor)
+        check_offsets_source(config.class_offsets, predictor)
     result = label_gaussians(predictor, gaussians, config, cameras, class_offsets=offsets)
     # the vocabulary goes into the header so the file explains its own labels
     comments = tuple(f"ovgaussian semantic {i} = {name}" for i, name in enumerate(result.vocabulary))

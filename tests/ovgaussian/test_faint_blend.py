@@ -113,16 +113,19 @@ def test_predict_and_bench_apply_the_blend(tmp_path):
     assert trained.exit_code == 0, trained.output
 
     g = faint(make_scene(5, per_box=20, views=1).gaussians, 5)
-    scene = tmp_path / "scene.ply"
-    write_gaussians(scene, g, "ply")
+    ply = tmp_path / "scene.ply"
+    write_gaussians(ply, g, "ply")
     names = ("chair", "table", "floor", "wall", "sofa")
     plain = load_model_predictor(run)
     vectors = faint_blend(g.means, g.opacities().reshape(-1), plain.encode_gaussians(g), 8)
     scores = plain.score_names(vectors, names)
     margin = np.sort(scores, axis=1)
     clear = margin[:, -1] - margin[:, -2] > 1e-5
-    result = CliRunner().invoke(main, ["predict", str(scene), "--run", str(run), "--vocab", ", ".join(names),
-                                       "--faint-neighbours", "8", "--out", str(tmp_path / "out.ply"), "--json"])
+    def predict(out, *extra):
+        return CliRunner().invoke(main, ["predict", str(ply), "--run", str(run), "--vocab", ", ".join(names),
+                                         *extra, "--out", str(tmp_path / out), "--json"])
+
+    result = predict("out.ply", "--faint-neighbours", "8")
     assert result.exit_code == 0, result.output
     from plyfile import PlyData
 
@@ -130,10 +133,10 @@ def test_predict_and_bench_apply_the_blend(tmp_path):
     np.testing.assert_array_equal(labels[clear], scores.argmax(axis=1)[clear])
     assert load_model_predictor(run, faint_neighbours=8).encode_gaussians(g) == pytest.approx(vectors, abs=1e-5)
 
-    def bench(k):
-        out = tmp_path / f"bench{k}.json"
+    def bench(k, *extra):
+        out = tmp_path / f"bench{k}{''.join(extra)}.json"
         ran = CliRunner().invoke(main, ["bench", "--data", str(data), "--run", str(run), "--dim", "3d", "--metric",
-                                        "CSA", "--faint-neighbours", str(k), "--no-progress", "--out", str(out)])
+                                        "CSA", "--faint-neighbours", str(k), *extra, "--no-progress", "--out", str(out)])
         assert ran.exit_code == 0, ran.output
         return json.loads(out.read_text())
 
@@ -169,6 +172,27 @@ def test_predict_and_bench_apply_the_blend(tmp_path):
     np.testing.assert_allclose(single.encode(scene), blended, atol=1e-5)
     pair, _ = make_predictor(BenchConfig(dataset=data, run=run, ensemble_runs=(run,), faint_neighbours=8))
     np.testing.assert_allclose(pair.encode(scene), np.concatenate([blended, blended], axis=1), atol=1e-5)
+    # class offsets were fitted on blended scores: predict takes them with the same blend only, in one line
+    bench(8, "--class-offsets")
+    offsets = str(tmp_path / "bench8--class-offsets.json")
+    assert predict("same.ply", "--class-offsets", offsets, "--faint-neighbours", "8").exit_code == 0
+    for k in ("0", "16"):
+        refused = predict(f"other{k}.ply", "--class-offsets", offsets, "--faint-neighbours", k)
+        error = json.loads(refused.stdout)["error"]
+        assert refused.exit_code != 0 and f"--faint-neighbours 8, not {k}" in error and "\n" not in error
+        assert not (tmp_path / f"other{k}.ply").exists()
+
+
+def test_a_reports_blend_reads_as_0_when_off_or_absent(tmp_path):
+    from ovgaussian.openvocab.class_offsets import offsets_faint_neighbours
+
+    for name, predictor, want in (("old", {"kind": "model"}, 0), ("one", {"faint_neighbours": 1}, 0),
+                                  ("eight", {"faint_neighbours": 8}, 8)):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"predictor": predictor}))
+        assert offsets_faint_neighbours(tmp_path / f"{name}.json") == want
+    (tmp_path / "bad.json").write_text(json.dumps({"predictor": {"faint_neighbours": "8"}}))
+    with pytest.raises(ValueError, match="bad.json: predictor.faint_neighbours must be a non-negative integer"):
+        offsets_faint_neighbours(tmp_path / "bad.json")
 
 
 def test_calibrated_stacking_scores_its_calibration_run_with_the_same_blend(monkeypatch):
