@@ -1,5 +1,5 @@
 """Benchmark: the faint-Gaussian blend of ``ovgaussian bench/predict --faint-neighbours`` (``ovgaussian.predict.
-faint_blend``), as one scene's cost next to encoding it.
+faint_blend``): its cost per scene, by the scene's size and K (the encoding it follows is not timed here).
 
 Points on the faces of a 6 x 5 x 3 m box room with clutter and floaters (``bench_devoxelize.room_points``),
 opacities drawn as a fit leaves them (uniform squared: a third under 0.1), 16-d vectors. Median of ``--reps`` calls

@@ -44,8 +44,8 @@ from ovgaussian.predict.config import DEFAULT_MIN_ALPHA
 @config_option(BenchConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets, generative, faint_neighbours, ensemble_runs,
-            stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
+def command(dataset, run, checkpoint, predictor, prompt_ensemble, class_offsets, generative, faint_neighbours,
+            ensemble_runs, stacking_run, metric, num_classes, dim, min_alpha, max_views, max_scenes,
             out, label, verify, device, progress, as_json):
     """Benchmark a trained run (or a baseline) on the val / train-novel / xval scenes of a dataset."""
     from ovgaussian.bench.evaluate import run_bench, table1_header, table1_row

@@ -39,8 +39,8 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "progress", "--progress/--no-progress", default=D.progress, show_default=True)
 @json_option
 @guarded
-def command(out, scenes, replica_scenes, splats, gaussians, epochs, lovasz_weight, voxel_geometry, loss_gaussians, max_views, ablation,
-            ensemble, jobs, seed, progress, as_json):
+def command(out, scenes, replica_scenes, splats, gaussians, epochs, lovasz_weight, voxel_geometry, loss_gaussians,
+            max_views, ablation, ensemble, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
     from ovgaussian.suite.profile import run_suite
 

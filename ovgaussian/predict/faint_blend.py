@@ -52,14 +52,15 @@ def faint_blend(means: np.ndarray,  # [N, 3] positions
     if k <= 1:
         return vectors.copy()
     _, index = cKDTree(means).query(means, k=k)  # [N, k], nearest first
-    weight = np.maximum(np.clip(opacity, 0.0, 1.0), MIN_WEIGHT)
+    opacity = np.clip(opacity, 0.0, 1.0)
+    weight = np.maximum(opacity, MIN_WEIGHT)
     total = np.zeros(vectors.shape, np.float64)
     norm = np.zeros(len(vectors), np.float64)
     for rank in range(k):
         w = weight[index[:, rank]]
         total += w[:, None] * vectors[index[:, rank]]
         norm += w
-    own = np.clip(opacity, 0.0, 1.0) ** SELF_EXPONENT
+    own = opacity ** SELF_EXPONENT
     out = own[:, None] * vectors + (1.0 - own[:, None]) * (total / norm[:, None])
     return out.astype(np.float32)
 
