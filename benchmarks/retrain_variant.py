@@ -43,6 +43,8 @@ def main() -> int:
                         help="Gaussians per scene in the 3D-to-text loss (DataConfig.loss_gaussians)")
     parser.add_argument("--class-balance", type=float, default=None,
                         help="exponent of the class weights of the text cross-entropies (LossConfig.class_balance)")
+    parser.add_argument("--opacity-power", type=float, default=None,
+                        help="exponent of the opacity weights of the 3D-to-text cross-entropy (LossConfig.opacity_power)")
     parser.add_argument("--lovasz-weight", type=float, default=None,
                         help="weight of the Lovasz-softmax term of the 3D-to-text loss (LossConfig.lovasz_weight)")
     args = parser.parse_args()
@@ -68,6 +70,9 @@ def main() -> int:
     if args.lovasz_weight is not None:
         config = dataclasses.replace(config, loss=dataclasses.replace(config.loss, lovasz_weight=args.lovasz_weight))
         changes["lovasz_weight"] = args.lovasz_weight
+    if args.opacity_power is not None:
+        config = dataclasses.replace(config, loss=dataclasses.replace(config.loss, opacity_power=args.opacity_power))
+        changes["opacity_power"] = args.opacity_power
     started = time.perf_counter()
     result = train(config)
     trained_s = time.perf_counter() - started

@@ -28,6 +28,8 @@ D = SuiteConfig()
                show_default=True)
 @config_option(SuiteConfig, "voxel_geometry", "--voxel-geometry/--no-voxel-geometry", default=D.voxel_geometry,
                show_default=True)
+@config_option(SuiteConfig, "opacity_power", "--opacity-power", type=click.FloatRange(min=0), default=D.opacity_power,
+               show_default=True)
 @config_option(SuiteConfig, "loss_gaussians", "--loss-gaussians", type=click.IntRange(min=0), default=D.loss_gaussians or 0,
                show_default=True)
 @config_option(SuiteConfig, "max_views", "--max-views", type=click.IntRange(min=1), default=D.max_views,
@@ -39,14 +41,14 @@ D = SuiteConfig()
 @config_option(SuiteConfig, "progress", "--progress/--no-progress", default=D.progress, show_default=True)
 @json_option
 @guarded
-def command(out, scenes, replica_scenes, splats, gaussians, epochs, lovasz_weight, voxel_geometry, loss_gaussians,
-            max_views, ablation, ensemble, jobs, seed, progress, as_json):
+def command(out, scenes, replica_scenes, splats, gaussians, epochs, lovasz_weight, voxel_geometry, opacity_power,
+            loss_gaussians, max_views, ablation, ensemble, jobs, seed, progress, as_json):
     """Run the benchmark profile into OUT (finished stages found there are reused)."""
     from ovgaussian.suite.profile import run_suite
 
     config = SuiteConfig(out=out, scenes=scenes, replica_scenes=replica_scenes, splats=splats, gaussians=gaussians,
                          epochs=epochs, lovasz_weight=lovasz_weight, voxel_geometry=voxel_geometry,
-                         loss_gaussians=loss_gaussians or None,
+                         opacity_power=opacity_power, loss_gaussians=loss_gaussians or None,
                          max_views=max_views, ablation=ablation, ensemble=ensemble, jobs=jobs, seed=seed,
                          progress=progress)
     report = run_suite(config, log=(lambda m: click.echo(m, err=True)) if progress and not as_json else None)

@@ -53,6 +53,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
                default=LossConfig.class_balance, show_default=True)
 @config_option(LossConfig, "lovasz_weight", "--lovasz-weight", type=click.FloatRange(min=0),
                default=LossConfig.lovasz_weight, show_default=True)
+@config_option(LossConfig, "opacity_power", "--opacity-power", type=click.FloatRange(min=0),
+               default=LossConfig.opacity_power, show_default=True)
 @config_option(LossConfig, "unlabelled_as_unseen", "--unlabelled-as-unseen", is_flag=True)
 @config_option(LossConfig, "unlabelled_weight", "--unlabelled-weight", type=click.FloatRange(min=0),
                default=LossConfig.unlabelled_weight, show_default=True)
@@ -71,7 +73,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, loss_gaussians,
             voxel_size,
             use_coordinates, input_encoding, pool_weighting, devoxelize, voxel_geometry, class_balance, lovasz_weight,
-            unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
+            opacity_power, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
             splat_augment, verify, keep_checkpoints, threads, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
@@ -91,7 +93,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),
         loss=LossConfig(temperature=temperature, no_3dt_align=no_3dt_align, no_vs_align=no_vs_align,
-                        class_balance=class_balance, lovasz_weight=lovasz_weight,
+                        class_balance=class_balance, lovasz_weight=lovasz_weight, opacity_power=opacity_power,
                         unlabelled_as_unseen=unlabelled_as_unseen,
                         unlabelled_weight=unlabelled_weight),
         optim=OptimConfig(lr=lr, schedule=schedule),

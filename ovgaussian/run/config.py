@@ -105,6 +105,11 @@ class LossConfig:
     setting, softmax over the seen classes only."""
     unlabelled_weight: float = 1.0
     """Weight of an unlabelled Gaussian's or pixel's partial-label term (with --unlabelled-as-unseen)."""
+    opacity_power: float = 0.0
+    """Exponent p of per-Gaussian weights opacity^p of the 3D-to-text cross-entropy (scaled to mean 1 over each
+    scene's counted Gaussians): a fit's faint Gaussians, whose transferred labels are the least reliable, count
+    less. 0: every Gaussian alike. Gaussians that all share one opacity (as sampled on a mesh) get weight 1 each,
+    so it changes nothing for them."""
 
 
 @dataclass(frozen=True)

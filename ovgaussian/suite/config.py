@@ -214,6 +214,10 @@ class SuiteConfig:
     """Weight of the Lovasz-softmax term (an IoU surrogate) of the 3D-to-text loss of every run
     (``LossConfig.lovasz_weight``), beside the cross-entropy of weight 1, as Pointcept's PTv3 configs for ScanNet
     train; 0: cross-entropy only. Its effect on fitted splats and on the oracle control: BENCHMARKS.md, "Session 15"."""
+    opacity_power: float = 0.0
+    """Exponent p of the opacity^p weights of each Gaussian's 3D-to-text cross-entropy term in every run
+    (``LossConfig.opacity_power``); 0: every Gaussian alike. The oracle Gaussians share one opacity, so the control
+    runs do not change with it. Its effect on the profile: BENCHMARKS.md, "Session 20"."""
     num_classes: int = 20
     """Vocabulary size K."""
     max_views: int = 4

@@ -207,7 +207,7 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
                         scene_cache_size=config.scene_cache_size),
         loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
                         class_balance=config.class_balance, lovasz_weight=config.lovasz_weight,
-                        unlabelled_as_unseen=spec.unlabelled_as_unseen),
+                        opacity_power=config.opacity_power, unlabelled_as_unseen=spec.unlabelled_as_unseen),
         optim=OptimConfig(lr=config.lr),
     )
 
@@ -476,7 +476,7 @@ SETTINGS_NAME = "suite-settings.json"
 #: whether the ensemble rows are scored too (they add runs and rows, and change none that exist).
 SETTINGS_IGNORED = ("out", "progress", "jobs", "ensemble")
 #: SuiteConfig fields added after profile folders were first made, with the value every folder made before had.
-SETTINGS_ADDED = {"lovasz_weight": 0.0, "voxel_geometry": False}
+SETTINGS_ADDED = {"lovasz_weight": 0.0, "voxel_geometry": False, "opacity_power": 0.0}
 
 
 def check_settings(config: SuiteConfig) -> None:

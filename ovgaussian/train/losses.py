@@ -69,11 +69,13 @@ def masked_cross_entropy(
     logits: torch.Tensor,  # [P, C]
     labels: torch.Tensor,  # [P] int, class index in 0..C-1 or IGNORE_LABEL
     class_weights: torch.Tensor | None = None,  # [C] weight of each class's rows; None: all 1
+    row_weights: torch.Tensor | None = None,  # [P] weight of each row; None: all 1
 ) -> tuple[torch.Tensor, int]:
     """Mean cross-entropy over labelled rows (log-softmax, stable for any finite logits) and their count.
 
     With ``class_weights`` each row's term is multiplied by its class's weight and the sum is still divided
-    by the row count (weights normalized over the training data keep the loss on the same scale)."""
+    by the row count (weights normalized over the training data keep the loss on the same scale); with
+    ``row_weights`` (``LossConfig.opacity_power``) each term is also multiplied by its row's weight."""
     labels = labels.long()
     valid = labels != IGNORE_LABEL
     count = int(valid.sum())
@@ -89,7 +91,28 @@ def masked_cross_entropy(
     nll = -log_probs.gather(1, chosen[:, None])[:, 0]
     if class_weights is not None:
         nll = nll * class_weights.to(nll.dtype)[chosen]
+    if row_weights is not None:
+        nll = nll * (row_weights if every else row_weights[valid]).to(nll.dtype)
     return nll.mean(), count
+
+
+def opacity_row_weights(
+    opacity_logits: torch.Tensor,  # [N] logits of the Gaussians' opacities
+    counted: torch.Tensor,  # [N] bool: the rows a loss averages over
+    power: float,
+) -> torch.Tensor:  # [N] float32
+    """Per-Gaussian weights ``opacity ** power`` scaled to mean 1 over the ``counted`` rows (``LossConfig.
+    opacity_power``), computed in float64: Gaussians that share one opacity get exactly 1.0 each. Without a counted
+    row, or with ``power == 0``, every weight is 1."""
+    if power < 0:
+        raise ValueError(f"opacity_power must be >= 0, got {power}")
+    if power == 0 or not bool(counted.any()):
+        return torch.ones(opacity_logits.shape[0], dtype=torch.float32, device=opacity_logits.device)
+    weights = torch.sigmoid(opacity_logits.double()) ** power
+    scale = weights[counted].mean()
+    if not bool(scale > 0):  # every counted Gaussian at opacity 0 (a logit of -inf): nothing to prefer
+        return torch.ones(opacity_logits.shape[0], dtype=torch.float32, device=opacity_logits.device)
+    return (weights / scale).float()
 
 
 def partial_label_nll(
@@ -107,19 +130,24 @@ def text_cross_entropy(
     class_weights: torch.Tensor | None = None,  # [C]
     unlabelled_columns: torch.Tensor | None = None,  # [U] int64 columns an IGNORE row may belong to
     unlabelled_weight: float = 1.0,
+    row_weights: torch.Tensor | None = None,  # [P] weight of each row's term; None: all 1
 ) -> tuple[torch.Tensor, int]:
     """Text cross-entropy of labelled rows, plus (``unlabelled_columns`` given) the partial-label term of the
-    IGNORE rows weighted by ``unlabelled_weight``: ``(sum of the terms / rows counted, rows counted)``.
+    IGNORE rows weighted by ``unlabelled_weight``: ``(sum of the terms / rows counted, rows counted)``. With
+    ``row_weights`` every row's term, labelled or not, is multiplied by its weight.
 
     Without ``unlabelled_columns`` this is :func:`masked_cross_entropy` (the same operations, bitwise)."""
-    mean, count = masked_cross_entropy(logits, labels, class_weights)
+    mean, count = masked_cross_entropy(logits, labels, class_weights, row_weights)
     if unlabelled_columns is None:
         return mean, count
     unlabelled = labels.long() == IGNORE_LABEL
     extra = int(unlabelled.sum())
     if extra == 0:
         return mean, count
-    partial = partial_label_nll(logits[unlabelled], unlabelled_columns.to(logits.device)).sum()
+    partial = partial_label_nll(logits[unlabelled], unlabelled_columns.to(logits.device))
+    if row_weights is not None:
+        partial = partial * row_weights[unlabelled].to(partial.dtype)
+    partial = partial.sum()
     return (mean * count + unlabelled_weight * partial) / (count + extra), count + extra
 
 
@@ -208,16 +236,18 @@ def reference_cross_entropy(logits: list[list[float]], labels: list[int]) -> flo
 
 def reference_text_cross_entropy(logits: list[list[float]], labels: list[int], weights: list[float] | None = None,
                                  unlabelled_columns: list[int] | None = None,
-                                 unlabelled_weight: float = 1.0) -> float:
-    """:func:`text_cross_entropy` in float64 Python, row by row: ``-w_c log p_label`` for labelled rows,
-    ``-w_u log (sum of p over unlabelled_columns)`` for IGNORE rows when columns are given."""
+                                 unlabelled_weight: float = 1.0, row_weights: list[float] | None = None) -> float:
+    """:func:`text_cross_entropy` in float64 Python, row by row: ``-r_i w_c log p_label`` for labelled rows,
+    ``-r_i w_u log (sum of p over unlabelled_columns)`` for IGNORE rows when columns are given (``r_i``: the row's
+    weight, 1 without ``row_weights``)."""
     terms = []
-    for row, label in zip(logits, labels):
+    for i, (row, label) in enumerate(zip(logits, labels)):
         total = sum(math.exp(x) for x in row)
+        r = 1.0 if row_weights is None else row_weights[i]
         if label != IGNORE_LABEL:
-            terms.append(-(1.0 if weights is None else weights[label]) * math.log(math.exp(row[label]) / total))
+            terms.append(-r * (1.0 if weights is None else weights[label]) * math.log(math.exp(row[label]) / total))
         elif unlabelled_columns is not None:
-            terms.append(-unlabelled_weight * math.log(sum(math.exp(row[c]) for c in unlabelled_columns) / total))
+            terms.append(-r * unlabelled_weight * math.log(sum(math.exp(row[c]) for c in unlabelled_columns) / total))
     return sum(terms) / len(terms) if terms else 0.0
 
 

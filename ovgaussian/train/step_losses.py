@@ -21,7 +21,7 @@ from ovgaussian.train.eager_adapter import semantic_with_row_loss
 from ovgaussian.train.eager_rows import eager_row_sum
 from ovgaussian.train.gram_logits import GramTerms, gram_terms, gram_text_logits, is_gram_decoder
 from ovgaussian.train.losses import (
-    combine_losses, compute_text_logits, lovasz_softmax, masked_cosine_loss, text_cross_entropy,
+    combine_losses, compute_text_logits, lovasz_softmax, masked_cosine_loss, opacity_row_weights, text_cross_entropy,
 )
 from ovgaussian.run.config import TrainConfig
 from seggaussian.core.constants import IGNORE_LABEL
@@ -97,6 +97,7 @@ def text_cross_entropy_3d(
     class_weights: "torch.Tensor | None" = None,  # [C]
     unlabelled_columns: "torch.Tensor | None" = None,  # [U]
     unlabelled_weight: float = 1.0,
+    row_weights: "torch.Tensor | None" = None,  # [N] weight of each row's term (LossConfig.opacity_power)
 ) -> tuple["torch.Tensor", int]:
     """3D-to-text cross-entropy (mean over the rows, count): ``text_cross_entropy`` of
     ``compute_text_logits(phi(semantic))``, summed over row chunks so that phi's activations are never held whole:
@@ -106,16 +107,18 @@ def text_cross_entropy_3d(
     count = text_3d_count(labels, unlabelled_columns)
     terms = gram_terms(phi, text_embeddings)
 
-    def chunk_sum(logits, rows_labels):
-        return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
+    def chunk_sum(logits, rows_labels, rows_weights=None):
+        return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight, rows_weights)
 
+    per_row = (semantic, labels) if row_weights is None else (semantic, labels, row_weights)
     if terms is not None:
-        total = eager_row_sum(lambda rows, rows_labels, *t: chunk_sum(
-            gram_text_logits(rows, GramTerms(*t), temperature), rows_labels), (semantic, labels), tuple(terms))
+        total = eager_row_sum(lambda rows, rows_labels, *rest: chunk_sum(
+            gram_text_logits(rows, GramTerms(*rest[len(per_row) - 2:]), temperature), rows_labels,
+            *rest[:len(per_row) - 2]), per_row, tuple(terms))
     else:
         sums = model.checkpointed_rows(  # through the module: tests patch it
-            lambda rows, rows_labels: chunk_sum(compute_text_logits(phi(rows), text_embeddings, temperature),
-                                                rows_labels), semantic, labels)
+            lambda rows, rows_labels, *rows_weights: chunk_sum(
+                compute_text_logits(phi(rows), text_embeddings, temperature), rows_labels, *rows_weights), *per_row)
         total = sum(sums)
     return (total * 0.0, 0) if count == 0 else (total / count, count)
 
@@ -125,9 +128,11 @@ def text_3d_count(labels: "torch.Tensor", unlabelled_columns: "torch.Tensor | No
     return int((labels != IGNORE_LABEL).sum()) if unlabelled_columns is None else int(labels.shape[0])
 
 
-def text_sum(logits, labels, class_weights=None, unlabelled_columns=None, unlabelled_weight: float = 1.0):
+def text_sum(logits, labels, class_weights=None, unlabelled_columns=None, unlabelled_weight: float = 1.0,
+             row_weights=None):
     """``text_cross_entropy`` of the rows as a sum (mean x count), so that row chunks add up."""
-    mean, count = text_cross_entropy(logits, labels, class_weights, unlabelled_columns, unlabelled_weight)
+    mean, count = text_cross_entropy(logits, labels, class_weights, unlabelled_columns, unlabelled_weight,
+                                     row_weights)
     return mean * count
 
 
@@ -141,13 +146,15 @@ def text_and_lovasz_3d(
     class_weights: "torch.Tensor | None" = None,
     unlabelled_columns: "torch.Tensor | None" = None,
     unlabelled_weight: float = 1.0,
+    row_weights: "torch.Tensor | None" = None,  # [N] weight of each row's cross-entropy term (not the Lovasz's)
 ) -> tuple["torch.Tensor", int]:
     """:func:`text_cross_entropy_3d` plus ``lovasz_weight`` x the Lovasz-softmax of the same logits: the ``[N, C]``
     logits are decoded once, in row chunks under activation checkpointing (phi's hidden rows never held whole, as
     in the cross-entropy alone), and both terms read them. The Lovasz term is skipped where nothing is counted."""
     chunks = model.checkpointed_rows(_text_logits_fn(phi, text_embeddings, temperature), semantic)
     logits = chunks[0] if len(chunks) == 1 else torch.cat(chunks)
-    mean, count = text_cross_entropy(logits, labels, class_weights, unlabelled_columns, unlabelled_weight)
+    mean, count = text_cross_entropy(logits, labels, class_weights, unlabelled_columns, unlabelled_weight,
+                                     row_weights)
     if count == 0:
         return logits.sum() * 0.0, 0
     return mean + lovasz_weight * lovasz_softmax(logits, labels), count
@@ -178,6 +185,7 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
     labels = sample.labels.to(device)
     pixel_ids = sample.pixel_ids.to(device)
     semantic_3d = semantic
+    weights = None if text_3d is not None else scene_row_weights(sample, config, unlabelled_columns is not None)
     if rows is not None:  # without a subset of its own, a scene's rows are all of it (batch_losses)
         position = torch.full((labels.shape[0],), -1, dtype=torch.int64, device=device)
         position[rows.to(device)] = torch.arange(rows.shape[0], device=device)
@@ -185,20 +193,23 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
         if sample.loss_rows is not None:
             loss_rows = sample.loss_rows.to(device)
             semantic_3d, labels = semantic[position[loss_rows]], labels[loss_rows]
+            weights = None if weights is None else weights.to(device)[loss_rows]
     if text_3d is None and config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     elif text_3d is None:
         semantic3, labels3 = semantic_3d, labels  # transductive: every Gaussian takes a term
+        weights3 = None if weights is None else weights.to(device)
         if unlabelled_columns is None:
             labelled = labels != IGNORE_LABEL
             semantic3, labels3 = semantic_3d[labelled], labels[labelled]
+            weights3 = None if weights3 is None else weights3[labelled]
         if config.loss.lovasz_weight > 0:
             text_3d = text_and_lovasz_3d(net.phi, semantic3, labels3, text_embeddings, temperature,
                                          config.loss.lovasz_weight, class_weights, unlabelled_columns,
-                                         unlabelled_weight)
+                                         unlabelled_weight, weights3)
         else:
             text_3d = text_cross_entropy_3d(net.phi, semantic3, labels3, text_embeddings, temperature, class_weights,
-                                            unlabelled_columns, unlabelled_weight)
+                                            unlabelled_columns, unlabelled_weight, weights3)
     pixel_weights = sample.pixel_weights.to(device)
     rendered = render_pixels(pixel_ids, pixel_weights, semantic)  # [P, S]
     pixel_labels = sample.pixel_labels.to(device)
@@ -215,6 +226,17 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
                                     torch.ones(predicted.shape[0], dtype=torch.bool, device=device))
     return combine_losses(text_3d, text_2d, cosine, no_3dt_align=config.loss.no_3dt_align,
                           no_vs_align=config.loss.no_vs_align, cosine_weight=config.loss.cosine_weight)
+
+
+def scene_row_weights(sample: SceneSample, config: TrainConfig, transductive: bool) -> "torch.Tensor | None":
+    """``[N]`` weights of a scene's 3D-to-text terms (``LossConfig.opacity_power``; mean 1 over the Gaussians the
+    term counts: the labelled ones, or every one in a transductive run), or None when every weight is 1 by
+    configuration (power 0)."""
+    power = config.loss.opacity_power
+    if power == 0:
+        return None
+    counted = torch.ones_like(sample.labels, dtype=torch.bool) if transductive else sample.labels != IGNORE_LABEL
+    return opacity_row_weights(sample.opacity_logits, counted, power)
 
 
 def batch_losses(net, samples: Sequence[SceneSample], text_embeddings, config: TrainConfig, use_teacher: bool,
@@ -257,19 +279,23 @@ def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embed
     gradients taken in its forward (``ovgaussian.train.eager_adapter``); the same terms as the one-piece path."""
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = torch.cat([s.labels for s in samples]).to(means.device)
+    weights = [scene_row_weights(s, config, unlabelled_columns is not None) for s in samples]
+    row_tensors = (labels,) if weights[0] is None else (labels, torch.cat(weights).to(means.device))
 
-    def row_loss(rows_semantic, rows_labels, *terms):
+    def row_loss(rows_semantic, rows_labels, *rest):
+        rows_weights, terms = (None, rest) if len(row_tensors) == 1 else (rest[0], rest[1:])
         if unlabelled_columns is None:  # the labelled rows only, as scene_losses' semantic_3d[labelled]
             keep = rows_labels != IGNORE_LABEL
             rows_semantic, rows_labels = rows_semantic[keep], rows_labels[keep]
+            rows_weights = None if rows_weights is None else rows_weights[keep]
         logits = gram_text_logits(rows_semantic, GramTerms(*terms), temperature)
-        return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight)
+        return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight, rows_weights)
 
     scene_rows, rows = [None] * len(samples), None  # transductive: every Gaussian takes a 3D term
     if unlabelled_columns is None:
         scene_rows = [term_rows(s) for s in samples]
         rows = batch_rows(samples, scene_rows).to(means.device)
-    semantic, sums = semantic_with_row_loss(net, means, attributes, batch_index, len(samples), row_loss, (labels,),
+    semantic, sums = semantic_with_row_loss(net, means, attributes, batch_index, len(samples), row_loss, row_tensors,
                                             tuple(gram_terms(net.phi, text_embeddings)), rows=rows)
     counts = [len(s.means) if r is None else len(r) for s, r in zip(samples, scene_rows)]
     terms = []
