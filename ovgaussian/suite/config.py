@@ -160,7 +160,7 @@ class SuiteConfig:
     """ScanNet++-layout rooms (split train:val by ``val_ratio``)."""
     replica_scenes: int = 16
     """Replica-layout rooms (the cross-domain set). 16, not the paper's 8: with 8 the 2D CDA intervals of the
-    model and nearest colour touched (24.9 [19.0, 31.8] vs 16.9 [14.5, 19.1]); 16 tell them apart."""
+    model and nearest colour touched; 16 tell them apart (BENCHMARKS.md, "20-epoch profile")."""
     val_ratio: tuple[int, int] = (4, 1)
     """train:val ratio of the ScanNet++-layout rooms."""
     width: int = 160
@@ -187,9 +187,8 @@ class SuiteConfig:
     """Pixels sampled per view for the 2D losses."""
     loss_gaussians: Optional[int] = None
     """Gaussians per room in each step's 3D-to-text loss (``DataConfig.loss_gaussians``; None, or 0 on the command
-    line: every Gaussian). 2048 took the profile from nothing to 61 minutes, but its runs learned less: 3D CSA on
-    fits 25.4 against 27.1, and the oracle control 32.8 against 36.5 (BENCHMARKS.md, "Benchmark profile with a
-    3D-loss subset"), so every Gaussian is the default."""
+    line: every Gaussian). A subset shortens the profile, but its runs learned less on the fits and on the oracle
+    control (BENCHMARKS.md, "Benchmark profile with a 3D-loss subset"), so every Gaussian is the default."""
     scene_cache_size: int = 64
     """Prepared rooms each training keeps in memory (``DataConfig.scene_cache_size``): at least the train split,
     so a room is read and decoded from the shards once per run, not once per epoch (0.07 s CPU a room, three rooms a
