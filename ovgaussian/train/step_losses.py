@@ -111,10 +111,13 @@ def text_cross_entropy_3d(
         return text_sum(logits, rows_labels, class_weights, unlabelled_columns, unlabelled_weight, rows_weights)
 
     per_row = (semantic, labels) if row_weights is None else (semantic, labels, row_weights)
+    extra = len(per_row) - 2  # the weights' chunk, when there are weights, comes before the Gram terms
+
+    def gram_chunk_sum(rows, rows_labels, *rest):
+        return chunk_sum(gram_text_logits(rows, GramTerms(*rest[extra:]), temperature), rows_labels, *rest[:extra])
+
     if terms is not None:
-        total = eager_row_sum(lambda rows, rows_labels, *rest: chunk_sum(
-            gram_text_logits(rows, GramTerms(*rest[len(per_row) - 2:]), temperature), rows_labels,
-            *rest[:len(per_row) - 2]), per_row, tuple(terms))
+        total = eager_row_sum(gram_chunk_sum, per_row, tuple(terms))
     else:
         sums = model.checkpointed_rows(  # through the module: tests patch it
             lambda rows, rows_labels, *rows_weights: chunk_sum(
@@ -279,8 +282,10 @@ def _eager_batch_losses(net, samples, means, attributes, batch_index, text_embed
     gradients taken in its forward (``ovgaussian.train.eager_adapter``); the same terms as the one-piece path."""
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = torch.cat([s.labels for s in samples]).to(means.device)
-    weights = [scene_row_weights(s, config, unlabelled_columns is not None) for s in samples]
-    row_tensors = (labels,) if weights[0] is None else (labels, torch.cat(weights).to(means.device))
+    row_tensors = (labels,)
+    if config.loss.opacity_power != 0:
+        weights = [scene_row_weights(s, config, unlabelled_columns is not None) for s in samples]
+        row_tensors = (labels, torch.cat(weights).to(means.device))
 
     def row_loss(rows_semantic, rows_labels, *rest):
         rows_weights, terms = (None, rest) if len(row_tensors) == 1 else (rest[0], rest[1:])
