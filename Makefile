@@ -68,7 +68,7 @@ demo: $(STAMP) $(NODE_STAMP)
 	bash scripts/demo.sh
 
 test: $(STAMP) $(NODE_STAMP) $(CHROMIUM)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: $(STAMP)
 	bash benchmarks/run_all.sh
