@@ -187,8 +187,7 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
     temperature, unlabelled_weight = config.loss.temperature, config.loss.unlabelled_weight
     labels = sample.labels.to(device)
     pixel_ids = sample.pixel_ids.to(device)
-    semantic_3d = semantic
-    weights = None if text_3d is not None else scene_row_weights(sample, config, unlabelled_columns is not None)
+    semantic_3d, loss_rows = semantic, None
     if rows is not None:  # without a subset of its own, a scene's rows are all of it (batch_losses)
         position = torch.full((labels.shape[0],), -1, dtype=torch.int64, device=device)
         position[rows.to(device)] = torch.arange(rows.shape[0], device=device)
@@ -196,12 +195,13 @@ def scene_losses(net, semantic: "torch.Tensor", sample: SceneSample, text_embedd
         if sample.loss_rows is not None:
             loss_rows = sample.loss_rows.to(device)
             semantic_3d, labels = semantic[position[loss_rows]], labels[loss_rows]
-            weights = None if weights is None else weights.to(device)[loss_rows]
     if text_3d is None and config.loss.no_3dt_align:
         text_3d = (semantic.sum() * 0.0, 0)
     elif text_3d is None:
         semantic3, labels3 = semantic_3d, labels  # transductive: every Gaussian takes a term
-        weights3 = None if weights is None else weights.to(device)
+        weights3 = scene_row_weights(sample, config, unlabelled_columns is not None)  # only when the term is computed
+        if weights3 is not None:
+            weights3 = weights3.to(device) if loss_rows is None else weights3.to(device)[loss_rows]
         if unlabelled_columns is None:
             labelled = labels != IGNORE_LABEL
             semantic3, labels3 = semantic_3d[labelled], labels[labelled]
