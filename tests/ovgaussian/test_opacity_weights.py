@@ -170,3 +170,29 @@ def test_a_shared_opacity_makes_the_option_change_nothing_bitwise(lovasz_weight)
     for a, b in zip(off_terms, on_terms):
         assert torch.equal(a.text_3d, b.text_3d) and torch.equal(a.total, b.total)
     assert all(torch.equal(on_grads[n], g) for n, g in off_grads.items())
+
+
+def test_a_3d_loss_subset_reads_the_scene_s_weights_at_its_rows():
+    """With a 3D-loss subset (``DataConfig.loss_gaussians``) each drawn Gaussian keeps the weight it has in its whole
+    scene (mean 1 over the scene's labelled Gaussians, not over the subset)."""
+    from ovgaussian.run.checkpoint import build_network
+    from ovgaussian.train.step_losses import batch_losses, decoded_text_logits, network_inputs
+
+    voc = training_vocabulary(20)
+    data = TrainingData(InMemorySource([make_scene(0)]),
+                        DataConfig(blend_top_k=8, pixels_per_view=200, loss_gaussians=90), voc)
+    sample = data.sample("scene00", np.random.default_rng(0))
+    sample = sample._replace(opacity_logits=torch.randn(len(sample.means), generator=torch.Generator().manual_seed(4)))
+    assert sample.loss_rows is not None and 0 < len(sample.loss_rows) < len(sample.means)
+    torch.manual_seed(0)
+    net = build_network(tiny_model_config(12)).eval()
+    with torch.no_grad():
+        [term] = batch_losses(net, [sample], text_stub(), _config(0.5), False, "cpu")
+        logits = decoded_text_logits(net.phi, net(*network_inputs([sample], "cpu")), text_stub(), 0.1)
+    labelled = sample.labels != IGNORE_LABEL
+    weights = torch.sigmoid(sample.opacity_logits.double()) ** 0.5
+    weights = weights / weights[labelled].mean()
+    rows = sample.loss_rows[labelled[sample.loss_rows]]
+    nll = -torch.log_softmax(logits.double()[rows], 1).gather(1, sample.labels[rows, None])[:, 0]
+    assert term.count_3d == len(rows)
+    assert float(term.text_3d) == pytest.approx(float((weights[rows] * nll).mean()), rel=1e-5)
