@@ -206,9 +206,8 @@ class SuiteConfig:
     centres' mean offset and covariance). What it changed on the profile's rooms, and why it is off:
     BENCHMARKS.md, "Session 18" and "Session 19"."""
     class_balance: float = 0.75
-    """Exponent of the class weights of the text cross-entropies. Measured on the full run (20 epochs, same data,
-    val 3D IoU): 0.5 -> 0.75 raises box 4.3 -> 18.8, monitor 6.5 -> 15.1, chair 22.3 -> 25.5 at the same 3D CSA
-    (31.1 -> 31.3); 1.0 collapses window into window frame (window IoU 0, 3D CSA 25.5)."""
+    """Exponent of the class weights of the text cross-entropies (``LossConfig.class_balance``); why 0.75 and not
+    0.5 or 1.0: BENCHMARKS.md, "Earlier profile runs (before the whiteboard and 16-room changes)"."""
     lovasz_weight: float = 1.0
     """Weight of the Lovasz-softmax term (an IoU surrogate) of the 3D-to-text loss of every run
     (``LossConfig.lovasz_weight``), beside the cross-entropy of weight 1, as Pointcept's PTv3 configs for ScanNet
