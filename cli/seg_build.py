@@ -32,6 +32,10 @@ from seggaussian.fit.config import PRESETS, FitConfig
 @config_option(BuildConfig, "ply_dir", "--ply-dir", type=click.Path(path_type=Path), default=None)
 @config_option(BuildConfig, "seed", "--seed", type=int, default=0, show_default=True)
 @config_option(TransferConfig, "max_distance", "--gate", type=float, default=None)
+@config_option(TransferConfig, "occlusion_tolerance", "--occlusion-tolerance", type=click.FloatRange(min=0), default=None)
+@click.option("--keep-occluded", is_flag=True,
+              help="Let label points that the train views look at but never see give labels too (the wall behind a "
+                   "window); by default they give none.")
 @config_option(OracleConfig, "num_gaussians", "--oracle-gaussians", type=int, default=None)
 @click.option("--fit-preset", type=click.Choice(PRESETS), default="default", show_default=True, help=PRESET_HELP)
 @config_option(FitConfig, "iterations", "--fit-iterations", type=int, default=None)
@@ -44,7 +48,7 @@ from seggaussian.fit.config import PRESETS, FitConfig
 @json_option
 @guarded
 def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussians_mode, ply_dir, seed, gate,
-            oracle_gaussians, fit_preset, fit_iterations, fit_max_gaussians, max_image_side, view_stride, keep_going, progress, as_json) -> None:
+            occlusion_tolerance, keep_occluded, oracle_gaussians, fit_preset, fit_iterations, fit_max_gaussians, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
     from seggaussian.build.dataset import build_dataset, summary_table
 
@@ -54,6 +58,11 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
                          scenes=tuple(s for item in scenes for s in item.split(",") if s) or None)
     if gate is not None:
         config = replace(config, transfer=replace(config.transfer, max_distance=gate))
+    if keep_occluded and occlusion_tolerance is not None:
+        raise click.UsageError("--keep-occluded and --occlusion-tolerance exclude each other")
+    if keep_occluded or occlusion_tolerance is not None:
+        config = replace(config, transfer=replace(config.transfer,
+                                                  occlusion_tolerance=None if keep_occluded else occlusion_tolerance))
     if oracle_gaussians is not None:
         config = replace(config, oracle=replace(config.oracle, num_gaussians=oracle_gaussians))
     if fit_preset != "default":

@@ -63,6 +63,11 @@ class TransferConfig:
     #: a splat shifted or turned by a fraction of the room, which the shares cannot see along the big planes.
     #: A negative value disables it.
     max_local_offset: float = 0.07
+    #: Mesh sources with views: label points that the scene's ``train`` views look at but never see (the first
+    #: surface along every such view's ray is nearer by more than this, metres) give no label
+    #: (``seggaussian.labels.occlusion``): the wall behind a window, the floor under a box. None keeps every
+    #: point (``--keep-occluded``). Counted per scene as ``occluded_points``.
+    occlusion_tolerance: float | None = 0.01
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """transfer stage: labels of the Gaussians from the scene's labelled points -> ``gaussians.parquet``, ``labels.npz``.
 
 The algorithm (KD-tree, distance gate, statistics) is ``seggaussian.labels.transfer``; this module feeds it the
-scene's points, densified along the mesh faces, scores the result against the oracle truth (or the surface
+scene's points, densified along the mesh faces, less those its train views look at but never see (a wall behind a
+window: ``seggaussian.labels.occlusion``), scores the result against the oracle truth (or the surface
 labels) and writes the per-scene ``gaussians`` table.
 """
 
@@ -17,6 +18,7 @@ from seggaussian.build.config import BuildConfig
 from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.gaussians import Gaussians
+from seggaussian.labels.occlusion import occluded_points
 from seggaussian.labels.placement import check_placement, measure_placement
 from seggaussian.core.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
@@ -48,6 +50,11 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         points = np.concatenate([points, samples])
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
+    occluded = drop_occluded_points(scene, points, config.transfer.occlusion_tolerance)
+    if occluded is not None:
+        keep = ~occluded
+        points, semantic, instance = points[keep], semantic[keep], instance[keep]
+        multilabel = multilabel[keep] if multilabel is not None else None
     result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer)
     # the placement is judged at the spacing-derived gate, whatever gate the user chose for the labels
     placement_gate = distance_gate(result.stats.spacing, replace(config.transfer, max_distance=None))
@@ -67,8 +74,19 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
                                      multilabel=result.multilabel, transfer_distance=result.distances)
     stats = result.stats.to_dict()
     stats["mesh_samples"] = extra
+    stats["occluded_points"] = int(occluded.sum()) if occluded is not None else None
     stats["placement"] = placement.to_dict()
     return labelled, {"transfer": stats, "label_accuracy": accuracy}
+
+
+def drop_occluded_points(scene: Scene, points: np.ndarray, tolerance: float | None) -> np.ndarray | None:
+    """``[P]`` True for the label points (vertices and face samples) the scene's ``train`` views look at but never
+    see (``seggaussian.labels.occlusion``); None where the test does not apply: ``tolerance`` None, no faces or no
+    train view."""
+    cameras = [view.camera for view in scene.views if view.role == "train"]
+    if tolerance is None or scene.faces is None or not len(scene.faces) or not cameras:
+        return None
+    return occluded_points(scene.points, scene.faces, points, cameras, tolerance)
 
 
 def write_transfer(scene_dir: Path, scene_id: str, labelled: Gaussians, shards: ShardConfig) -> None:

@@ -1,4 +1,7 @@
-"""Bitwise reproducibility (issue 16): one seed, one machine, one thread count -> the same bytes.
+"""Helpers of the bitwise reproducibility tests (issue 16; test_reproducibility_train.py and _fit.py, two files
+so that the two slowest tests run in two pytest-xdist workers).
+
+The claim: one seed, one machine, one thread count -> the same bytes.
 
 Every numba kernel is run both freshly compiled (an empty ``NUMBA_CACHE_DIR``, as on a fresh checkout) and
 loaded from the cache: with ``reassoc`` in the rasterizer's fast-math flags those two gave different gradients
@@ -14,15 +17,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 REPO = Path(__file__).resolve().parents[1]
 DRIVER = REPO / "tests" / "repro_driver.py"
 #: Two threads for numba and torch in every run: the claim is per machine and thread count.
 THREADS = "2"
 
 
-def _run(cache: Path, *args: str) -> str:
+def run_driver(cache: Path, *args: str) -> str:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), NUMBA_NUM_THREADS=THREADS, OMP_NUM_THREADS=THREADS,
                MKL_NUM_THREADS=THREADS)
     done = subprocess.run([sys.executable, str(DRIVER), *args], cwd=REPO, env=env, capture_output=True, text=True,
@@ -31,27 +32,5 @@ def _run(cache: Path, *args: str) -> str:
     return done.stdout.strip().splitlines()[-1]
 
 
-def _numba_cache_files(cache: Path) -> int:
+def numba_cache_files(cache: Path) -> int:
     return sum(1 for _ in cache.rglob("*.nbc"))
-
-
-def test_training_cold_and_warm_numba_cache_hash_equal(tmp_path):
-    cache = tmp_path / "numba-cache"
-    cache.mkdir()
-    cold = _run(cache, "train", str(tmp_path / "cold"))
-    assert _numba_cache_files(cache) > 0  # the first run compiled (and stored) its kernels
-    warm = _run(cache, "train", str(tmp_path / "warm"))
-    assert cold == warm
-
-
-def test_fit_cold_and_warm_numba_cache_write_identical_ply(tmp_path):
-    from seggaussian.sources.synthetic import generate as synthetic
-    raw = tmp_path / "raw"
-    (scene_id,) = synthetic.synthesize(raw / "scannetpp", 1, 0, "scannetpp",
-                                       synthetic.SynthConfig(width=48, num_views=9, max_edge=0.25))
-    cache = tmp_path / "numba-cache"
-    cache.mkdir()
-    cold = _run(cache, "fit", str(raw), scene_id, str(tmp_path / "cold.ply"))
-    assert _numba_cache_files(cache) > 0
-    warm = _run(cache, "fit", str(raw), scene_id, str(tmp_path / "warm.ply"))
-    assert cold == warm
