@@ -11,7 +11,7 @@ its image, and, for every such camera, the first surface along the ray from the 
 nearer than the point by more than ``tolerance`` metres. A point no camera looks at is *not* occluded: nothing is
 known about it, and it keeps its label (a fit initialised from the scan may leave Gaussians there).
 
-``occluded_points`` casts the rays with open3d's BVH (``seggaussian.sources.raycast.MeshRaycaster``);
+``occluded_points`` casts the rays with open3d's BVH (``RaycastingScene``, as ``seggaussian.sources.raycast``);
 ``occluded_points_reference`` tests every ray against every triangle (Moller-Trumbore; tiny meshes only).
 """
 
@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from seggaussian.core.cameras import Camera
-from seggaussian.sources.raycast import RAY_PARALLEL_EPS, MeshRaycaster
+from seggaussian.sources.raycast import RAY_PARALLEL_EPS
 
 #: Default of ``TransferConfig.occlusion_tolerance`` (metres): half the 2 cm between the synthetic rooms' windows and
 #: the wall behind them, and more than float32 ray casting's error at room scale (about 1e-6 m per metre).
@@ -59,6 +59,30 @@ def _check(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.
     return points, faces
 
 
+class _FirstHits:
+    """A triangle mesh in open3d's BVH: the distance to the first surface along rays from one origin."""
+
+    def __init__(self, mesh_points: np.ndarray, faces: np.ndarray) -> None:
+        import open3d as o3d
+
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor(mesh_points.astype(np.float32)),
+                                  o3d.core.Tensor(faces.astype(np.uint32)))
+
+    def __call__(self, origin: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Along the ray from ``origin [3]`` to each of ``targets [M, 3]``: ``(first [M], distance [M])``, the
+        distance (metres, float64) to the first surface hit (inf where the ray hits nothing) and to the target."""
+        import open3d as o3d
+
+        origin = np.asarray(origin, np.float64)
+        offsets = np.asarray(targets, np.float64) - origin
+        distance = np.linalg.norm(offsets, axis=1)
+        directions = offsets / np.maximum(distance, 1e-300)[:, None]  # unit: t is then a distance
+        rays = np.concatenate([np.broadcast_to(origin, offsets.shape), directions], axis=1).astype(np.float32)
+        t_hit = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        return np.where(np.isfinite(t_hit), t_hit, np.inf), distance
+
+
 def occluded_points(
     mesh_points: np.ndarray,  # [V, 3] vertices of the occluding mesh
     faces: np.ndarray,  # [F, 3]
@@ -73,13 +97,13 @@ def occluded_points(
     seen = np.zeros(len(points), bool)
     if not len(points) or not len(faces):
         return seen  # nothing to test, or nothing that could hide a point
-    caster = MeshRaycaster(mesh_points, faces)
+    first_hits = _FirstHits(mesh_points, faces)
     for camera in cameras:
         inside = points_in_image(points, camera)
         looked_at |= inside
         rows = np.flatnonzero(inside & ~seen)  # a point seen once stays seen
         if len(rows):
-            first, distance = caster.first_hits(camera.center, points[rows])
+            first, distance = first_hits(camera.center, points[rows])
             seen[rows] = first >= distance - tolerance
     return looked_at & ~seen
 
