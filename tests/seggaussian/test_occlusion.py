@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seggaussian.build.stages.transfer import drop_occluded_points
+from seggaussian.build.stages.transfer import occluded_label_points
 from seggaussian.core.cameras import Camera, look_at
 from seggaussian.core.scene import Scene, View
 from seggaussian.labels.config import TransferConfig
@@ -131,13 +131,13 @@ def test_transfer_labels_a_gaussian_on_the_window_window_only_without_the_hidden
     gaussian = np.array([[x, -0.006, z]])  # on the window, fitted 14 mm too deep: 6 mm from a hidden wall sample
     config = TransferConfig(max_distance=0.1)
     before = transfer_labels(gaussian, points, semantic, instance, None, config).semantic
-    occluded = drop_occluded_points(scene, points, config.occlusion_tolerance)
+    occluded = occluded_label_points(scene, points, config.occlusion_tolerance)
     after = transfer_labels(gaussian, points[~occluded], semantic[~occluded], instance[~occluded], None,
                             config).semantic
     assert before[0] == WALL and after[0] == WINDOW
     # no train view, or the option off: nothing is dropped
-    assert drop_occluded_points(_scene(vertices, faces, face_labels, ()), points, 0.01) is None
-    assert drop_occluded_points(scene, points, None) is None
+    assert occluded_label_points(_scene(vertices, faces, face_labels, ()), points, 0.01) is None
+    assert occluded_label_points(scene, points, None) is None
     novel_only = tuple(View(v.name, v.camera, None, "novel") for v in views)
-    assert drop_occluded_points(_scene(vertices, faces, face_labels, novel_only), points, 0.01) is None
+    assert occluded_label_points(_scene(vertices, faces, face_labels, novel_only), points, 0.01) is None
 

@@ -50,7 +50,7 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         points = np.concatenate([points, samples])
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
-    occluded = drop_occluded_points(scene, points, config.transfer.occlusion_tolerance)
+    occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
     if occluded is not None:
         keep = ~occluded
         points, semantic, instance = points[keep], semantic[keep], instance[keep]
@@ -79,7 +79,7 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
     return labelled, {"transfer": stats, "label_accuracy": accuracy}
 
 
-def drop_occluded_points(scene: Scene, points: np.ndarray, tolerance: float | None) -> np.ndarray | None:
+def occluded_label_points(scene: Scene, points: np.ndarray, tolerance: float | None) -> np.ndarray | None:
     """``[P]`` True for the label points (vertices and face samples) the scene's ``train`` views look at but never
     see (``seggaussian.labels.occlusion``); None where the test does not apply: ``tolerance`` None, no faces or no
     train view."""
