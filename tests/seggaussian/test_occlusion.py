@@ -141,3 +141,31 @@ def test_transfer_labels_a_gaussian_on_the_window_window_only_without_the_hidden
     novel_only = tuple(View(v.name, v.camera, None, "novel") for v in views)
     assert occluded_label_points(_scene(vertices, faces, face_labels, novel_only), points, 0.01) is None
 
+
+
+def test_transfer_stage_drops_occluded_points_and_counts_them(tmp_path):
+    from dataclasses import replace
+
+    from seggaussian.build.config import BuildConfig
+    from seggaussian.build.stages import transfer as transfer_stage
+    from seggaussian.core.gaussians import Gaussians
+
+    vertices, faces, face_labels = _scene_mesh()
+    views = tuple(View(f"v{i}", c, None, "train") for i, c in enumerate(CAMERAS))
+    scene = _scene(vertices, faces, face_labels, views)
+    samples, (labels,) = densify_labelled_mesh(vertices, faces, TransferConfig().mesh_sample_spacing, scene.semantic)
+    behind_window = np.flatnonzero((labels == WALL) & (np.abs(samples[:, 0]) < 0.2) & (np.abs(samples[:, 2] - 1.5) < 0.2))
+    means = samples[behind_window] + np.array([0.0, -0.006, 0.0])  # window Gaussians fitted 14 mm too deep
+    n = len(means)
+    gaussians = Gaussians.from_arrays(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+                                      log_scales=np.full((n, 3), -4.0), opacity_logits=np.zeros(n),
+                                      sh=np.zeros((n, 1, 3)))
+    config = BuildConfig(source="synthetic", root=tmp_path, out=tmp_path / "out")
+    config = replace(config, transfer=replace(config.transfer, min_on_mesh_share=0.0))
+    truth = np.full(n, WINDOW, np.int32)
+    labelled, facts = transfer_stage.run_transfer(scene, gaussians, truth, config)
+    assert (labelled.extras["semantic"] == WINDOW).all()
+    assert facts["transfer"]["occluded_points"] > 0 and facts["label_accuracy"]["accuracy"] == 1.0
+    kept = replace(config, transfer=replace(config.transfer, occlusion_tolerance=None))
+    labelled, facts = transfer_stage.run_transfer(scene, gaussians, truth, kept)
+    assert (labelled.extras["semantic"] == WALL).all() and facts["transfer"]["occluded_points"] is None
