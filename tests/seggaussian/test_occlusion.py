@@ -169,3 +169,38 @@ def test_transfer_stage_drops_occluded_points_and_counts_them(tmp_path):
     kept = replace(config, transfer=replace(config.transfer, occlusion_tolerance=None))
     labelled, facts = transfer_stage.run_transfer(scene, gaussians, truth, kept)
     assert (labelled.extras["semantic"] == WALL).all() and facts["transfer"]["occluded_points"] is None
+
+
+def test_fitted_label_accuracy_is_scored_against_the_surfaces_the_views_see(tmp_path):
+    """With no known truth (a fit), the stage scores its labels against the closest mesh triangle; with the occlusion
+    test on, triangles whose corners are all occluded are left out, so window Gaussians fitted too deep are scored
+    against the window, not against the wall behind it. The wall here is a grid of 10 cm cells, as a room's is."""
+    from dataclasses import replace
+
+    from seggaussian.build.config import BuildConfig
+    from seggaussian.build.stages import transfer as transfer_stage
+    from seggaussian.core.gaussians import Gaussians
+
+    cells = []
+    for i in range(40):
+        for k in range(30):
+            cells.append((_quad((-2 + 0.1 * i, 0, 0.1 * k), (0.1, 0, 0), (0, 0, 0.1)), WALL))
+    cells.append((_quad((-0.5, -0.02, 1), (1, 0, 0), (0, 0, 1)), WINDOW))
+    vertices, faces, labels = [], [], []
+    for (v, f), label in cells:
+        faces.append(f + sum(len(x) for x in vertices))
+        vertices.append(v)
+        labels += [label] * len(f)
+    vertices, faces = np.concatenate(vertices), np.concatenate(faces)
+    views = tuple(View(f"v{i}", c, None, "train") for i, c in enumerate(CAMERAS[:2]))
+    scene = _scene(vertices, faces, np.array(labels), views)
+    rng = np.random.default_rng(1)
+    means = np.column_stack([rng.uniform(-0.3, 0.3, 50), np.full(50, -0.006), rng.uniform(1.2, 1.8, 50)])
+    gaussians = Gaussians.from_arrays(means=means, quats=np.tile([1.0, 0, 0, 0], (50, 1)),
+                                      log_scales=np.full((50, 3), -4.0), opacity_logits=np.zeros(50),
+                                      sh=np.zeros((50, 1, 3)))
+    config = BuildConfig(source="synthetic", root=tmp_path, out=tmp_path / "out")
+    config = replace(config, transfer=replace(config.transfer, min_on_mesh_share=0.0))
+    labelled, facts = transfer_stage.run_transfer(scene, gaussians, None, config)
+    assert (labelled.extras["semantic"] == WINDOW).all()
+    assert facts["label_accuracy"] == {"scored": 50, "correct": 50, "accuracy": 1.0}

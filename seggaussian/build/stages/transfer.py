@@ -64,7 +64,10 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         check_placement(placement, config.transfer.min_on_mesh_share, config.transfer.min_surface_covered_share,
                         config.transfer.max_local_offset, scene.scene_id)
     if truth is None and len(gaussians):
-        truth = surface_labels(gaussians.means, scene.points, scene.faces, scene.semantic)
+        faces = scene.faces
+        if occluded is not None:  # score against the surfaces the views see: a face with every corner occluded is out
+            faces = faces[~occluded[: len(scene.points)][faces].all(axis=1)]
+        truth = surface_labels(gaussians.means, scene.points, faces, scene.semantic)
     accuracy = label_accuracy(result.semantic, truth) if truth is not None else {"scored": 0, "correct": 0,
                                                                                    "accuracy": None}
     inst = result.instance
