@@ -108,6 +108,23 @@ def occluded_points(
     return looked_at & ~seen
 
 
+def _first_hit_reference(origin, direction, a, e1, e2) -> float:
+    """Distance along the unit ``direction`` from ``origin`` to the nearest of the triangles ``(a, a + e1, a + e2)``
+    (``[F, 3]`` each), inf if none: Moller-Trumbore's ``t = e2 . q / det`` with barycentric ``(u, v)`` inside the
+    triangle, every triangle at once."""
+    p = np.cross(direction, e2)
+    det = np.einsum("fk,fk->f", e1, p)
+    usable = np.abs(det) >= RAY_PARALLEL_EPS
+    det = np.where(usable, det, 1.0)
+    s = origin - a
+    q = np.cross(s, e1)
+    u = np.einsum("fk,fk->f", s, p) / det
+    v = (q @ direction) / det
+    t = np.einsum("fk,fk->f", e2, q) / det
+    hit = usable & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    return float(t[hit].min()) if hit.any() else np.inf
+
+
 def occluded_points_reference(mesh_points, faces, points, cameras, tolerance=DEFAULT_OCCLUSION_TOLERANCE):
     """:func:`occluded_points`, every camera-to-point ray against every triangle (Moller-Trumbore, float64)."""
     mesh_points, faces = _check(mesh_points, faces, tolerance)
@@ -124,19 +141,7 @@ def occluded_points_reference(mesh_points, faces, points, cameras, tolerance=DEF
             origin = np.asarray(camera.center, np.float64)
             distance = float(np.linalg.norm(point - origin))
             direction = (point - origin) / distance
-            first = np.inf
-            for f in range(len(faces)):
-                p = np.cross(direction, e2[f])
-                det = e1[f] @ p
-                if abs(det) < RAY_PARALLEL_EPS:
-                    continue
-                s = origin - a[f]
-                u = (s @ p) / det
-                q = np.cross(s, e1[f])
-                v = (direction @ q) / det
-                t = (e2[f] @ q) / det
-                if u >= 0 and v >= 0 and u + v <= 1 and t > 0:
-                    first = min(first, t)
+            first = _first_hit_reference(origin, direction, a, e1, e2)
             if first >= distance - tolerance:
                 seen = True
                 break
