@@ -54,6 +54,8 @@ def _check(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.
         raise ValueError(f"occlusion: faces must be [F, 3], got {faces.shape}")
     if not np.isfinite(points).all():
         raise ValueError("occlusion: points hold NaN or Inf")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(points)):
+        raise ValueError(f"occlusion: faces index vertices outside 0..{len(points) - 1}")
     if not (np.isfinite(tolerance) and tolerance >= 0):
         raise ValueError(f"occlusion: tolerance must be a finite number >= 0, got {tolerance}")
     return points, faces

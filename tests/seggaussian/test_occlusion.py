@@ -106,6 +106,8 @@ def test_degenerate_inputs():
         occluded_points(vertices, faces, points, CAMERAS, -0.01)
     with pytest.raises(ValueError, match=r"faces must be \[F, 3\]"):
         occluded_points(vertices, faces[:, :2], points, CAMERAS)
+    with pytest.raises(ValueError, match="faces index vertices outside"):
+        occluded_points(vertices, faces + len(vertices), points, CAMERAS)
 
 
 def _scene(vertices, faces, face_labels, views):
