@@ -32,17 +32,12 @@ NEAR_PLANE = 1e-3
 
 
 def points_in_image(points: np.ndarray, camera: Camera) -> np.ndarray:  # [P, 3] -> [P] bool
-    """Points in front of ``camera`` (camera z > ``NEAR_PLANE``) that project inside its image (pinhole ``K``,
+    """Points in front of ``camera`` (camera z > ``NEAR_PLANE``) that project inside its image (``Camera.project``,
     pixel edges at 0 and width/height)."""
-    viewmat = np.asarray(camera.viewmat, np.float64)
-    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = cam[:, 2]
+    uv, z = camera.project(points)
     front = z > NEAR_PLANE
-    k = np.asarray(camera.K, np.float64)
-    safe_z = np.where(front, z, 1.0)
-    u = k[0, 0] * cam[:, 0] / safe_z + k[0, 1] * cam[:, 1] / safe_z + k[0, 2]
-    v = k[1, 1] * cam[:, 1] / safe_z + k[1, 2]
-    return front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    uv = np.where(front[:, None], uv, -1.0)  # behind the camera: outside, whatever the division gave
+    return front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
 
 
 def _check(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
