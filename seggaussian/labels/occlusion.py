@@ -11,7 +11,7 @@ its image, and, for every such camera, the first surface along the ray from the 
 nearer than the point by more than ``tolerance`` metres. A point no camera looks at is *not* occluded: nothing is
 known about it, and it keeps its label (a fit initialised from the scan may leave Gaussians there).
 
-``occluded_points`` casts the rays with open3d's BVH (``RaycastingScene``, as ``seggaussian.sources.raycast``);
+``occluded_points`` casts the rays with open3d's BVH (``seggaussian.sources.raycast.MeshRaycaster.first_hits``);
 ``occluded_points_reference`` tests every ray against every triangle (Moller-Trumbore; tiny meshes only).
 """
 
@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from seggaussian.core.cameras import Camera
-from seggaussian.sources.raycast import RAY_PARALLEL_EPS
+from seggaussian.sources.raycast import RAY_PARALLEL_EPS, MeshRaycaster
 
 #: Default of ``TransferConfig.occlusion_tolerance`` (metres): half the 2 cm between the synthetic rooms' windows and
 #: the wall behind them, and more than float32 ray casting's error at room scale (about 1e-6 m per metre).
@@ -40,44 +40,26 @@ def points_in_image(points: np.ndarray, camera: Camera) -> np.ndarray:  # [P, 3]
     return front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
 
 
-def _check(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+def _checked_points(points: np.ndarray, name: str) -> np.ndarray:
     points = np.asarray(points, np.float64)
-    faces = np.asarray(faces, np.int64)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"occlusion: points must be [P, 3], got {points.shape}")
+        raise ValueError(f"occlusion: {name} must be [P, 3], got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError(f"occlusion: {name} hold NaN or Inf")
+    return points
+
+
+def _check(mesh_points, faces, points, tolerance) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inputs of :func:`occluded_points` as float64 / int64 arrays, or a one-line ``ValueError``."""
+    mesh_points, points = _checked_points(mesh_points, "mesh points"), _checked_points(points, "points")
+    faces = np.asarray(faces, np.int64)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"occlusion: faces must be [F, 3], got {faces.shape}")
-    if not np.isfinite(points).all():
-        raise ValueError("occlusion: points hold NaN or Inf")
-    if len(faces) and (faces.min() < 0 or faces.max() >= len(points)):
-        raise ValueError(f"occlusion: faces index vertices outside 0..{len(points) - 1}")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(mesh_points)):
+        raise ValueError(f"occlusion: faces index vertices outside 0..{len(mesh_points) - 1}")
     if not (np.isfinite(tolerance) and tolerance >= 0):
         raise ValueError(f"occlusion: tolerance must be a finite number >= 0, got {tolerance}")
-    return points, faces
-
-
-class _FirstHits:
-    """A triangle mesh in open3d's BVH: the distance to the first surface along rays from one origin."""
-
-    def __init__(self, mesh_points: np.ndarray, faces: np.ndarray) -> None:
-        import open3d as o3d
-
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(mesh_points.astype(np.float32)),
-                                  o3d.core.Tensor(faces.astype(np.uint32)))
-
-    def __call__(self, origin: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Along the ray from ``origin [3]`` to each of ``targets [M, 3]``: ``(first [M], distance [M])``, the
-        distance (metres, float64) to the first surface hit (inf where the ray hits nothing) and to the target."""
-        import open3d as o3d
-
-        origin = np.asarray(origin, np.float64)
-        offsets = np.asarray(targets, np.float64) - origin
-        distance = np.linalg.norm(offsets, axis=1)
-        directions = offsets / np.maximum(distance, 1e-300)[:, None]  # unit: t is then a distance
-        rays = np.concatenate([np.broadcast_to(origin, offsets.shape), directions], axis=1).astype(np.float32)
-        t_hit = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
-        return np.where(np.isfinite(t_hit), t_hit, np.inf), distance
+    return mesh_points, faces, points
 
 
 def occluded_points(
@@ -88,19 +70,18 @@ def occluded_points(
     tolerance: float = DEFAULT_OCCLUSION_TOLERANCE,
 ) -> np.ndarray:  # [P] bool
     """``[P]`` True where the point is occluded (module docstring) by the mesh ``(mesh_points, faces)``."""
-    mesh_points, faces = _check(mesh_points, faces, tolerance)
-    points, _ = _check(points, np.zeros((0, 3), np.int64), tolerance)
+    mesh_points, faces, points = _check(mesh_points, faces, points, tolerance)
     looked_at = np.zeros(len(points), bool)
     seen = np.zeros(len(points), bool)
     if not len(points) or not len(faces):
         return seen  # nothing to test, or nothing that could hide a point
-    first_hits = _FirstHits(mesh_points, faces)
+    caster = MeshRaycaster(mesh_points, faces)
     for camera in cameras:
         inside = points_in_image(points, camera)
         looked_at |= inside
         rows = np.flatnonzero(inside & ~seen)  # a point seen once stays seen
         if len(rows):
-            first, distance = first_hits(camera.center, points[rows])
+            first, distance = caster.first_hits(camera.center, points[rows])
             seen[rows] = first >= distance - tolerance
     return looked_at & ~seen
 
@@ -124,8 +105,7 @@ def _first_hit_reference(origin, direction, a, e1, e2) -> float:
 
 def occluded_points_reference(mesh_points, faces, points, cameras, tolerance=DEFAULT_OCCLUSION_TOLERANCE):
     """:func:`occluded_points`, every camera-to-point ray against every triangle (Moller-Trumbore, float64)."""
-    mesh_points, faces = _check(mesh_points, faces, tolerance)
-    points, _ = _check(points, np.zeros((0, 3), np.int64), tolerance)
+    mesh_points, faces, points = _check(mesh_points, faces, points, tolerance)
     a, b, c = (mesh_points[faces[:, i]] for i in range(3))
     e1, e2 = b - a, c - a
     out = np.zeros(len(points), bool)

@@ -90,6 +90,19 @@ class MeshRaycaster:
         uvs[miss] = 0.0
         return RayHits(depth, face_ids, uvs)
 
+    def first_hits(self, origin: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Along the ray from ``origin [3]`` to each of ``targets [M, 3]``: ``(first [M], distance [M])``, the
+        distance (metres, float64) to the first surface hit (inf where the ray hits nothing) and to the target."""
+        import open3d as o3d
+
+        origin = np.asarray(origin, np.float64)
+        offsets = np.asarray(targets, np.float64) - origin
+        distance = np.linalg.norm(offsets, axis=1)
+        directions = offsets / np.maximum(distance, 1e-300)[:, None]  # unit: t is then a distance
+        rays = np.concatenate([np.broadcast_to(origin, offsets.shape), directions], axis=1).astype(np.float32)
+        t_hit = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        return np.where(np.isfinite(t_hit), t_hit, np.inf), distance
+
     def render(self, camera: Camera, colors: np.ndarray, background=(0, 0, 0)) -> MeshRender:
         """Barycentric interpolation of vertex ``colors`` ``[P, 3]`` uint8 at each hit."""
         hits = self.cast(camera)
