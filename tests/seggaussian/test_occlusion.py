@@ -7,11 +7,16 @@ never seen; everything else the cameras look at is seen; what no camera looks at
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from seggaussian.build.config import BuildConfig
+from seggaussian.build.stages import transfer as transfer_stage
 from seggaussian.build.stages.transfer import occluded_label_points
 from seggaussian.core.cameras import Camera, look_at
+from seggaussian.core.gaussians import Gaussians
 from seggaussian.core.scene import Scene, View
 from seggaussian.labels.config import TransferConfig
 from seggaussian.labels.occlusion import occluded_points, occluded_points_reference, points_in_image
@@ -23,6 +28,17 @@ WALL, WINDOW, FLOOR, BOX = 1, 2, 3, 4
 def _quad(corner, u, v):
     corner, u, v = (np.asarray(a, np.float64) for a in (corner, u, v))
     return np.stack([corner, corner + u, corner + u + v, corner + v]), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def _assemble(parts):
+    """``[((vertices, faces), label), ...]`` -> one mesh: (vertices, faces, face labels)."""
+    vertices, faces, labels, offset = [], [], [], 0
+    for (v, f), label in parts:
+        vertices.append(v)
+        faces.append(f + offset)
+        labels += [label] * len(f)
+        offset += len(v)
+    return np.concatenate(vertices), np.concatenate(faces), np.array(labels)
 
 
 def _scene_mesh():
@@ -37,12 +53,7 @@ def _scene_mesh():
               (_quad((lo[0], hi[1], 0), (0.4, 0, 0), (0, 0, 0.4)), BOX),
               (_quad((lo[0], lo[1], 0), (0, 0.4, 0), (0, 0, 0.4)), BOX),
               (_quad((hi[0], lo[1], 0), (0, 0.4, 0), (0, 0, 0.4)), BOX)]
-    vertices, faces, labels = [], [], []
-    for (v, f), label in parts:
-        faces.append(f + sum(len(x) for x in vertices))
-        vertices.append(v)
-        labels += [label] * len(f)
-    return np.concatenate(vertices), np.concatenate(faces), np.array(labels)
+    return _assemble(parts)
 
 
 def _camera(eye, target=(0.0, 0.0, 1.5), size=(64, 48), focal=60.0):
@@ -145,13 +156,20 @@ def test_transfer_labels_a_gaussian_on_the_window_window_only_without_the_hidden
 
 
 
+def _small_gaussians(means):
+    """Small round Gaussians at ``means`` (what the transfer stage reads is their centres)."""
+    n = len(means)
+    return Gaussians.from_arrays(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)), log_scales=np.full((n, 3), -4.0),
+                                 opacity_logits=np.zeros(n), sh=np.zeros((n, 1, 3)))
+
+
+def _stage_config(tmp_path):
+    """A build config for ``run_transfer`` on a hand-made scene (no placement refusal: the scene is a few quads)."""
+    config = BuildConfig(source="synthetic", root=tmp_path, out=tmp_path / "out")
+    return replace(config, transfer=replace(config.transfer, min_on_mesh_share=0.0))
+
+
 def test_transfer_stage_drops_occluded_points_and_counts_them(tmp_path):
-    from dataclasses import replace
-
-    from seggaussian.build.config import BuildConfig
-    from seggaussian.build.stages import transfer as transfer_stage
-    from seggaussian.core.gaussians import Gaussians
-
     vertices, faces, face_labels = _scene_mesh()
     views = tuple(View(f"v{i}", c, None, "train") for i, c in enumerate(CAMERAS))
     scene = _scene(vertices, faces, face_labels, views)
@@ -159,11 +177,7 @@ def test_transfer_stage_drops_occluded_points_and_counts_them(tmp_path):
     behind_window = np.flatnonzero((labels == WALL) & (np.abs(samples[:, 0]) < 0.2) & (np.abs(samples[:, 2] - 1.5) < 0.2))
     means = samples[behind_window] + np.array([0.0, -0.006, 0.0])  # window Gaussians fitted 14 mm too deep
     n = len(means)
-    gaussians = Gaussians.from_arrays(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)),
-                                      log_scales=np.full((n, 3), -4.0), opacity_logits=np.zeros(n),
-                                      sh=np.zeros((n, 1, 3)))
-    config = BuildConfig(source="synthetic", root=tmp_path, out=tmp_path / "out")
-    config = replace(config, transfer=replace(config.transfer, min_on_mesh_share=0.0))
+    gaussians, config = _small_gaussians(means), _stage_config(tmp_path)
     truth = np.full(n, WINDOW, np.int32)
     labelled, facts = transfer_stage.run_transfer(scene, gaussians, truth, config)
     assert (labelled.extras["semantic"] == WINDOW).all()
@@ -177,32 +191,17 @@ def test_fitted_label_accuracy_is_scored_against_the_surfaces_the_views_see(tmp_
     """With no known truth (a fit), the stage scores its labels against the closest mesh triangle; with the occlusion
     test on, triangles whose corners are all occluded are left out, so window Gaussians fitted too deep are scored
     against the window, not against the wall behind it. The wall here is a grid of 10 cm cells, as a room's is."""
-    from dataclasses import replace
-
-    from seggaussian.build.config import BuildConfig
-    from seggaussian.build.stages import transfer as transfer_stage
-    from seggaussian.core.gaussians import Gaussians
-
     cells = []
     for i in range(40):
         for k in range(30):
             cells.append((_quad((-2 + 0.1 * i, 0, 0.1 * k), (0.1, 0, 0), (0, 0, 0.1)), WALL))
     cells.append((_quad((-0.5, -0.02, 1), (1, 0, 0), (0, 0, 1)), WINDOW))
-    vertices, faces, labels = [], [], []
-    for (v, f), label in cells:
-        faces.append(f + sum(len(x) for x in vertices))
-        vertices.append(v)
-        labels += [label] * len(f)
-    vertices, faces = np.concatenate(vertices), np.concatenate(faces)
+    vertices, faces, labels = _assemble(cells)
     views = tuple(View(f"v{i}", c, None, "train") for i, c in enumerate(CAMERAS[:2]))
-    scene = _scene(vertices, faces, np.array(labels), views)
+    scene = _scene(vertices, faces, labels, views)
     rng = np.random.default_rng(1)
     means = np.column_stack([rng.uniform(-0.3, 0.3, 50), np.full(50, -0.006), rng.uniform(1.2, 1.8, 50)])
-    gaussians = Gaussians.from_arrays(means=means, quats=np.tile([1.0, 0, 0, 0], (50, 1)),
-                                      log_scales=np.full((50, 3), -4.0), opacity_logits=np.zeros(50),
-                                      sh=np.zeros((50, 1, 3)))
-    config = BuildConfig(source="synthetic", root=tmp_path, out=tmp_path / "out")
-    config = replace(config, transfer=replace(config.transfer, min_on_mesh_share=0.0))
+    gaussians, config = _small_gaussians(means), _stage_config(tmp_path)
     labelled, facts = transfer_stage.run_transfer(scene, gaussians, None, config)
     assert (labelled.extras["semantic"] == WINDOW).all()
     assert facts["label_accuracy"] == {"scored": 50, "correct": 50, "accuracy": 1.0}
