@@ -66,7 +66,8 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
     if truth is None and len(gaussians):
         faces = scene.faces
         if occluded is not None:  # score against the surfaces the views see: a face with every corner occluded is out
-            faces = faces[~occluded[: len(scene.points)][faces].all(axis=1)]
+            vertex_occluded = occluded[: len(scene.points)]  # the label points start with the vertices, samples after
+            faces = faces[~vertex_occluded[faces].all(axis=1)]
         truth = surface_labels(gaussians.means, scene.points, faces, scene.semantic)
     accuracy = label_accuracy(result.semantic, truth) if truth is not None else {"scored": 0, "correct": 0,
                                                                                    "accuracy": None}
