@@ -141,9 +141,9 @@ def test_bench_suite_cli_maps_its_options_loss_gaussians_0_to_every_gaussian_lov
     CliRunner().invoke(command, ["--out", str(tmp_path), "--lovasz-weight", "0.25"])
     assert seen.pop().lovasz_weight == 0.25
     CliRunner().invoke(command, ["--out", str(tmp_path)])
-    assert seen.pop().ensemble is True
-    CliRunner().invoke(command, ["--out", str(tmp_path), "--no-ensemble"])
     assert seen.pop().ensemble is False
+    CliRunner().invoke(command, ["--out", str(tmp_path), "--ensemble"])
+    assert seen.pop().ensemble is True
     CliRunner().invoke(command, ["--out", str(tmp_path)])
     assert seen.pop().voxel_geometry is False
     CliRunner().invoke(command, ["--out", str(tmp_path), "--voxel-geometry"])
@@ -250,8 +250,10 @@ def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the
     assert sorted(trained[r.run] for r in control) == ["oracle"] * 4 + ["splats"]
     assert all(trained[name] == "oracle" for r in control if trained[r.run] == "oracle" for name in r.ensemble)
     assert trained["full-oracle"] == "oracle" and trained["full"] == "splats"
-    assert S.table1_rows(SuiteConfig(splats="oracle")) == tuple(r for r in TABLE1_ROWS if r.scored_on == "splats")
-    assert S.table1_rows(SuiteConfig()) == TABLE1_ROWS
+    ensemble = SuiteConfig(ensemble=True)
+    assert S.table1_rows(replace(ensemble, splats="oracle")) == tuple(r for r in TABLE1_ROWS if r.scored_on == "splats")
+    assert S.table1_rows(ensemble) == TABLE1_ROWS
+    assert S.table1_rows(SuiteConfig()) == tuple(r for r in TABLE1_ROWS if not r.ensemble)  # the default: no ensemble
     pairs = S.control_pairs(TABLE1_ROWS, trained)
     assert pairs == [("OVGaussian (full)", "control: full trained and scored on oracle Gaussians"),
                      ("full + class offsets", "control + class offsets"),
