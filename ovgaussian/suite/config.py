@@ -178,10 +178,10 @@ class SuiteConfig:
     gaussians: int = 40000
     """Oracle Gaussians sampled per room (the oracle dataset: the control row, or everything with
     ``splats="oracle"``)."""
-    epochs: int = 45
-    """Epochs of every run (45 x 15 steps of 3 rooms; one schedule for all runs). What the profile from nothing
-    takes with it, the 72 room fits and the four trainings included: BENCHMARKS.md, "Session 22"; what 45 buys
-    against 30: BENCHMARKS.md, "Session 15"."""
+    epochs: int = 30
+    """Epochs of every run (30 x 15 steps of 3 rooms; one schedule for all runs). What the profile from nothing
+    takes with it, the 72 room fits and the four trainings included, and why 30 and not 45: BENCHMARKS.md,
+    "Session 22"; what 45 buys against 30: BENCHMARKS.md, "Session 15"."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
