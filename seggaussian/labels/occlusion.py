@@ -77,9 +77,10 @@ def occluded_points(
         return seen  # nothing to test, or nothing that could hide a point
     caster = MeshRaycaster(mesh_points, faces)
     for camera in cameras:
-        inside = points_in_image(points, camera)
-        looked_at |= inside
-        rows = np.flatnonzero(inside & ~seen)  # a point seen once stays seen
+        # A point seen once stays seen (and was looked at), so each camera projects only the points not yet seen.
+        unseen = np.flatnonzero(~seen)
+        rows = unseen[points_in_image(points[unseen], camera)]
+        looked_at[rows] = True
         if len(rows):
             first, distance = caster.first_hits(camera.center, points[rows])
             seen[rows] = first >= distance - tolerance
