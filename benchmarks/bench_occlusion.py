@@ -3,8 +3,10 @@ it drops.
 
 Synthetic ScanNet++-layout rooms (``seggaussian.sources.synthetic``, the profile's 160-px width and 32 views): for each,
 the label points the transfer stage uses (mesh vertices plus samples 0.03 m apart on the faces), then
-``occluded_points`` against the room's train views, timed (median of ``--reps`` calls). Prints a markdown table with
-the points, the share occluded and the time, then the mean.
+``occluded_points`` against the room's train views, timed (median of ``--reps`` calls); then ``on_hidden_surface``
+(which Gaussians lie on a surface no train view sees) for two kinds of splat of the room: a Gaussian at every mesh
+vertex (a scan turned into splats) and 40,000 oracle Gaussians on the seen surfaces (as a fit places them), timed
+the same way, with the share of Gaussians it finds. Prints a markdown table, then the means.
 
     .venv/bin/python benchmarks/bench_occlusion.py --rooms 4 --reps 3
 """
@@ -31,15 +33,26 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
-    from seggaussian.labels.config import TransferConfig
-    from seggaussian.labels.occlusion import occluded_points
+    from seggaussian.labels.config import OracleConfig, TransferConfig
+    from seggaussian.labels.occlusion import occluded_points, on_hidden_surface
+    from seggaussian.labels.oracle import sample_oracle_gaussians
     from seggaussian.labels.transfer import densify_labelled_mesh
     from seggaussian.sources.scannetpp import read_scene
     from seggaussian.sources.synthetic import generate as synthetic
 
     spacing = TransferConfig().mesh_sample_spacing
-    print("| room | label points | train views | occluded | time (s) |\n|---|---:|---:|---:|---:|")
-    times, shares = [], []
+    print("| room | label points | train views | occluded | time (s) | vertex Gaussians on hidden | time (s) "
+          "| oracle Gaussians on hidden | time (s) |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    columns = {"occlusion": [], "share": [], "vertex": [], "vertex_share": [], "oracle": [], "oracle_share": []}
+
+    def timed(call):
+        runs, out = [], None
+        for _ in range(args.reps):
+            start = time.perf_counter()
+            out = call()
+            runs.append(time.perf_counter() - start)
+        return out, statistics.median(runs)
+
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "scannetpp"
         ids = synthetic.synthesize(root, args.rooms, args.seed, "scannetpp",
@@ -49,15 +62,22 @@ def main() -> int:
             samples, _ = densify_labelled_mesh(scene.points, scene.faces, spacing, scene.semantic)
             points = np.concatenate([scene.points, samples])
             cameras = [v.camera for v in scene.views if v.role == "train"]
-            runs = []
-            for _ in range(args.reps):
-                start = time.perf_counter()
-                occluded = occluded_points(scene.points, scene.faces, points, cameras)
-                runs.append(time.perf_counter() - start)
-            times.append(statistics.median(runs))
-            shares.append(float(occluded.mean()))
-            print(f"| {scene_id} | {len(points):,} | {len(cameras)} | {shares[-1]:.1%} | {times[-1]:.2f} |")
-    print(f"\nmean over {len(times)} rooms: {statistics.mean(times):.2f} s, {statistics.mean(shares):.1%} occluded")
+            occluded, seconds = timed(lambda: occluded_points(scene.points, scene.faces, points, cameras))
+            columns["occlusion"].append(seconds)
+            columns["share"].append(float(occluded.mean()))
+            oracle, _ = sample_oracle_gaussians(scene.points, scene.colors, scene.semantic, scene.faces, OracleConfig(),
+                                                np.random.default_rng(args.seed), tuple(cameras))
+            row = f"| {scene_id} | {len(points):,} | {len(cameras)} | {columns['share'][-1]:.1%} | {seconds:.2f} "
+            for name, means in (("vertex", scene.points), ("oracle", oracle.means)):
+                hits, seconds = timed(lambda: on_hidden_surface(means, scene.points, scene.faces, cameras))
+                columns[name].append(seconds)
+                columns[f"{name}_share"].append(len(hits.rows) / len(means))
+                row += f"| {len(hits.rows):,} of {len(means):,} | {seconds:.2f} "
+            print(row + "|")
+    mean = {k: statistics.mean(v) for k, v in columns.items()}
+    print(f"\nmean over {len(ids)} rooms: occlusion test {mean['occlusion']:.2f} s ({mean['share']:.1%} occluded); "
+          f"on_hidden_surface {mean['vertex']:.2f} s for vertex Gaussians ({mean['vertex_share']:.1%} on hidden "
+          f"surfaces), {mean['oracle']:.2f} s for oracle Gaussians ({mean['oracle_share']:.1%})")
     return 0
 
 

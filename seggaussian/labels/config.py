@@ -68,6 +68,10 @@ class TransferConfig:
     #: (``seggaussian.labels.occlusion``): the wall behind a window, the floor under a box. None keeps every
     #: point (``--keep-occluded``). Counted per scene as ``occluded_points``.
     occlusion_tolerance: float | None = 0.01
+    #: With the occlusion test on: a Gaussian whose closest mesh point is this near (metres) and unseen lies on that
+    #: hidden surface and keeps its label (a scan turned into splats has a Gaussian on every vertex); farther
+    #: Gaussians never take a hidden surface's label. Counted per scene as ``on_hidden_surface``.
+    on_surface_tolerance: float = 0.003
 
 
 @dataclass(frozen=True)

@@ -13,11 +13,19 @@ known about it, and it keeps its label (a fit initialised from the scan may leav
 
 ``occluded_points`` casts the rays with open3d's BVH (``seggaussian.sources.raycast.MeshRaycaster.first_hits``);
 ``occluded_points_reference`` tests every ray against every triangle (Moller-Trumbore; tiny meshes only).
+
+Occluded points give no label across the gate, but a Gaussian that lies *on* a surface no view sees (a scan turned
+into splats has one at every vertex, the floor under a box included) keeps that surface's label
+(``on_hidden_surface``): its closest point on the mesh is within ``on_surface_tolerance`` and is itself occluded.
+It then takes the labels of the vertex with the largest barycentric weight on that closest triangle, the rule the
+mesh samples follow (``seggaussian.labels.transfer.densify_labelled_mesh``), so an unlabelled surface stays ignore.
+``on_hidden_surface`` asks open3d for the closest points; ``on_hidden_surface_reference`` measures every Gaussian
+against every triangle (float64; tiny meshes only).
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -29,6 +37,28 @@ from seggaussian.sources.raycast import RAY_PARALLEL_EPS, MeshRaycaster
 DEFAULT_OCCLUSION_TOLERANCE = 0.01
 #: Points nearer a camera centre than this (metres) count as behind it (outside its image).
 NEAR_PLANE = 1e-3
+#: Default of ``TransferConfig.on_surface_tolerance`` (metres): a Gaussian this near a surface lies on it. Below
+#: the 6 mm that a window Gaussian fitted 14 mm behind its glass keeps from the wall 2 cm behind (that Gaussian
+#: belongs to the window), and far above float32 positions' error at room scale (about 1e-6 m per metre).
+DEFAULT_ON_SURFACE_TOLERANCE = 0.003
+#: Triangles whose doubled area is below this (square metres) have no usable barycentric frame in the reference's
+#: closest-point search; only their corners and edges are measured there.
+DEGENERATE_TRIANGLE_AREA = 1e-18
+
+
+class HiddenSurfaceHits(NamedTuple):
+    """Gaussians that lie on a surface no train view sees.
+
+    Fields:
+        rows: ``[R]`` int64 rows of the Gaussians, ascending.
+        vertex: ``[R]`` int64 the mesh vertex whose labels each takes (largest barycentric weight of its closest
+            point on its closest triangle).
+        distances: ``[R]`` float32 distance (metres) from each Gaussian centre to that closest point.
+    """
+
+    rows: np.ndarray
+    vertex: np.ndarray
+    distances: np.ndarray
 
 
 def points_in_image(points: np.ndarray, camera: Camera) -> np.ndarray:  # [P, 3] -> [P] bool
@@ -127,4 +157,121 @@ def occluded_points_reference(mesh_points, faces, points, cameras, tolerance=DEF
     return out
 
 
-__all__ = ["DEFAULT_OCCLUSION_TOLERANCE", "occluded_points", "occluded_points_reference", "points_in_image"]
+def _check_means(means: np.ndarray, on_surface_tolerance: float) -> np.ndarray:
+    """Gaussian centres as float64 ``[N, 3]`` (NaN/Inf rows allowed: such a Gaussian lies on nothing)."""
+    means = np.asarray(means, np.float64)
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"occlusion: gaussian means must be [N, 3], got {means.shape}")
+    if not (np.isfinite(on_surface_tolerance) and on_surface_tolerance >= 0):
+        raise ValueError(f"occlusion: on_surface_tolerance must be a finite number >= 0, got {on_surface_tolerance}")
+    return means
+
+
+def _hits(rows, tri, bary, distance, faces, occluded) -> HiddenSurfaceHits:
+    """The rows (of the candidates ``rows``) whose closest point is occluded, with their label vertex."""
+    keep = occluded
+    corner = np.argmax(bary[keep], axis=1)
+    vertex = faces[tri[keep], corner]
+    return HiddenSurfaceHits(rows[keep].astype(np.int64), vertex.astype(np.int64), distance[keep].astype(np.float32))
+
+
+def _no_hits() -> HiddenSurfaceHits:
+    return HiddenSurfaceHits(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+
+
+def on_hidden_surface(
+    means: np.ndarray,  # [N, 3] Gaussian centres
+    mesh_points: np.ndarray,  # [V, 3]
+    faces: np.ndarray,  # [F, 3]
+    cameras: Sequence[Camera],
+    tolerance: float = DEFAULT_OCCLUSION_TOLERANCE,
+    on_surface_tolerance: float = DEFAULT_ON_SURFACE_TOLERANCE,
+) -> HiddenSurfaceHits:
+    """The Gaussians whose closest point on the mesh is within ``on_surface_tolerance`` and occluded
+    (``occluded_points`` with ``tolerance``): they lie on a surface the views never see (module docstring)."""
+    mesh_points, faces, _ = _check(mesh_points, faces, np.zeros((0, 3)), tolerance)
+    means = _check_means(means, on_surface_tolerance)
+    if not len(means) or not len(faces) or not len(cameras):
+        return _no_hits()
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh_points.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    finite = np.flatnonzero(np.isfinite(means).all(axis=1))
+    answer = scene.compute_closest_points(o3d.core.Tensor(means[finite].astype(np.float32)))
+    tri = answer["primitive_ids"].numpy().astype(np.int64)
+    # the closest point again in float64 from its triangle and barycentrics, so that distances are exact to float32's
+    # barycentrics and not to float32 coordinates far from the origin
+    uv = answer["primitive_uvs"].numpy().astype(np.float64)
+    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+    closest = np.einsum("nk,nkd->nd", bary, mesh_points[faces[tri]])
+    distance = np.linalg.norm(means[finite] - closest, axis=1)
+    near = np.flatnonzero(distance <= on_surface_tolerance)
+    if not len(near):
+        return _no_hits()
+    occluded = occluded_points(mesh_points, faces, closest[near], cameras, tolerance)
+    return _hits(finite[near], tri[near], bary[near], distance[near], faces, occluded)
+
+
+def closest_points_on_triangles_reference(point: np.ndarray, a, b, c) -> tuple[np.ndarray, np.ndarray]:
+    """For one ``point [3]`` and triangles ``(a, b, c)`` (``[F, 3]`` each): ``(closest [F, 3], barycentric [F, 3])``,
+    the closest point of each triangle and its barycentric weights, by brute force: the interior projection when it
+    falls inside, otherwise the best of the three edges (each clamped to its segment)."""
+    candidates, weights = [], []
+    n = np.cross(b - a, c - a)
+    area2 = np.einsum("fk,fk->f", n, n)
+    ok = area2 > DEGENERATE_TRIANGLE_AREA
+    safe = np.where(ok, area2, 1.0)
+    # barycentrics of the projection onto the plane (signed sub-areas over the whole)
+    wa = np.einsum("fk,fk->f", np.cross(b - point, c - point), n) / safe
+    wb = np.einsum("fk,fk->f", np.cross(c - point, a - point), n) / safe
+    wc = 1.0 - wa - wb
+    inside = ok & (wa >= 0) & (wb >= 0) & (wc >= 0)
+    w = np.stack([wa, wb, wc], axis=1)
+    candidates.append(np.where(inside[:, None], w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c, np.inf))
+    weights.append(w)
+    for (p, q, i, j) in ((a, b, 0, 1), (b, c, 1, 2), (c, a, 2, 0)):
+        e = q - p
+        length2 = np.einsum("fk,fk->f", e, e)
+        t = np.clip(np.einsum("fk,fk->f", point - p, e) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+        t = np.where(length2 > 0, t, 0.0)
+        edge_w = np.zeros((len(a), 3))
+        edge_w[:, i], edge_w[:, j] = 1.0 - t, t
+        candidates.append(p + t[:, None] * e)
+        weights.append(edge_w)
+    candidates, weights = np.stack(candidates), np.stack(weights)  # [4, F, 3]
+    d = np.linalg.norm(candidates - point, axis=2)  # inf for an interior projection outside its triangle
+    best = np.argmin(d, axis=0)
+    pick = np.arange(len(a))
+    return candidates[best, pick], weights[best, pick]
+
+
+def on_hidden_surface_reference(means, mesh_points, faces, cameras, tolerance=DEFAULT_OCCLUSION_TOLERANCE,
+                                on_surface_tolerance=DEFAULT_ON_SURFACE_TOLERANCE) -> HiddenSurfaceHits:
+    """:func:`on_hidden_surface`, every Gaussian against every triangle (float64), the occlusion by
+    :func:`occluded_points_reference`."""
+    mesh_points, faces, _ = _check(mesh_points, faces, np.zeros((0, 3)), tolerance)
+    means = _check_means(means, on_surface_tolerance)
+    if not len(means) or not len(faces) or not len(cameras):
+        return _no_hits()
+    a, b, c = (mesh_points[faces[:, i]] for i in range(3))
+    rows, closest, tri, bary, distance = [], [], [], [], []
+    for row, mean in enumerate(means):
+        if not np.isfinite(mean).all():
+            continue
+        points, weights = closest_points_on_triangles_reference(mean, a, b, c)
+        d = np.linalg.norm(points - mean, axis=1)
+        best = int(np.argmin(d))
+        if d[best] <= on_surface_tolerance:
+            rows.append(row), closest.append(points[best]), tri.append(best), bary.append(weights[best])
+            distance.append(d[best])
+    if not rows:
+        return _no_hits()
+    closest = np.array(closest)
+    occluded = occluded_points_reference(mesh_points, faces, closest, cameras, tolerance)
+    return _hits(np.array(rows), np.array(tri), np.array(bary), np.array(distance), faces, occluded)
+
+
+__all__ = ["DEFAULT_OCCLUSION_TOLERANCE", "DEFAULT_ON_SURFACE_TOLERANCE", "HiddenSurfaceHits",
+           "closest_points_on_triangles_reference", "occluded_points", "occluded_points_reference",
+           "on_hidden_surface", "on_hidden_surface_reference", "points_in_image"]

@@ -18,18 +18,25 @@ Conventions (documented again in ``data_specs/SHARDS.md``):
   Gaussian that was queried, including those beyond the gate. Gaussians that were not queried
   (outside the box, non-finite centre, no candidate at all) get ``DISTANCE_NOT_MEASURED`` (-1): the
   array never holds inf or NaN.
+- Points marked ``hidden`` (label points no train view sees: ``seggaussian.labels.occlusion``) are never
+  candidates, so their label cannot reach across the gate; the Gaussians of ``on_surface`` lie on such a surface and
+  take the labels of the point named for each instead (its distance is theirs to that surface). They are counted
+  as ``on_hidden_surface``.
 - Every Gaussian that ends with IGNORE_LABEL is counted under exactly one reason in ``TransferStats``.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from seggaussian.labels.config import TransferConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.knn import nearest_neighbours
+
+if TYPE_CHECKING:
+    from seggaussian.labels.occlusion import HiddenSurfaceHits
 
 #: Distance written for a Gaussian that was never queried (outside the box, non-finite centre, or no
 #: candidate point): a finite, impossible distance instead of inf so that columns stay NaN/Inf-free.
@@ -57,7 +64,9 @@ class TransferStats(NamedTuple):
         nonfinite: Gaussians with a NaN/Inf centre, ignored without a query.
         no_candidates: Gaussians ignored because there was no candidate point at all.
         beyond_gate: queried Gaussians whose nearest candidate is farther than the gate.
-        unlabelled_nearest: (candidates="all") Gaussians within the gate whose nearest point is unlabelled.
+        unlabelled_nearest: (candidates="all") Gaussians within the gate whose nearest point is unlabelled, and
+            Gaussians on an unlabelled hidden surface.
+        on_hidden_surface: Gaussians labelled by the hidden surface they lie on (``on_surface``), ignore included.
         ignored: total Gaussians with IGNORE_LABEL; ``ignored_share`` = ignored / num_gaussians (0 if none).
         distance_quantiles: {"q50", "q90", "q99", "max"} of the measured distances (0.0 when none).
         class_histogram: {class id: count} of the transferred semantic labels (IGNORE excluded).
@@ -74,6 +83,7 @@ class TransferStats(NamedTuple):
     no_candidates: int
     beyond_gate: int
     unlabelled_nearest: int
+    on_hidden_surface: int
     ignored: int
     ignored_share: float
     distance_quantiles: dict
@@ -114,6 +124,15 @@ class PreparedInputs(NamedTuple):
     multilabel: np.ndarray  # [P, 3] int32
     candidate_index: np.ndarray  # [C] int64 rows of points that may give labels
     all_candidates: bool  # candidate_index == arange(P)
+    on_surface: SurfaceRows  # Gaussians on a hidden surface and the point whose labels they take
+
+
+class SurfaceRows(NamedTuple):
+    """``rows [R]`` Gaussians that take the labels of ``vertex [R]`` (rows of the points) at ``distances [R]``."""
+
+    rows: np.ndarray
+    vertex: np.ndarray
+    distances: np.ndarray
 
 
 # --- public API ---------------------------------------------------------------------------------
@@ -124,13 +143,17 @@ def transfer_labels(
     instance: np.ndarray,  # [P]
     multilabel: np.ndarray | None = None,  # [P, 3]
     config: TransferConfig | None = None,
+    hidden: np.ndarray | None = None,  # [P] bool
+    on_surface: HiddenSurfaceHits | None = None,
 ) -> TransferResult:
     """Nearest-candidate labels for every Gaussian centre (KD-tree), gated by distance.
 
+    ``hidden`` points are never candidates; the Gaussians of ``on_surface`` take the labels of their point
+    (``on_surface.vertex`` indexes ``points``) whatever the nearest candidate (module docstring).
     Raises ValueError naming the argument for wrong shapes or non-finite points.
     """
     config = config or TransferConfig()
-    prep = prepare_inputs(gaussian_means, points, semantic, instance, multilabel, config)
+    prep = prepare_inputs(gaussian_means, points, semantic, instance, multilabel, config, hidden, on_surface)
     cand_points = prep.points if prep.all_candidates else prep.points[prep.candidate_index]
     query = nearest_neighbours(cand_points, config.backend)
     spacing = median_spacing(query, cand_points, config)
@@ -149,7 +172,7 @@ def transfer_labels(
             d, i = query(prep.means[query_rows], 1)
             nearest[query_rows] = prep.candidate_index[i[:, 0]]
             distances[query_rows] = d[:, 0].astype(np.float32)
-    return _finish(prep, nearest, distances, spacing, gate, max(config.box_margin, gate), outside_box, nonfinite)
+    return _finish(prep, nearest, distances, spacing, gate, max(config.box_margin, gate), query_mask, nonfinite)
 
 
 def transfer_labels_reference(
@@ -160,6 +183,8 @@ def transfer_labels_reference(
     multilabel: np.ndarray | None = None,
     config: TransferConfig | None = None,
     gate: float | None = None,
+    hidden: np.ndarray | None = None,
+    on_surface: HiddenSurfaceHits | None = None,
 ) -> TransferResult:
     """Brute-force reference of ``transfer_labels``: a per-row box test, then every remaining finite
     Gaussian is compared with every candidate in dense distance blocks (no tree, no sampling).
@@ -168,7 +193,7 @@ def transfer_labels_reference(
     the same gate to both through ``TransferConfig.max_distance``).
     """
     config = config or TransferConfig()
-    prep = prepare_inputs(gaussian_means, points, semantic, instance, multilabel, config)
+    prep = prepare_inputs(gaussian_means, points, semantic, instance, multilabel, config, hidden, on_surface)
     cand_points = prep.points[prep.candidate_index]
     spacing = _median_spacing_reference(cand_points)
     gate = gate if gate is not None else distance_gate(spacing, config)
@@ -193,11 +218,12 @@ def transfer_labels_reference(
             j = np.argmin(d2, axis=1)
             nearest[rows] = prep.candidate_index[j]
             distances[rows] = np.sqrt(d2[np.arange(len(rows)), j]).astype(np.float32)
-    return _finish(prep, nearest, distances, spacing, gate, margin, int(outside.sum()), int((~finite).sum()))
+    return _finish(prep, nearest, distances, spacing, gate, margin, finite & ~outside, int((~finite).sum()))
 
 
 # --- steps --------------------------------------------------------------------------------------
-def prepare_inputs(means, points, semantic, instance, multilabel, config: TransferConfig) -> PreparedInputs:
+def prepare_inputs(means, points, semantic, instance, multilabel, config: TransferConfig, hidden=None,
+                   on_surface: HiddenSurfaceHits | None = None) -> PreparedInputs:
     """Checked float64/int32 copies of the inputs and the candidate points (ValueError naming a bad input)."""
     means = np.asarray(means, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
@@ -233,8 +259,28 @@ def prepare_inputs(means, points, semantic, instance, multilabel, config: Transf
         candidate_index = np.arange(p)
     else:
         raise ValueError(f"transfer: candidates must be 'labelled' or 'all', got {config.candidates!r}")
+    if hidden is not None:
+        hidden = np.asarray(hidden)
+        if hidden.shape != (p,) or hidden.dtype != bool:
+            raise ValueError(f"transfer: hidden must be a ({p},) bool mask, got {hidden.shape} {hidden.dtype}")
+        candidate_index = candidate_index[~hidden[candidate_index]]
     candidate_index = candidate_index.astype(np.int64, copy=False)
-    return PreparedInputs(means, points, semantic, instance, multilabel, candidate_index, len(candidate_index) == p)
+    if on_surface is None:
+        on_surface = SurfaceRows(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+    else:
+        on_surface = SurfaceRows(*(np.asarray(a) for a in (on_surface.rows, on_surface.vertex, on_surface.distances)))
+        r = len(on_surface.rows)
+        if any(a.shape != (r,) for a in on_surface):
+            raise ValueError("transfer: on_surface rows, vertex and distances must be equally long 1-D arrays")
+        if r and (on_surface.rows.min() < 0 or on_surface.rows.max() >= len(means)
+                  or len(np.unique(on_surface.rows)) != r):
+            raise ValueError(f"transfer: on_surface rows must be distinct Gaussians in 0..{len(means) - 1}")
+        if r and (on_surface.vertex.min() < 0 or on_surface.vertex.max() >= p):
+            raise ValueError(f"transfer: on_surface vertex must index points 0..{p - 1}")
+        if r and not (np.isfinite(on_surface.distances).all() and on_surface.distances.min() >= 0):
+            raise ValueError("transfer: on_surface distances must be finite and >= 0")
+    return PreparedInputs(means, points, semantic, instance, multilabel, candidate_index, len(candidate_index) == p,
+                          on_surface)
 
 
 def median_spacing(query, cand_points: np.ndarray, config: TransferConfig) -> float:
@@ -302,10 +348,20 @@ def _prefilter(means: np.ndarray, cand_points: np.ndarray, margin: float) -> tup
     return query, int((finite & ~inside).sum()), int((~finite).sum())
 
 
-def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, outside_box, nonfinite) -> TransferResult:
+def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, query_mask, nonfinite) -> TransferResult:
+    """Labels and statistics from each Gaussian's nearest candidate (``nearest`` -1 where not queried), after the
+    Gaussians on a hidden surface took their surface's point."""
     n = len(prep.means)
+    forced = np.zeros(n, bool)
+    if len(prep.on_surface.rows):
+        nearest = nearest.copy()
+        distances = distances.copy()
+        nearest[prep.on_surface.rows] = prep.on_surface.vertex
+        distances[prep.on_surface.rows] = prep.on_surface.distances
+        forced[prep.on_surface.rows] = True
+    outside_box = int((np.isfinite(prep.means).all(axis=1) & ~query_mask & ~forced).sum()) if len(prep.candidate_index) else 0
     queried = nearest >= 0
-    within = queried & (distances <= gate)
+    within = queried & ((distances <= gate) | forced)
     safe = np.where(within, nearest, 0) if len(prep.points) else np.zeros(n, np.int64)
     if len(prep.points):
         sem = np.where(within, prep.semantic[safe], IGNORE_LABEL).astype(np.int32, copy=False)
@@ -320,7 +376,7 @@ def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, out
     if unlabelled_nearest:  # only with candidates="all"
         inst[unlabelled] = IGNORE_LABEL
         multi[unlabelled] = IGNORE_LABEL
-    no_candidates = int((np.isfinite(prep.means).all(axis=1)).sum()) if not len(prep.candidate_index) else 0
+    no_candidates = int((np.isfinite(prep.means).all(axis=1) & ~forced).sum()) if not len(prep.candidate_index) else 0
     beyond_gate = int((queried & ~within).sum())
     ignored = int((sem == IGNORE_LABEL).sum())
     measured = distances[queried]
@@ -344,6 +400,7 @@ def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, out
         no_candidates=no_candidates,
         beyond_gate=beyond_gate,
         unlabelled_nearest=unlabelled_nearest,
+        on_hidden_surface=int(forced.sum()),
         ignored=ignored,
         ignored_share=float(ignored / n) if n else 0.0,
         distance_quantiles=quantiles,

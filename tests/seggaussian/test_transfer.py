@@ -32,7 +32,8 @@ def _assert_same(a, b):
     np.testing.assert_array_equal(a.instance, b.instance)
     np.testing.assert_array_equal(a.multilabel, b.multilabel)
     np.testing.assert_allclose(a.distances, b.distances, rtol=1e-6, atol=1e-7)
-    for key in ("outside_box", "nonfinite", "no_candidates", "beyond_gate", "unlabelled_nearest", "ignored"):
+    for key in ("outside_box", "nonfinite", "no_candidates", "beyond_gate", "unlabelled_nearest", "on_hidden_surface",
+                "ignored"):
         assert getattr(a.stats, key) == getattr(b.stats, key), key
     assert a.stats.class_histogram == b.stats.class_histogram
 
@@ -48,6 +49,52 @@ def test_matches_brute_force(seed, candidates, gate):
     ref = transfer_labels_reference(means, points, sem, inst, multi, config)
     _assert_same(fast, ref)
     assert fast.stats.ignored == (fast.semantic == IGNORE_LABEL).sum()
+
+
+def _ignored_by_reason(stats) -> int:
+    return stats.outside_box + stats.nonfinite + stats.no_candidates + stats.beyond_gate + stats.unlabelled_nearest
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("candidates", ["labelled", "all"])
+def test_hidden_points_and_gaussians_on_hidden_surfaces_match_brute_force(seed, candidates):
+    """Hidden points are never candidates; the Gaussians of ``on_surface`` take their point's labels whatever the
+    gate, the box and the candidates (fast path = reference; every ignored Gaussian counted once)."""
+    from seggaussian.labels.occlusion import HiddenSurfaceHits
+
+    rng = np.random.default_rng(seed)
+    means, points, sem, inst, multi = _random_inputs(rng)
+    hidden = rng.random(len(points)) < 0.3
+    rows = np.sort(rng.choice(len(means), 40, replace=False))
+    on_surface = HiddenSurfaceHits(rows, rng.choice(np.flatnonzero(hidden), 40), rng.uniform(0, 0.003, 40).astype(np.float32))
+    config = TransferConfig(candidates=candidates, max_distance=0.05)
+    fast = transfer_labels(means, points, sem, inst, multi, config, hidden=hidden, on_surface=on_surface)
+    ref = transfer_labels_reference(means, points, sem, inst, multi, config, hidden=hidden, on_surface=on_surface)
+    _assert_same(fast, ref)
+    assert fast.stats.on_hidden_surface == 40 and fast.stats.num_candidates == (~hidden[
+        np.flatnonzero(sem != IGNORE_LABEL) if candidates == "labelled" else np.arange(len(points))]).sum()
+    np.testing.assert_array_equal(fast.semantic[rows], sem[on_surface.vertex])
+    np.testing.assert_array_equal(fast.distances[rows], on_surface.distances)
+    labelled_rows = rows[sem[on_surface.vertex] != IGNORE_LABEL]
+    np.testing.assert_array_equal(fast.multilabel[labelled_rows], multi[on_surface.vertex[sem[on_surface.vertex] != IGNORE_LABEL]])
+    others = np.setdiff1d(np.arange(len(means)), rows)
+    plain = transfer_labels(means, points[~hidden], sem[~hidden], inst[~hidden], multi[~hidden], config)
+    np.testing.assert_array_equal(fast.semantic[others], plain.semantic[others])  # the rest: hidden points dropped
+    assert fast.stats.ignored == (fast.semantic == IGNORE_LABEL).sum() == _ignored_by_reason(fast.stats)
+
+
+def test_on_surface_inputs_are_checked():
+    from seggaussian.labels.occlusion import HiddenSurfaceHits
+
+    means, points, sem, inst, _ = _random_inputs(np.random.default_rng(0), n=5, p=4)
+    hits = lambda rows, vertex, d: HiddenSurfaceHits(np.array(rows), np.array(vertex), np.array(d, np.float32))
+    for bad, message in ((hits([0, 0], [1, 2], [0, 0]), "distinct Gaussians"), (hits([7], [1], [0]), "distinct"),
+                         (hits([1], [4], [0]), "vertex must index"), (hits([1], [2], [np.nan]), "finite"),
+                         (hits([1, 2], [2], [0]), "equally long")):
+        with pytest.raises(ValueError, match=message):
+            transfer_labels(means, points, sem, inst, None, TransferConfig(), on_surface=bad)
+    with pytest.raises(ValueError, match="hidden must be"):
+        transfer_labels(means, points, sem, inst, None, TransferConfig(), hidden=np.zeros(3, bool))
 
 
 def test_open3d_backend_matches_reference():

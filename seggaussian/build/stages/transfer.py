@@ -2,7 +2,7 @@
 
 The algorithm (KD-tree, distance gate, statistics) is ``seggaussian.labels.transfer``; this module feeds it the
 scene's points, densified along the mesh faces, less those its train views look at but never see (a wall behind a
-window: ``seggaussian.labels.occlusion``), scores the result against the oracle truth (or the surface
+window: ``seggaussian.labels.occlusion``) except to the Gaussians that lie on such a surface, scores the result against the oracle truth (or the surface
 labels) and writes the per-scene ``gaussians`` table.
 """
 
@@ -18,7 +18,8 @@ from seggaussian.build.config import BuildConfig
 from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.labels.occlusion import occluded_points
+from seggaussian.labels.config import TransferConfig
+from seggaussian.labels.occlusion import HiddenSurfaceHits, occluded_points, on_hidden_surface
 from seggaussian.labels.placement import check_placement, measure_placement
 from seggaussian.core.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
@@ -51,11 +52,9 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
     occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
-    if occluded is not None:
-        keep = ~occluded
-        points, semantic, instance = points[keep], semantic[keep], instance[keep]
-        multilabel = multilabel[keep] if multilabel is not None else None
-    result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer)
+    on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer)
+    result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer,
+                             hidden=occluded, on_surface=on_surface)
     # the placement is judged at the spacing-derived gate, whatever gate the user chose for the labels
     placement_gate = distance_gate(result.stats.spacing, replace(config.transfer, max_distance=None))
     placement = measure_placement(gaussians.means, gaussians.opacities(), result.distances, placement_gate,
@@ -69,6 +68,9 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
             vertex_occluded = occluded[: len(scene.points)]  # the label points start with the vertices, samples after
             faces = faces[~vertex_occluded[faces].all(axis=1)]
         truth = surface_labels(gaussians.means, scene.points, faces, scene.semantic)
+        if on_surface is not None and len(on_surface.rows):  # ... except for the Gaussians that lie on a hidden one
+            truth[on_surface.rows] = surface_labels(gaussians.means[on_surface.rows], scene.points, scene.faces,
+                                                    scene.semantic)
     accuracy = label_accuracy(result.semantic, truth) if truth is not None else {"scored": 0, "correct": 0,
                                                                                    "accuracy": None}
     inst = result.instance
@@ -79,6 +81,8 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
     stats = result.stats.to_dict()
     stats["mesh_samples"] = extra
     stats["occluded_points"] = int(occluded.sum()) if occluded is not None else None
+    if on_surface is None:  # the occlusion test did not apply: no Gaussian was tested for a hidden surface
+        stats["on_hidden_surface"] = None
     stats["placement"] = placement.to_dict()
     return labelled, {"transfer": stats, "label_accuracy": accuracy}
 
@@ -91,6 +95,17 @@ def occluded_label_points(scene: Scene, points: np.ndarray, tolerance: float | N
     if tolerance is None or scene.faces is None or not len(scene.faces) or not cameras:
         return None
     return occluded_points(scene.points, scene.faces, points, cameras, tolerance)
+
+
+def hidden_surface_gaussians(scene: Scene, means: np.ndarray, transfer: TransferConfig) -> HiddenSurfaceHits | None:
+    """The Gaussians that lie on a surface the scene's ``train`` views look at but never see, with the vertex whose
+    labels each keeps (``seggaussian.labels.occlusion.on_hidden_surface``); None where the occlusion test does not
+    apply (as ``occluded_label_points``)."""
+    cameras = [view.camera for view in scene.views if view.role == "train"]
+    if transfer.occlusion_tolerance is None or scene.faces is None or not len(scene.faces) or not cameras:
+        return None
+    return on_hidden_surface(means, scene.points, scene.faces, cameras, transfer.occlusion_tolerance,
+                             transfer.on_surface_tolerance)
 
 
 def write_transfer(scene_dir: Path, scene_id: str, labelled: Gaussians, shards: ShardConfig) -> None:
