@@ -113,7 +113,9 @@ class FitConfig:
     (at the processed image size) are pruned."""
 
     opacity_reset_every: int = 600
-    """Clamp every opacity to ``opacity_reset_value`` this often. 3DGS: 3,000 of 30,000."""
+    """Clamp every opacity to ``opacity_reset_value`` this often. 3DGS: 3,000 of 30,000. A reset with fewer than this
+    many iterations left in the run (under a time budget: at the pace of the latest iterations) is skipped, so a
+    run never ends before its Gaussians are opaque again (counted in the metrics)."""
 
     opacity_reset_value: float = 0.01
     """Opacity ceiling after a reset."""

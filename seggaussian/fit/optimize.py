@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
@@ -53,6 +54,10 @@ if TYPE_CHECKING:
 
 #: Modes of the build stage's ``--fit`` option.
 FIT_MODES = ("auto", "always", "never")
+#: Iterations whose pace projects, under a time budget, how many iterations the run has left (``iterations_left``).
+RATE_WINDOW = 50
+#: Shortest pace (seconds per iteration) the projection divides by: a clock that did not advance is not infinite speed.
+MIN_PACE_SECONDS = 1e-9
 SOURCES = ("synthetic", "scannetpp", "replica")
 
 
@@ -126,6 +131,17 @@ def evaluate(params: GaussianParameters, views: Sequence[ViewData], sh_degree: i
             "views": len(views)}
 
 
+def iterations_left(iteration: int, config: FitConfig, elapsed: float, step_times: Sequence[float]) -> float:
+    """Iterations the run has left after ``iteration``: to ``config.iterations``, and under a time budget no more than
+    the budget's remaining seconds at the pace of the latest iterations (``step_times``: their end times, oldest
+    first; the pace only slows as densification adds Gaussians, so this is an upper bound)."""
+    left = float(config.iterations - iteration)
+    if config.time_budget_seconds and len(step_times) >= 2:
+        pace = (step_times[-1] - step_times[0]) / (len(step_times) - 1)
+        left = min(left, max(0.0, config.time_budget_seconds - elapsed) / max(pace, MIN_PACE_SECONDS))
+    return left
+
+
 def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = True,
               on_iteration: Callable[[FitProgress], None] | None = None) -> FitResult:
     """Fit Gaussians to the scene's train views; report PSNR/SSIM on its novel views.
@@ -167,6 +183,9 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
     order: list[int] = []
     iteration = 0
     window_losses: list[float] = []  # training losses since the last evaluation
+    step_times: deque[float] = deque([time.perf_counter()], maxlen=RATE_WINDOW + 1)  # ends of the latest iterations
+    opacity_resets: list[int] = []
+    skipped_resets: list[int] = []
     if config.eval_every and early_stop_views:  # the starting point of the curve
         held = evaluate(params, early_stop_views, 0, background)
         history.append({"iteration": 0, "seconds": time.perf_counter() - start, "loss": None,
@@ -210,7 +229,12 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
                 densify_log.append(dict(counts, iteration=iteration))
             if (config.opacity_reset and iteration < config.densify_until
                     and iteration % config.opacity_reset_every == 0):
-                reset_opacity(params, config.opacity_reset_value)
+                if iterations_left(iteration, config, time.perf_counter() - start, step_times) >= config.opacity_reset_every:
+                    reset_opacity(params, config.opacity_reset_value)
+                    opacity_resets.append(iteration)
+                else:  # the run would end before the Gaussians are opaque again: the reset goes
+                    skipped_resets.append(iteration)
+        step_times.append(time.perf_counter())
 
         if progress and (iteration % 10 == 0 or iteration == 1):
             bar.set_postfix(psnr=f"{float(psnr(out.image.detach().clamp(0, 1), view.image)):.2f}", n=len(params))
@@ -293,6 +317,8 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
         "image_size": [train_views[0].camera.width, train_views[0].camera.height],
         "seed": int(seed),
         "densification": densify_log,
+        "opacity_resets": opacity_resets,
+        "skipped_opacity_resets": skipped_resets,
     }
     return FitResult(gaussians, metrics, history)
 

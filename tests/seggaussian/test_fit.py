@@ -508,14 +508,35 @@ def test_keep_best_off_returns_the_last_state(tiny_scene):
 
 
 def test_no_opacity_reset_when_turned_off(tiny_scene):
-    config = small_config(iterations=20, eval_every=0, opacity_reset_every=10, densify_until=40, opacity_reset=False,
-                          init_opacity=0.5)
-    opacity = {}
+    # lr_opacity 0: what the reset at iteration 10 sets stays to the end; the one due at 20 has no iteration left to
+    # recover in, so it goes
+    config = small_config(iterations=20, eval_every=0, opacity_reset_every=10, densify_until=40, init_opacity=0.5,
+                          lr_opacity=0.0)
+    opacity, metrics = {}, {}
     for reset in (True, False):
         r = fit_scene(tiny_scene, replace(config, opacity_reset=reset), seed=0, progress=False)
         opacity[reset] = float((1.0 / (1.0 + np.exp(-r.gaussians.opacity_logits))).max())
-    assert opacity[True] <= 0.01 + 1e-6  # clamped at 10 and 20
+        metrics[reset] = r.metrics
+    assert opacity[True] <= 0.01 + 1e-6  # clamped at 10
+    assert metrics[True]["opacity_resets"] == [10] and metrics[True]["skipped_opacity_resets"] == [20]
     assert opacity[False] > 0.3
+    assert metrics[False]["opacity_resets"] == [] and metrics[False]["skipped_opacity_resets"] == []
+
+
+def test_a_reset_needs_a_whole_interval_left_in_the_iterations_and_the_time_budget():
+    from seggaussian.fit.optimize import iterations_left
+
+    config = small_config(iterations=3000, opacity_reset_every=600)
+    times = [0.0, 0.1, 0.2, 0.3]  # 0.1 s per iteration
+    assert iterations_left(600, config, 5.0, times) == 2400  # no budget: the iterations alone
+    assert iterations_left(2500, config, 5.0, times) == 500
+    budget = replace(config, time_budget_seconds=90.0)
+    assert iterations_left(600, budget, 60.0, times) == pytest.approx(300.0)  # 30 s left at 0.1 s per iteration
+    assert iterations_left(600, budget, 95.0, times) == 0.0  # over budget
+    assert iterations_left(600, budget, 10.0, times) == pytest.approx(800.0)  # 80 s left
+    assert iterations_left(600, budget, 10.0, [0.0, 0.01, 0.02]) == 2400  # the iterations bind first
+    assert iterations_left(600, budget, 10.0, [0.0]) == 2400  # no pace measured yet
+    assert iterations_left(600, budget, 10.0, [1.0, 1.0]) == 2400  # a clock that did not move
 
 
 # --- depth supervision ------------------------------------------------------------------------------
