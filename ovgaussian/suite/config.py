@@ -160,7 +160,8 @@ class SuiteConfig:
     """ScanNet++-layout rooms (split train:val by ``val_ratio``)."""
     replica_scenes: int = 16
     """Replica-layout rooms (the cross-domain set). 16, not the paper's 8: with 8 the 2D CDA intervals of the
-    model and nearest colour touched; 16 tell them apart (benchmarks/results/bench_suite.md)."""
+    model and nearest colour touched; 16 tell them apart (benchmarks/results/bench_suite.md, "The whiteboard fix and
+    16 cross-domain rooms")."""
     val_ratio: tuple[int, int] = (4, 1)
     """train:val ratio of the ScanNet++-layout rooms."""
     width: int = 160
@@ -207,7 +208,8 @@ class SuiteConfig:
     benchmarks/results/bench_suite.md, "What moved the fitted score"."""
     class_balance: float = 0.75
     """Exponent of the class weights of the text cross-entropies (``LossConfig.class_balance``); why 0.75 and not
-    0.5 or 1.0: benchmarks/results/bench_suite.md, "Object classes at 0"."""
+    0.5 or 1.0: benchmarks/results/bench_suite.md, "Whiteboard, the class balance and the open-vocabulary
+    settings"."""
     lovasz_weight: float = 1.0
     """Weight of the Lovasz-softmax term (an IoU surrogate) of the 3D-to-text loss of every run
     (``LossConfig.lovasz_weight``), beside the cross-entropy of weight 1, as Pointcept's PTv3 configs for ScanNet
