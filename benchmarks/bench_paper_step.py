@@ -364,7 +364,8 @@ def main() -> int:
                              "on the CPU, as in training)")
     parser.add_argument("--omp-wait-policy", choices=("passive", "active", "default"), default="passive",
                         help="OMP_WAIT_POLICY of torch's OpenMP threads (set before torch loads); 'passive' stops "
-                             "idle threads spinning, which with other processes running burnt 3-7x the CPU of the sparse "
+                             "idle threads spinning, which with other processes running burnt 3-7x the CPU of the "
+                             "sparse "
                              "U-Net's GEMMs; 'default' leaves the environment as it is")
     parser.add_argument("--compare-adapter", type=int, metavar="ROWS", default=None,
                         help="only time the adapter fwd+bwd of ROWS Gaussians, einsum reference vs fast forward, "

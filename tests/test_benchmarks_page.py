@@ -60,7 +60,9 @@ def test_every_reference_to_the_page_names_a_section_and_rows_it_has():
     checked, wrong = 0, []
     for name in filter(None, (n.decode() for n in names)):
         path = REPO / name
-        if not path.is_file() or path.suffix not in {".md", ".py", ".sh", ".toml", ""}:
+        if name == "tests/test_benchmarks_page.py" or not path.is_file():
+            continue
+        if path.suffix not in {".md", ".py", ".sh", ""}:
             continue
         text = " ".join(re.sub(r"^\s*#+\s?", "", line) for line in path.read_text(errors="replace").splitlines())
         text = re.sub(r"\s+", " ", text)
