@@ -20,8 +20,13 @@ Phases (wall seconds, timed by wrapping the library functions in this process on
     optimizer   SGD step
 
 Budgets (exit status 1 when one is missed, with the figure printed; issue 31's goals on 2 cores): peak resident
-memory of the process <= --max-peak-gb (8), median step wall time <= --max-step-s (20 s), the sparse U-Net's
-backward <= --max-backward-ratio (2.5) times its forward. The U-Net is timed on its own: its forward by wrapping
+memory of the process <= --max-peak-gb (8), median step wall time <= --max-step-s, the sparse U-Net's
+backward <= --max-backward-ratio (2.5) times its forward. The step's wall time depends on the CPU type
+(benchmarks/machine_type.py), so its default budget does too: 20 s on the 2-core AMD EPYC Zen 4 type (issue 31's
+goal), 27 s on the slower Zen 3 type (the same goal scaled by the 1.3x between the two types on this step:
+18.6-19.4 s against 22.6-25.7 s). On any other CPU the step is reported against the 27 s and never fails the run;
+with ``--device cuda`` the 20 s holds on any CPU, and a ``--max-step-s`` given on the command line always holds.
+Memory and the backward ratio do not depend on the machine. The U-Net is timed on its own: its forward by wrapping
 ``net.backbone``, its backward from the moment its output's gradient arrives (a hook) to the end of
 ``loss.backward()`` (nothing runs after it: the voxel inputs need no gradient). The phase ratio backward / network
 is printed too; from 1M rows it no longer compares like with like, as the eager path (``losses``) holds the
@@ -35,7 +40,7 @@ then timed with ``torch.cuda.synchronize`` at their edges, and the JSON adds the
     .venv/bin/python benchmarks/bench_paper_step.py --compare-adapter 1000000  # adapter: einsum reference vs fast
 
 torch's OpenMP threads wait passively (``--omp-wait-policy passive``, the default here): spinning threads
-burnt 3-4x the step's CPU on the shared 2-core machine (benchmarks/results/paper_scale.md).
+burnt 3-4x the step's CPU on a 2-core machine with other processes running (benchmarks/results/paper_scale.md).
 """
 
 from __future__ import annotations
@@ -54,6 +59,14 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(1, str(REPO / "benchmarks"))
+
+import machine_type  # noqa: E402  (benchmarks/machine_type.py, beside this script)
+
+#: Median step wall-time budget per CPU type (see the module docstring); any other type: the largest, reported only.
+STEP_BUDGET_S = {machine_type.ZEN4: 20.0, machine_type.ZEN3: 27.0}
+#: With the network and the losses on a GPU the step is far under this on any CPU.
+CUDA_STEP_BUDGET_S = 20.0
 
 WIDTH, HEIGHT = 876, 584
 FOCAL = 450.0
@@ -261,6 +274,7 @@ def run(args) -> dict:
                                                         for s in steps),
         "device": str(device), "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "peak_gpu_gb": torch.cuda.max_memory_allocated(device) / 1024**3 if device.type == "cuda" else None,
+        "machine_type": args.machine.label, "step_budget_enforced": args.step_budget_enforced,
         "budgets": {"peak_rss_gb": args.max_peak_gb, "step_wall_s": args.max_step_s,
                     "unet_backward_over_forward": args.max_backward_ratio},
     }
@@ -318,6 +332,16 @@ def compare_adapter(rows: int, repeats: int, chunk_rows: tuple[int, ...]) -> dic
             **{f"{k}_cpu_s": v[1] for k, v in results.items()}}
 
 
+def step_budget(given: float | None, device: str, machine: machine_type.MachineType) -> tuple[float, bool]:
+    """The median step wall-time budget and whether missing it fails the run: ``given`` when set, 20 s on a GPU,
+    else the budget of the CPU type (an unknown type: the slowest type's, reported only)."""
+    if given is not None:
+        return given, True
+    if device == "cuda":
+        return CUDA_STEP_BUDGET_S, True
+    return machine_type.budget_for(machine, STEP_BUDGET_S)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gaussians", type=int, default=1_000_000, help="Gaussians per scene")
@@ -328,7 +352,9 @@ def main() -> int:
                         help="Gaussians per scene in the 3D-to-text loss (DataConfig.loss_gaussians); default all")
     parser.add_argument("--steps", type=int, default=2, help="measured steps after one warm-up step")
     parser.add_argument("--max-peak-gb", type=float, default=8.0, help="budget: peak resident memory (issue 31)")
-    parser.add_argument("--max-step-s", type=float, default=20.0, help="budget: median step wall time (issue 31)")
+    parser.add_argument("--max-step-s", type=float, default=None,
+                        help="budget: median step wall time; default by CPU type: 20 s on Zen 4 (issue 31), 27 s on "
+                             "Zen 3, reported without failing on any other CPU; 20 s with --device cuda")
     parser.add_argument("--max-backward-ratio", type=float, default=2.5,
                         help="budget: the sparse U-Net's backward over its forward (issue 31)")
     parser.add_argument("--devoxelize", choices=("nearest", "trilinear"), default="nearest",
@@ -338,7 +364,8 @@ def main() -> int:
                              "on the CPU, as in training)")
     parser.add_argument("--omp-wait-policy", choices=("passive", "active", "default"), default="passive",
                         help="OMP_WAIT_POLICY of torch's OpenMP threads (set before torch loads); 'passive' stops "
-                             "idle threads spinning, which on a shared machine burnt 3-7x the CPU of the sparse "
+                             "idle threads spinning, which with other processes running burnt 3-7x the CPU of the "
+                             "sparse "
                              "U-Net's GEMMs; 'default' leaves the environment as it is")
     parser.add_argument("--compare-adapter", type=int, metavar="ROWS", default=None,
                         help="only time the adapter fwd+bwd of ROWS Gaussians, einsum reference vs fast forward, "
@@ -362,6 +389,8 @@ def main() -> int:
         print(f"3D text loss fwd+bwd, {r['rows']:,} rows, D = {r['width']}: direct {r['direct_wall_s']:.2f} s wall / "
               f"{r['direct_cpu_s']:.2f} s CPU, Gram form {r['gram_wall_s']:.2f} s wall / {r['gram_cpu_s']:.2f} s CPU")
         return 0
+    args.machine = machine_type.detect()
+    args.max_step_s, args.step_budget_enforced = step_budget(args.max_step_s, args.device, args.machine)
     result = run(args)
     print(json.dumps(result))
     phases = result["phases_s_median"]
@@ -372,8 +401,13 @@ def main() -> int:
     failed = []
     if result["peak_rss_gb"] > args.max_peak_gb:
         failed.append(f"peak memory {result['peak_rss_gb']:.2f} GB > {args.max_peak_gb} GB")
-    if result["step_wall_s_median"] > args.max_step_s:
+    over_step = result["step_wall_s_median"] > args.max_step_s
+    if over_step and args.step_budget_enforced:
         failed.append(f"step {result['step_wall_s_median']:.1f} s > {args.max_step_s} s")
+    if not args.step_budget_enforced:
+        print(f"CPU type without a step budget of its own ({args.machine.label}): step "
+              f"{result['step_wall_s_median']:.1f} s against the slowest type's {args.max_step_s} s, "
+              f"{'over' if over_step else 'within'} it; reported, not failed")
     if result["unet_backward_over_forward"] > args.max_backward_ratio:
         failed.append(f"U-Net backward {result['unet_backward_over_forward']:.2f}x its forward > {args.max_backward_ratio}x")
     print(f"sparse U-Net: forward {result['unet_forward_s_median']:.2f} s, backward {result['unet_backward_s_median']:.2f} s "
@@ -383,7 +417,7 @@ def main() -> int:
     print(f"paper step ({args.scenes} x {args.gaussians:,} Gaussians, {args.pixels:,} px, {args.preset}, "
           f"{args.devoxelize}): "
           f"{result['step_wall_s_median']:.1f} s wall, {result['step_cpu_s_median']:.1f} s CPU, "
-          f"peak {result['peak_rss_gb']:.2f} GB -> {status}")
+          f"peak {result['peak_rss_gb']:.2f} GB, step budget {args.max_step_s:g} s ({args.machine.label}) -> {status}")
     return 1 if failed else 0
 
 

@@ -3,7 +3,8 @@
 #   synth -> build (a CPU 3DGS fit of every room, labels, label maps, shards) -> split -> train (short) -> bench -> predict.
 # Everything trains and scores on fitted splats, as users bring scenes (oracle Gaussians sampled on the mesh are a
 # control: `seggaussian build --gaussians oracle`).
-# About 790 s of CPU, 611 s wall on a quiet 2-core machine (BENCHMARKS.md "Fitted splats"); every knob can be overridden from the environment.
+# About 5 minutes on a quiet 2-core AMD EPYC Zen 4 machine, 9 on a Zen 3 one (BENCHMARKS.md, "Build and main job");
+# every knob can be overridden from the environment.
 # Prints the Table-1 row of the trained run next to two non-learned baselines scored by the same code.
 set -euo pipefail
 cd "$(dirname "$0")/.."

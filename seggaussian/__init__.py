@@ -8,7 +8,8 @@ __version__ = "0.1.0"
 _os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 # OpenMP threads (torch's and numba's) sleep while they wait instead of spinning. On the 2-core machines
 # libgomp's default spin burnt 3-4x the CPU of a training step whenever another process shared the cores
-# (paper-scale step: 83.5 -> 22.8 s CPU; one bench-suite epoch: 143.5 -> 38.2 s CPU; BENCHMARKS.md, #16/#17).
+# (paper-scale step: 83.5 -> 22.8 s CPU; one bench-suite epoch: 143.5 -> 38.2 s CPU; benchmarks/results/paper_scale.md,
+# bench_suite.md).
 # It only takes effect when this package is imported before torch starts its thread pool, as every
 # `seggaussian` / `ovgaussian` command does. A user's own setting wins.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -67,12 +67,12 @@ POOL_MIN_WEIGHT = 1e-3
 #: loss 7.4 -> 5.4 s CPU against 262,144 rows; 8,192 and fewer rows were slower again (per-op overhead). The training
 #: step's eager paths (``ovgaussian.train.eager_rows``, ``eager_adapter``: gradients taken in the forward, no
 #: recomputation) use the same chunks and thresholds; 16,384 and 65,536 rows per chunk were 2 % and 6 % slower per
-#: row there (session 12).
+#: row there.
 CHECKPOINT_ROWS = 1 << 15
 #: Fewer rows than this are not checkpointed at all: their activations take at most about 1.4 GB (adapter) and
 #: 2 GB (3D text loss), and recomputing them in backward costs about a third of those stages' backward (measured
-#: at 1,000,000 rows; a demo step, 3 scenes of 15,000 Gaussians, 1.14 -> 0.97 s CPU: BENCHMARKS.md "Training step
-#: speed").
+#: at 1,000,000 rows; a demo step, 3 scenes of 15,000 Gaussians, 1.14 -> 0.97 s CPU: benchmarks/results/train.md,
+#: "Threads and checkpointing").
 CHECKPOINT_MIN_ROWS = 1 << 19
 
 
@@ -293,7 +293,7 @@ class VoxelToPointAdapter(nn.Module):
         channels per head) is one loop over the rows, forward and backward
         (``ovgaussian.model.token_attention``), instead of ``einsum``, which becomes millions of tiny batched
         matmuls plus layout copies (elementwise torch products were 1.1-1.4x less CPU than ``einsum`` per 1,000,000
-        Gaussians, ``benchmarks/results/paper_scale.md``; the row loop is measured in BENCHMARKS.md). The output
+        Gaussians, ``benchmarks/results/paper_scale.md``; the row loop in benchmarks/results/train.md). The output
         projection ``out`` is folded into the MLP's first layer (below), so ``m`` is not formed.
         """
         n = attributes.shape[0]
@@ -312,7 +312,7 @@ class VoxelToPointAdapter(nn.Module):
         # The output projection folded into the MLP's first layer: W1 [m | f] with m = W_out (a + b_v) + b_out is
         # (W1_m W_out) a + W1_f f + (b1 + W1_m b_out + W1_m W_out b_v). m is never formed, and the first layer reads
         # [a | f], 16 + 16 = 32 columns: MKL's products with a 27-column side ran at half the speed of 32
-        # (BENCHMARKS.md, session 14).
+        # (32,768 rows, 2 threads).
         first, width = self.mlp[0], self.out.out_features
         w_m = first.weight[:, :width]
         w_a = w_m @ self.out.weight  # [hidden, H * d]

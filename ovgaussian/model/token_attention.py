@@ -187,7 +187,7 @@ def _backward_rows(q, k, v, weights, grad_out, scale, grad_q, grad_k, grad_v):  
 @numba.njit(parallel=True, **_JIT)
 def _forward_rows_d4(q, k, v, scale, out, weights):  # pragma: no cover - compiled
     """:func:`_forward_rows` for ``d = 4`` (the default network): each head's query, sums and output in scalar
-    registers, 1.8x faster per row (BENCHMARKS.md)."""
+    registers, 1.8x faster per row (benchmarks/results/train.md)."""
     n, t, h = k.shape[0], k.shape[1], k.shape[2]
     sc = scale[0]
     for i in prange(n):

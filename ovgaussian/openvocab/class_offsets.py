@@ -2,7 +2,7 @@
 
 A model's cosine scores are not calibrated across classes: on fitted splats the text cross-entropy, weighted by
 class, leaves walls scored below windows where the two look alike, and since the IoU counts Gaussians, a few
-percent of a wall's many Gaussians taken by the window costs the window most of its IoU (BENCHMARKS.md, issue 27).
+percent of a wall's many Gaussians taken by the window costs the window most of its IoU (benchmarks/results/bench_suite.md).
 A per-class offset ``b_c`` added to column ``c`` moves each class's decision boundary; the offsets are chosen to
 maximize the pooled mIoU of the **train** split (logit adjustment, as Menon et al., ICLR 2021, with the offsets
 fitted to the metric rather than set from class priors).

@@ -5,7 +5,7 @@ vectors side by side (``[N, S_1 + S_2 + ...]``), so rendering it for 2D renders 
 linear per channel). ``classify`` (class ids, the bench) and ``score_names`` (free-text names, ``ovgaussian
 predict``) score each member's columns with that member (phi, then cosine against its text embeddings) and average
 the ``[M, K]`` scores. Runs trained with other seeds disagree most on a fitted splat's boundary Gaussians, where one
-run's decision is close to chance (BENCHMARKS.md, "Session 16").
+run's decision is close to chance (benchmarks/results/bench_suite.md, "Training seeds").
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A fitted splat leaves many nearly transparent Gaussians: on the benchmark profile's fits 13 % of the labelled
 Gaussians have an opacity under 0.05, and the model labels them right about half as often as the opaque ones
-(BENCHMARKS.md, "Session 19"). Such a Gaussian shows little of what it covers, in its own colour and in the voxel
+(benchmarks/results/bench_suite.md, "Faint Gaussians"). Such a Gaussian shows little of what it covers, in its own colour and in the voxel
 it is pooled into (pooling is weighted by opacity), so its own vector is weak evidence. Its label is better read
 from the surface it floats against. With ``o`` the opacities and ``N_k(i)`` the ``k`` Gaussians nearest to ``i``
 (``i`` among them)::

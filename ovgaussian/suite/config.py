@@ -115,11 +115,10 @@ RUNS = (
 
 #: Table 1: both non-learned baselines, the full model, then one line per open-vocabulary method (#16a), the oracle
 #: controls of issue #27 (each method on fitted splats beside the same method trained and scored on oracle
-#: Gaussians), and the two-seed ensembles (opt-in, ``SuiteConfig.ensemble``). Session 16 chose the two-seed ensemble
-#: with class offsets as the method for fitted splats, when the single run's pair stayed under 90 %. Since the
-#: transfer leaves out surfaces no view sees (session 21) the single run's pair clears 90 % with its whole interval,
-#: so the ensemble rows are opt-in and, without them, the full model's plain pair decides the check
-#: (BENCHMARKS.md, "Session 21" and "Session 22").
+#: Gaussians), and the two-seed ensembles (opt-in, ``SuiteConfig.ensemble``). The ensemble rows are opt-in because the
+#: single run's pair clears the 90 % check with its whole interval since the transfer leaves out surfaces no view
+#: sees; without them, the full model's plain pair decides the check (benchmarks/results/bench_suite.md,
+#: "The 90 % check").
 TABLE1_ROWS = (
     Table1Row("majority (baseline)", predictor="majority"),
     Table1Row("nearest-colour (baseline)", predictor="nearest-colour"),
@@ -161,7 +160,8 @@ class SuiteConfig:
     """ScanNet++-layout rooms (split train:val by ``val_ratio``)."""
     replica_scenes: int = 16
     """Replica-layout rooms (the cross-domain set). 16, not the paper's 8: with 8 the 2D CDA intervals of the
-    model and nearest colour touched; 16 tell them apart (BENCHMARKS.md, "20-epoch profile")."""
+    model and nearest colour touched; 16 tell them apart (benchmarks/results/bench_suite.md, "The whiteboard fix and
+    16 cross-domain rooms")."""
     val_ratio: tuple[int, int] = (4, 1)
     """train:val ratio of the ScanNet++-layout rooms."""
     width: int = 160
@@ -180,8 +180,8 @@ class SuiteConfig:
     ``splats="oracle"``)."""
     epochs: int = 30
     """Epochs of every run (30 x 15 steps of 3 rooms; one schedule for all runs). What the profile from nothing
-    takes with it, the 72 room fits and the four trainings included, and why 30 and not 45: BENCHMARKS.md,
-    "Session 22"; what 45 buys against 30: BENCHMARKS.md, "Session 15"."""
+    takes with it, the 72 room fits and the four trainings included, why 30 and not 45, and what 45 buys:
+    benchmarks/results/bench_suite.md, "The profile from nothing"."""
     batch_scenes: int = 3
     """Scenes per optimizer step."""
     pixels_per_view: int = 4096
@@ -189,7 +189,7 @@ class SuiteConfig:
     loss_gaussians: Optional[int] = None
     """Gaussians per room in each step's 3D-to-text loss (``DataConfig.loss_gaussians``; None, or 0 on the command
     line: every Gaussian). A subset shortens the profile, but its runs learned less on the fits and on the oracle
-    control (BENCHMARKS.md, "Benchmark profile with a 3D-loss subset"), so every Gaussian is the default."""
+    control (benchmarks/results/bench_suite.md, "What moved the fitted score"), so every Gaussian is the default."""
     scene_cache_size: int = 64
     """Prepared rooms each training keeps in memory (``DataConfig.scene_cache_size``): at least the train split,
     so a room is read and decoded from the shards once per run, not once per epoch (0.07 s CPU a room, three rooms a
@@ -205,18 +205,21 @@ class SuiteConfig:
     voxel_geometry: bool = False
     """Give the backbone how each voxel's Gaussians lie inside it (``OVGaussianNetConfig.voxel_geometry``: the
     centres' mean offset and covariance). What it changed on the profile's rooms, and why it is off:
-    BENCHMARKS.md, "Session 18" and "Session 19"."""
+    benchmarks/results/bench_suite.md, "What moved the fitted score"."""
     class_balance: float = 0.75
     """Exponent of the class weights of the text cross-entropies (``LossConfig.class_balance``); why 0.75 and not
-    0.5 or 1.0: BENCHMARKS.md, "Earlier profile runs (before the whiteboard and 16-room changes)"."""
+    0.5 or 1.0: benchmarks/results/bench_suite.md, "Whiteboard, the class balance and the open-vocabulary
+    settings"."""
     lovasz_weight: float = 1.0
     """Weight of the Lovasz-softmax term (an IoU surrogate) of the 3D-to-text loss of every run
     (``LossConfig.lovasz_weight``), beside the cross-entropy of weight 1, as Pointcept's PTv3 configs for ScanNet
-    train; 0: cross-entropy only. Its effect on fitted splats and on the oracle control: BENCHMARKS.md, "Session 15"."""
+    train; 0: cross-entropy only. Its effect on fitted splats and on the oracle control:
+    benchmarks/results/bench_suite.md, "What moved the fitted score"."""
     opacity_power: float = 0.0
     """Exponent p of the opacity^p weights of each Gaussian's 3D-to-text cross-entropy term in every run
     (``LossConfig.opacity_power``); 0: every Gaussian alike. The oracle Gaussians share one opacity, so the control
-    runs do not change with it. Its effect on the profile: BENCHMARKS.md, "Session 20"."""
+    runs do not change with it. Its effect on the profile: benchmarks/results/bench_suite.md, "What moved the fitted
+    score"."""
     num_classes: int = 20
     """Vocabulary size K."""
     max_views: int = 4
@@ -227,7 +230,7 @@ class SuiteConfig:
     ensemble: bool = False
     """Also train the full model and its oracle control with a second seed (``seed`` + 1) and score the Table-1
     rows of the two-seed ensemble, whose pair with class offsets then decides the 90 % check (two more trainings and
-    four rows; what they cost and why they are opt-in: BENCHMARKS.md, "Session 17" and "Session 22")."""
+    four rows; what they cost and why they are opt-in: benchmarks/results/bench_suite.md, "Training seeds")."""
     jobs: int = 2
     """Processes working at once: scenes of the build, then training runs and bench rows, a row once the runs it
     scores are done (each process with cpu_count // jobs torch and numba threads)."""

@@ -20,7 +20,7 @@ MODES = ("rgb", "semantic", "instance", "predicted", "query")
 
 @dataclass(frozen=True)
 class ViewConfig:
-    """One viewer session (or one ``--export``)."""
+    """One run of the viewer (or one ``--export``)."""
 
     scene: Optional[Path] = None
     """Splat file to view (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat); optional with --dataset/--scene."""

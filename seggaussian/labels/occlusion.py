@@ -4,7 +4,7 @@ A synthetic or scanned mesh can hold surfaces no image shows: the wall behind a 
 of it, the floor under a box, the back of a shelf against a wall. A 3DGS fitted to the images has Gaussians only on
 what the images show, so such a surface must not give its label to them: a Gaussian on a window, a centimetre off
 the glass, is nearer the hidden wall's points than the window's about as often as not, and the nearest-point
-transfer then labels it wall (measured on the synthetic rooms: BENCHMARKS.md, "Session 21").
+transfer then labels it wall (measured on the synthetic rooms: benchmarks/results/build.md, "Occlusion test").
 
 Definition (``occluded_points``): a point is **occluded** when it lies in front of at least one camera and inside
 its image, and, for every such camera, the first surface along the ray from the camera centre to the point is

@@ -221,7 +221,7 @@ def _count_chunk(boxes, lo, hi, tiles_x, counts):
 def _scatter_chunk(order, boxes, lo, hi, tiles_x, cursor, ids):
     """Append the Gaussians ``lo:hi`` to the tiles of their (trimmed) boxes at ``cursor``. The tile and slot indices
     are unsigned: numba then emits no negative-index wraparound per access (the scatter of 1M Gaussians took 31 -> 22
-    ms, BENCHMARKS.md session 12); a row is entered only when its span is not empty, so no index
+    ms); a row is entered only when its span is not empty, so no index
     wraps."""
     for j in range(lo, hi):
         g = np.int32(order[j])

@@ -6,7 +6,7 @@ and unmaps it on ``free``; below it, it trims the top of the heap back to the ke
 that size starts on fresh pages, and the kernel zeroes each page on its first write. On these machines that costs
 about 1 ms per MB: a 1,000,000-Gaussian projection takes 48-58 ms when its outputs reuse freed memory and 155-175
 ms when they land on fresh pages (the previous projection still alive, as in a training step), and the paper-scale
-step spent 38 s of system time in page faults (BENCHMARKS.md, "Page faults").
+step spent 38 s of system time in page faults (benchmarks/results/train.md, "Page faults").
 
 :func:`keep_freed_memory` sets ``M_MMAP_MAX = 0`` (every block comes from the heap) and ``M_TRIM_THRESHOLD`` to
 its largest value (freed memory stays mapped), so freed blocks are reused without faults. The process's resident

@@ -3,12 +3,12 @@
 A process that shares the cores with other workers must cap both: the fit's rasterizer and the sparse convolution
 run numba parallel kernels, and two workers with two numba threads each on two cores wait at every kernel's
 barrier for a descheduled thread (the profile's fits took about 75 s wall each, two at a time, at 60 % CPU per
-worker; BENCHMARKS.md "Fitted splats").
+worker, on the benchmark profile's fits).
 
 Small work gains nothing from several threads: with passive OpenMP waits (``seggaussian/__init__.py``) every
 parallel region wakes sleeping threads, and a training step of the demo's size runs thousands of small regions.
 :func:`threads_for_gaussians` picks one thread below :data:`PARALLEL_MIN_GAUSSIANS` Gaussians of work
-(BENCHMARKS.md "Training step speed").
+(benchmarks/results/train.md, "Threads and checkpointing").
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numba
 import torch
 
 #: Gaussians per unit of work (a training step's batch, a scene evaluated) below which one thread does it. Measured
-#: on the 2-core machines with passive OpenMP waits (BENCHMARKS.md "Training step speed"): a demo step (3 scenes of
+#: on the 2-core machines with passive OpenMP waits (benchmarks/results/train.md, "Threads and checkpointing"): a demo step (3 scenes of
 #: 15,000 fitted Gaussians, slim network) took 1.4-1.6 s wall with one thread and 2.4-2.7 s with two; 3 x 100,000
 #: Gaussians (MinkUNet34C, 5 cm) about 20 s either way; 1 x 1,000,000 18-22 s with one thread and 16-20 s with two.
 PARALLEL_MIN_GAUSSIANS = 1_000_000

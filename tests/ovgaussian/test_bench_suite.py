@@ -223,7 +223,7 @@ def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
     check_settings(replace(config, lovasz_weight=0.0))
     with pytest.raises(ValueError, match=r"lovasz_weight 0\.0 -> 1\.0"):
         check_settings(replace(config, lovasz_weight=1.0))
-    # likewise voxel geometry, added in session 19: a folder recorded without it was trained without it
+    # likewise voxel geometry, a later setting: a folder recorded without it was trained without it
     (tmp_path / SETTINGS_NAME).write_text(json.dumps({k: v for k, v in recorded.items() if k != "voxel_geometry"}))
     check_settings(replace(config, voxel_geometry=False))
     with pytest.raises(ValueError, match=r"voxel_geometry False -> True"):

@@ -1,7 +1,7 @@
 """The recipe works on fitted splats (issue #27), on a tiny case: rooms fitted on the CPU as users bring scenes,
 a run trained on the fitted train rooms, and the same val room scored as its fitted splat and as Gaussians sampled
 on its mesh. The model must score both within a tolerance, above the majority baseline (the full figure, with
-intervals over many rooms, is the benchmark profile's: BENCHMARKS.md, "Fitted splats")."""
+intervals over many rooms, is the benchmark profile's: BENCHMARKS.md, "Model accuracy")."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 ``make setup`` installs the converter into ``.node/`` where node and npm exist; without it these tests
 skip with the reason. Every conversion runs the converter's CLI; they run a few at a time in parallel
-(node start-up dominates) from one session fixture.
+(node start-up dominates) from one fixture shared by the whole test run.
 
 Directions checked:
 
