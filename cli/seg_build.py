@@ -9,7 +9,7 @@ import click
 
 from cli._config_options import config_option
 from cli._output import finish, guarded, json_option
-from seggaussian.build.config import BuildConfig, ViewConfig
+from seggaussian.pipeline.config import BuildConfig, ViewConfig
 from seggaussian.labels.config import OracleConfig, TransferConfig
 from cli.seg_fit import PRESET_HELP
 from seggaussian.fit.config import PRESETS, FitConfig
@@ -50,7 +50,7 @@ from seggaussian.fit.config import PRESETS, FitConfig
 def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussians_mode, ply_dir, seed, gate,
             occlusion_tolerance, keep_occluded, oracle_gaussians, fit_preset, fit_iterations, fit_max_gaussians, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
-    from seggaussian.build.dataset import build_dataset, summary_table
+    from seggaussian.pipeline.dataset import build_dataset, summary_table
 
     config = BuildConfig(source=source, root=root, out=out, jobs=jobs, executor=executor, address=address,
                          fit=fit_mode, gaussians=gaussians_mode, ply_dir=ply_dir, seed=seed,

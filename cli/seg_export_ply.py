@@ -20,7 +20,7 @@ from cli._output import finish, guarded, json_option
 @guarded
 def command(dataset: Path, scene_id: str, out: Path, color_by: str | None, as_json: bool) -> None:
     """Write a scene's Gaussians with semantic, instance (int) and transfer_distance vertex properties."""
-    from seggaussian.build.export import export_scene_ply
+    from seggaussian.pipeline.export import export_scene_ply
 
     info = export_scene_ply(dataset, scene_id, out, color_by=color_by)
     summary = (f"{out}: scene {scene_id} ({info['split']}), {info['gaussians']} Gaussians, "

@@ -30,8 +30,8 @@ def _ratios(ctx, param, value: str) -> tuple[int, int, int]:
 @guarded
 def command(data: Path, ratios, seed: int, reassign: bool, as_json: bool) -> None:
     """Assign scenes to train / val / xval and write splits.json and the split-named shards."""
-    from seggaussian.build.assembly import split_dataset
-    from seggaussian.build.config import SplitConfig
+    from seggaussian.pipeline.assembly import split_dataset
+    from seggaussian.pipeline.config import SplitConfig
 
     counts, reasons, rewritten = split_dataset(data, SplitConfig(ratios=ratios, seed=seed, reassign=reassign))
     by_reason: dict[str, int] = {}

@@ -21,8 +21,8 @@ sys.path[:0] = [str(TESTS.parent), str(TESTS / "ovgaussian")]
 
 
 def job_build(root: str, out: str) -> None:
-    from seggaussian.build.dataset import build_dataset
-    from seggaussian.build.config import BuildConfig
+    from seggaussian.pipeline.dataset import build_dataset
+    from seggaussian.pipeline.config import BuildConfig
     from seggaussian.labels.config import OracleConfig
 
     build_dataset(BuildConfig(source="synthetic", root=Path(root), out=Path(out), gaussians="oracle",
@@ -49,7 +49,7 @@ JOBS = {"build": job_build, "train": job_train}
 
 
 def main() -> None:
-    import seggaussian.build.dataset  # noqa: F401 -- imported once, before any fork
+    import seggaussian.pipeline.dataset  # noqa: F401 -- imported once, before any fork
     import ovgaussian.train.loop  # noqa: F401
     import test_train  # noqa: F401
 

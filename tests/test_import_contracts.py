@@ -32,10 +32,10 @@ def test_contracts_are_kept():
 MUTATIONS = (
     ("seggaussian/core/gaussians.py", "import ovgaussian.metrics",
      "cli is the top layer, and the dataset package never imports the model package"),
-    ("seggaussian/render/tiles.py", "import seggaussian.build.cache", "io, core and render never import the build"),
+    ("seggaussian/render/tiles.py", "import seggaussian.pipeline.cache", "io, core and render never import the pipeline"),
     ("ovgaussian/bench/bootstrap.py", "import ovgaussian.train.schedule",
      "bench, predict and the viewer never import the trainer"),
-    ("seggaussian/labels/vote.py", "import seggaussian.build.stages.transfer", "seggaussian in data-flow order"),
+    ("seggaussian/labels/vote.py", "import seggaussian.pipeline.stages.transfer", "seggaussian in data-flow order"),
 )
 
 

@@ -41,8 +41,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConf
 from seggaussian import shards
 from seggaussian.util.atomic import write_json_atomic, write_text_atomic
 from seggaussian.util.threads import cap_threads
-from seggaussian.build.dataset import build_dataset
-from seggaussian.build.config import BuildConfig, SplitConfig
+from seggaussian.pipeline.dataset import build_dataset
+from seggaussian.pipeline.config import BuildConfig, SplitConfig
 from seggaussian.labels.config import OracleConfig
 from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 

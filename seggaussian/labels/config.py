@@ -1,7 +1,7 @@
 """Frozen configuration of the labels of Gaussians: the nearest-point label transfer and the oracle sampler.
 
-Kept apart from the code that uses it. ``seggaussian.build.config.BuildConfig`` holds one of each; every field that
-changes a stage's output takes part in that stage's cache key (``seggaussian.build.scene.stage_keys``).
+Kept apart from the code that uses it. ``seggaussian.pipeline.config.BuildConfig`` holds one of each; every field that
+changes a stage's output takes part in that stage's cache key (``seggaussian.pipeline.scene.stage_keys``).
 """
 
 from __future__ import annotations

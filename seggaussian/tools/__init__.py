@@ -10,7 +10,7 @@
 - ``fuzz/``: seeded file fuzzing of the readers (``fuzz.engine``: mutants classified as accepted, clean error,
   non-finite, crash or hang); ``fuzz.ply`` and ``fuzz.splat`` (the non-PLY splat formats) are the targets.
 
-Nothing in the pipeline (``seggaussian.build.dataset`` and the stages it runs) imports this package.
+Nothing in the pipeline (``seggaussian.pipeline.dataset`` and the stages it runs) imports this package.
 """
 
 __all__ = ["fuzz", "own_code", "stress", "sweep"]

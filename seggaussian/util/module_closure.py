@@ -1,11 +1,11 @@
 """The code a module runs: its package-internal imports, transitively, read from the source with ``ast``.
 
-``module_closure("seggaussian.build.stages.views", root)`` walks the ``import`` statements of the entry module (those
+``module_closure("seggaussian.pipeline.stages.views", root)`` walks the ``import`` statements of the entry module (those
 inside functions included, so a lazy import counts as code that runs) and of every module of the same top-level
 package they name, with the parent packages (importing ``a.b.c`` runs ``a/__init__.py`` and ``a/b/__init__.py``).
 ``root`` is the folder that holds the package folder (a checkout or site-packages). Standard library only: the
 package's ``__init__`` uses it (numba's cache folder) before anything heavy loads. Users: the build's stage keys
-(``seggaussian.build.cache``) and numba's cache folder (``seggaussian.util.numba_cache``), both through
+(``seggaussian.pipeline.cache``) and numba's cache folder (``seggaussian.util.numba_cache``), both through
 :func:`hash_sources`.
 """
 

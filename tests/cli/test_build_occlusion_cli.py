@@ -6,7 +6,7 @@ import pytest
 from click.testing import CliRunner
 
 from cli.seggaussian_cli import main as seg_main
-from seggaussian.build import dataset as build_dataset_module
+from seggaussian.pipeline import dataset as build_dataset_module
 from seggaussian.labels.config import TransferConfig
 
 

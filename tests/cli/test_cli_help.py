@@ -62,7 +62,7 @@ def test_field_docs_reads_docstrings_and_comment_lines():
 
 
 def test_comment_documented_config_fields_are_read():
-    from seggaussian.build.config import BuildConfig
+    from seggaussian.pipeline.config import BuildConfig
     from seggaussian.labels.config import TransferConfig
 
     docs = field_docs(BuildConfig)

@@ -43,8 +43,8 @@ def test_run_folder_after_a_demo_like_training_stays_within_the_cache_budget(tmp
     from ovgaussian.text.teacher import DenseTeacher
     from ovgaussian.train.loop import train
     from ovgaussian.run.config import DataConfig, TeacherConfig, TrainConfig
-    from seggaussian.build import dataset as build_mod
-    from seggaussian.build.config import BuildConfig
+    from seggaussian.pipeline import dataset as build_mod
+    from seggaussian.pipeline.config import BuildConfig
     from seggaussian.labels.config import OracleConfig
     from test_train import tiny_model_config
 

@@ -19,8 +19,8 @@ ABOVE_MAJORITY = 1.5
 
 @pytest.fixture(scope="module")
 def datasets(tmp_path_factory):
-    from seggaussian.build.dataset import build_dataset
-    from seggaussian.build.config import BuildConfig, SplitConfig
+    from seggaussian.pipeline.dataset import build_dataset
+    from seggaussian.pipeline.config import BuildConfig, SplitConfig
     from seggaussian.labels.config import OracleConfig
     from seggaussian.fit.config import FitConfig
     from seggaussian.sources.synthetic.generate import SynthConfig, synthesize

@@ -11,17 +11,17 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from seggaussian.build import dataset as build_mod
+from seggaussian.pipeline import dataset as build_mod
 from seggaussian import shards
-from seggaussian.build import cache as build_cache
-from seggaussian.build import export
+from seggaussian.pipeline import cache as build_cache
+from seggaussian.pipeline import export
 from seggaussian.labels import oracle
-from seggaussian.build.config import BuildConfig, SplitConfig
+from seggaussian.pipeline.config import BuildConfig, SplitConfig
 from seggaussian.labels.config import OracleConfig, TransferConfig
 from seggaussian.core.constants import IGNORE_LABEL, read_class_names
-from seggaussian.build.split import SceneSplitInfo, assign_splits, target_val_count
-from seggaussian.build.stages import transfer as transfer_stage
-from seggaussian.build.stages import views as views_stage
+from seggaussian.pipeline.split import SceneSplitInfo, assign_splits, target_val_count
+from seggaussian.pipeline.stages import transfer as transfer_stage
+from seggaussian.pipeline.stages import views as views_stage
 
 synthetic = pytest.importorskip("seggaussian.sources.synthetic.generate")
 

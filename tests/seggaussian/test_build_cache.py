@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from seggaussian.build import cache as build_cache
-from seggaussian.build.dataset import build_dataset
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline import cache as build_cache
+from seggaussian.pipeline.dataset import build_dataset
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.labels.config import OracleConfig
-from seggaussian.build.scene import GAUSSIANS_MODES, STAGE_MODULES
+from seggaussian.pipeline.scene import GAUSSIANS_MODES, STAGE_MODULES
 from seggaussian.util.module_closure import module_file
 
 synthetic = pytest.importorskip("seggaussian.sources.synthetic.generate")
@@ -29,16 +29,16 @@ def test_closures_hold_what_each_stage_runs_and_nothing_else():
     views = _short(build_cache.module_closure(STAGE_MODULES["views"]))
     transfer = _short(build_cache.module_closure(STAGE_MODULES["transfer"]))
     oracle = _short(build_cache.module_closure(GAUSSIANS_MODES["oracle"].__name__))
-    assert {"build.stages.views", "render", "render.labelmaps", "render.blend", "shards", "shards.schema"} <= views
-    assert {"build.stages.transfer", "labels.transfer", "shards", "shards.schema"} <= transfer
-    assert {"build.stages.gaussians_oracle", "labels.oracle", "build.stages.gaussians", "util.seeds"} <= oracle
+    assert {"pipeline.stages.views", "render", "render.labelmaps", "render.blend", "shards", "shards.schema"} <= views
+    assert {"pipeline.stages.transfer", "labels.transfer", "shards", "shards.schema"} <= transfer
+    assert {"pipeline.stages.gaussians_oracle", "labels.oracle", "pipeline.stages.gaussians", "util.seeds"} <= oracle
     assert "labels.transfer" not in views and "labels.oracle" not in views
     assert not any(m.startswith("render") for m in transfer | oracle)
     # the fitting code is not the oracle mode's (its configuration is: BuildConfig holds a FitConfig)
     assert {m for m in oracle if m.startswith("fit.")} == {"fit.config"}
     # a lazy import inside a function is code the stage runs: replica's raycast renders views into the cache
     assert "sources.raycast" in _short(build_cache.module_closure("seggaussian.sources.replica"))
-    for entry in ("seggaussian.build.stages.views", "seggaussian.build.stages.gaussians_fit"):
+    for entry in ("seggaussian.pipeline.stages.views", "seggaussian.pipeline.stages.gaussians_fit"):
         assert all(module_file(m, build_cache.PACKAGE_DIR.parent) is not None for m in build_cache.module_closure(entry))
     with pytest.raises(ModuleNotFoundError, match="no module"):
         build_cache.module_closure("seggaussian.sources.replica_classes")
@@ -80,10 +80,10 @@ def test_changing_one_stage_module_reruns_exactly_that_stage_and_downstream(raw,
 
     assert rebuild_after_editing(None) == {("gaussians", "transfer", "views")}
     assert rebuild_after_editing(None) == {()}
-    assert rebuild_after_editing("build/stages/views.py") == {("views",)}
+    assert rebuild_after_editing("pipeline/stages/views.py") == {("views",)}
     assert rebuild_after_editing("render/labelmaps.py") == {("views",)}
-    assert rebuild_after_editing("build/stages/transfer.py") == {("transfer", "views")}
+    assert rebuild_after_editing("pipeline/stages/transfer.py") == {("transfer", "views")}
     assert rebuild_after_editing("labels/oracle.py") == {("gaussians", "transfer", "views")}
-    assert rebuild_after_editing("build/split.py") == {()}  # not code of any stage
+    assert rebuild_after_editing("pipeline/split.py") == {()}  # not code of any stage
     assert rebuild_after_editing("fit/optimize.py") == {()}  # the fitting mode's code, not the oracle mode's
     assert rebuild_after_editing("core/constants.py") == {("gaussians", "transfer", "views")}

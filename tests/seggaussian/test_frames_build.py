@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from seggaussian.build import dataset as build_mod
+from seggaussian.pipeline import dataset as build_mod
 from seggaussian import shards
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.labels.config import OracleConfig
 from seggaussian.frames.axes import axes_to_rdf
 from seggaussian.frames.colmap_model import read_colmap_model

@@ -12,9 +12,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from seggaussian.build.config import BuildConfig
-from seggaussian.build.stages import transfer as transfer_stage
-from seggaussian.build.stages.transfer import occluded_label_points
+from seggaussian.pipeline.config import BuildConfig
+from seggaussian.pipeline.stages import transfer as transfer_stage
+from seggaussian.pipeline.stages.transfer import occluded_label_points
 from seggaussian.core.cameras import Camera, look_at
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.core.scene import Scene, View

@@ -12,9 +12,9 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from seggaussian.build.scene import STAGES as BUILD_STAGES
-from seggaussian.build.dataset import build_dataset
-from seggaussian.build.config import BuildConfig, ViewConfig
+from seggaussian.pipeline.scene import STAGES as BUILD_STAGES
+from seggaussian.pipeline.dataset import build_dataset
+from seggaussian.pipeline.config import BuildConfig, ViewConfig
 from seggaussian.labels.config import OracleConfig
 from seggaussian.sources.layout import source_of_tree
 from seggaussian.tools.sweep.pareto import Trial

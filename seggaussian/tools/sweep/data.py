@@ -14,9 +14,9 @@ from typing import Callable
 import numpy as np
 
 from seggaussian.util.atomic import atomic_dir, sweep_temps, write_text_atomic
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.labels.config import OracleConfig
-from seggaussian.build.discover import discover
+from seggaussian.pipeline.discover import discover
 from seggaussian.labels.oracle import sample_oracle_gaussians
 from seggaussian.util.seeds import scene_seed
 from seggaussian.sources.layout import reader, source_of_tree

@@ -16,8 +16,8 @@ import time
 import numpy as np
 import torch
 
-from seggaussian.build.stages.views import view_scale
-from seggaussian.build.config import ViewConfig
+from seggaussian.pipeline.stages.views import view_scale
+from seggaussian.pipeline.config import ViewConfig
 from seggaussian.core.constants import IGNORE_LABEL, read_class_names
 from seggaussian.fit.views import evenly_spaced
 from seggaussian.render import compute_blend_weights, rasterize, render_features, render_label_maps

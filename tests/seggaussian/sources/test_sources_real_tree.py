@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from seggaussian.build.dataset import build_dataset
+from seggaussian.pipeline.dataset import build_dataset
 from seggaussian import shards
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.labels.config import OracleConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.fit.views import load_views, masked_render

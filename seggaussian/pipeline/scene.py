@@ -18,16 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.build import cache as build_cache
-from seggaussian.build.config import BuildConfig
-from seggaussian.build.records import SceneOutcome, SceneTask, failed_outcome
+from seggaussian.pipeline import cache as build_cache
+from seggaussian.pipeline.config import BuildConfig
+from seggaussian.pipeline.records import SceneOutcome, SceneTask, failed_outcome
 from seggaussian.core.constants import read_class_names
 from seggaussian.fit.optimize import needs_fit
 from seggaussian.sources.layout import reader
-from seggaussian.build.stages import gaussians as gaussians_stage
-from seggaussian.build.stages import gaussians_fit, gaussians_import, gaussians_oracle
-from seggaussian.build.stages import transfer as transfer_stage
-from seggaussian.build.stages import views as views_stage
+from seggaussian.pipeline.stages import gaussians as gaussians_stage
+from seggaussian.pipeline.stages import gaussians_fit, gaussians_import, gaussians_oracle
+from seggaussian.pipeline.stages import transfer as transfer_stage
+from seggaussian.pipeline.stages import views as views_stage
 
 STAGES = ("gaussians", "transfer", "views")
 #: The module of each mode of the gaussians stage (``gaussians_stage_config``'s ``mode``).

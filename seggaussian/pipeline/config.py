@@ -1,7 +1,7 @@
 """Frozen configuration of the dataset build: label transfer, oracle Gaussians, views, shards, split.
 
 Kept apart from the code that uses it. Every field that changes a stage's output takes part in that
-stage's cache key (``seggaussian.build.scene.stage_keys``), so changing one setting reruns only the stages downstream of it.
+stage's cache key (``seggaussian.pipeline.scene.stage_keys``), so changing one setting reruns only the stages downstream of it.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class ViewConfig:
 
 @dataclass(frozen=True)
 class SplitConfig:
-    """train / val / xval assignment (``seggaussian.build.split``)."""
+    """train / val / xval assignment (``seggaussian.pipeline.split``)."""
 
     #: Paper ratio train, val, cross-domain (230/50/8). ScanNet++ scenes split train:val by the first
     #: two numbers; every Replica scene is cross-domain (xval), whatever the third number.

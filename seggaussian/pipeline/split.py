@@ -19,7 +19,7 @@ import math
 from pathlib import Path
 from typing import NamedTuple
 
-from seggaussian.build.config import SplitConfig
+from seggaussian.pipeline.config import SplitConfig
 
 SPLITS_VERSION = 1
 REPLICA_DOMAIN = "replica"

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.labels.oracle import sample_oracle_gaussians
 from seggaussian.core.scene import Scene
 from seggaussian.util.seeds import scene_seed
-from seggaussian.build.stages.gaussians import save_gaussians
+from seggaussian.pipeline.stages.gaussians import save_gaussians
 
 
 def run(scene: Scene, config: BuildConfig, scene_dir: Path, trained_ply: Path | None = None

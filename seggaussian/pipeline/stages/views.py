@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import torch
 
-from seggaussian.build.config import BuildConfig, ViewConfig
+from seggaussian.pipeline.config import BuildConfig, ViewConfig
 
 from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL

@@ -6,12 +6,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from seggaussian.build.cache import code_digest, sha256_json
-from seggaussian.build.config import BuildConfig
-from seggaussian.build.records import SceneOutcome, SceneTask, failed_outcome
+from seggaussian.pipeline.cache import code_digest, sha256_json
+from seggaussian.pipeline.config import BuildConfig
+from seggaussian.pipeline.records import SceneOutcome, SceneTask, failed_outcome
 from seggaussian.sources.synthetic import generate as synthetic
 from seggaussian.sources.layout import layout_roots, reader
-from seggaussian.build.split import read_official_lists
+from seggaussian.pipeline.split import read_official_lists
 
 
 def synthesize_default(config: BuildConfig) -> list[str]:

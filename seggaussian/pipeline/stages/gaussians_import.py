@@ -5,13 +5,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.frames.frame_config import FrameConfig, frame_record, to_scene_frame
 from seggaussian.frames.transform_spec import resolve_transform
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians
 from seggaussian.core.scene import Scene
-from seggaussian.build.stages.gaussians import save_gaussians
+from seggaussian.pipeline.stages.gaussians import save_gaussians
 
 
 def frame_key(transform_file: Path | None) -> dict:

@@ -11,17 +11,17 @@ import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from seggaussian.build.cache import code_digest, sha256_json
-from seggaussian.build.config import BuildConfig, SplitConfig, config_dict
+from seggaussian.pipeline.cache import code_digest, sha256_json
+from seggaussian.pipeline.config import BuildConfig, SplitConfig, config_dict
 from seggaussian.shards.config import ShardConfig
 from seggaussian.util.atomic import write_json_atomic
-from seggaussian.build.records import SceneOutcome
+from seggaussian.pipeline.records import SceneOutcome
 from seggaussian.core.constants import read_class_names
 from seggaussian.util.jsonsafe import NAN_AS_NULL
 from seggaussian.shards.files import sha256_file
 from seggaussian.shards.layout import MANIFEST_NAME, SPLITS_NAME
 from seggaussian.shards.writer import write_dataset
-from seggaussian.build.split import SceneSplitInfo, assign_splits, read_splits, splits_payload
+from seggaussian.pipeline.split import SceneSplitInfo, assign_splits, read_splits, splits_payload
 
 CACHE_DIR = ".build"
 

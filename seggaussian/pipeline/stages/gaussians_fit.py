@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.fit.optimize import fit_scene
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.core.scene import Scene
 from seggaussian.util.seeds import scene_seed
-from seggaussian.build.stages.gaussians import save_gaussians
+from seggaussian.pipeline.stages.gaussians import save_gaussians
 
 #: Fit metrics copied into the manifest.
 REPORTED_METRICS = ("novel_psnr", "novel_ssim", "novel_l1", "iterations", "early_stop_reason")

@@ -5,9 +5,9 @@
     views      views                                                -> views.parquet
 
 A stage module is the entry point of its stage's code: the build cache key of a stage hashes the source of
-every seggaussian module that its module imports, transitively (``seggaussian.build.cache``). So a stage
+every seggaussian module that its module imports, transitively (``seggaussian.pipeline.cache``). So a stage
 module imports what it runs, and nothing it does not run: the orchestration (mode choice, cache lookup,
-executors) lives in ``seggaussian.build.scene`` and ``seggaussian.build.dataset``.
+executors) lives in ``seggaussian.pipeline.scene`` and ``seggaussian.pipeline.dataset``.
 """
 
 __all__ = ["gaussians", "gaussians_fit", "gaussians_import", "gaussians_oracle", "transfer", "views"]

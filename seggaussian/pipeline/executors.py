@@ -7,9 +7,9 @@ import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-from seggaussian.build.config import BuildConfig
-from seggaussian.build.scene import build_scene
-from seggaussian.build.records import SceneOutcome, SceneTask, failed_outcome
+from seggaussian.pipeline.config import BuildConfig
+from seggaussian.pipeline.scene import build_scene
+from seggaussian.pipeline.records import SceneOutcome, SceneTask, failed_outcome
 from seggaussian.util.threads import cap_threads
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seggaussian.build.config import BuildConfig
+from seggaussian.pipeline.config import BuildConfig
 
 from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL
@@ -24,7 +24,7 @@ from seggaussian.labels.placement import check_placement, measure_placement
 from seggaussian.core.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
 from seggaussian.shards.tables import gaussians_table
-from seggaussian.build.stages.gaussians import save_npz
+from seggaussian.pipeline.stages.gaussians import save_npz
 from seggaussian.labels.transfer import densify_labelled_mesh, distance_gate, transfer_labels
 from seggaussian.labels.scoring import label_accuracy, surface_labels
 
