@@ -41,7 +41,7 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(TrainConfig, "voxel_size", "--voxel-size", type=click.FloatRange(min=0, min_open=True), default=None)
 @config_option(TrainConfig, "use_coordinates", "--use-coordinates/--no-coordinates", default=TrainConfig.use_coordinates,
                show_default=True)
-@config_option(TrainConfig, "input_encoding", "--input-encoding", type=click.Choice(["robust", "raw"]),
+@config_option(TrainConfig, "input_encoding", "--input-encoding", type=click.Choice(["robust", "invariant", "raw"]),
                default=TrainConfig.input_encoding, show_default=True)
 @config_option(TrainConfig, "pool_weighting", "--pool-weighting", type=click.Choice(["opacity", "mean"]),
                default=TrainConfig.pool_weighting, show_default=True)

@@ -37,12 +37,16 @@ class OVGaussianNetConfig:
     use_coordinates: bool = False
     """Append 3 normalized coordinates (position minus scene centre, divided by the scene's
     half-extent, so in [-1, 1]) to the 11 attributes: backbone and adapter see 14 inputs."""
-    input_encoding: Literal["raw", "robust"] = "robust"
+    input_encoding: Literal["raw", "robust", "invariant"] = "robust"
     """How the 11 physical attributes (and the coordinates) are fed to the network. ``raw``: as
     ``gaussian_attributes`` returns them (scales in metres, colour unclamped, coordinates over the bounding box), the
     encoding of runs trained before fitted splats were supported. ``robust``: what a fitted splat's heavy tails
     cannot throw off: colour clamped to [0, 1], log-scales relative to the voxel edge and clipped, coordinates over
-    the 1 %..99 % quantile box of the scene and clipped to [-1.5, 1.5] (floaters far outside the room move nothing)."""
+    the 1 %..99 % quantile box of the scene and clipped to [-1.5, 1.5] (floaters far outside the room move nothing).
+    ``invariant``: what the splat's making cannot move (``network.invariant_attributes``): colour clamped, the scales'
+    shape without their size, the normal of flat Gaussians weighted by their flatness, no opacity (it only weights the
+    pooling); coordinates as ``robust``. Densifying, subsampling, rescaling or reweighting a splat leaves each
+    Gaussian's inputs unchanged."""
     pool_weighting: Literal["mean", "opacity"] = "opacity"
     """How a voxel's input features are pooled from its Gaussians: ``mean`` (each Gaussian counts once) or
     ``opacity`` (weighted by opacity, so the faint Gaussians a fit leaves everywhere count little)."""
@@ -82,8 +86,8 @@ class OVGaussianNetConfig:
             raise ValueError(f"stem_kernel_size must be 1, 3, 5 or 7, got {self.stem_kernel_size}")
         if not self.voxel_size > 0:
             raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
-        if self.input_encoding not in ("raw", "robust"):
-            raise ValueError(f"input_encoding must be 'raw' or 'robust', got {self.input_encoding!r}")
+        if self.input_encoding not in ("raw", "robust", "invariant"):
+            raise ValueError(f"input_encoding must be 'raw', 'robust' or 'invariant', got {self.input_encoding!r}")
         if self.pool_weighting not in ("mean", "opacity"):
             raise ValueError(f"pool_weighting must be 'mean' or 'opacity', got {self.pool_weighting!r}")
         if self.devoxelize not in ("nearest", "trilinear"):

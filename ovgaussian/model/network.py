@@ -42,6 +42,7 @@ from ovgaussian.sparse import (
 )
 from ovgaussian.sparse.devoxelize import PointGather, trilinear_gather
 from seggaussian.core.constants import LOG_SCALE_FLOAT32_MAX, QUAT_NORM_EPS, SH_C0
+from seggaussian.core.rotations import quats_to_rotmats_torch
 
 #: Attribute groups of :func:`gaussian_attributes`, in column order (name, width).
 ATTRIBUTE_GROUPS = (("colour", 3), ("opacity", 1), ("scales", 3), ("quats", 4))
@@ -52,6 +53,12 @@ COORD_NORMALIZATION_MIN_EXTENT = 1e-6
 #: this range, e^-6 (a 0.25 mm splat at 10 cm voxels) to e^2 voxels: the thin and the room-sized Gaussians a fit
 #: leaves behind saturate instead of dominating the input.
 ROBUST_LOG_SCALE_RANGE = (-6.0, 2.0)
+#: ``input_encoding="invariant"``: scales below this (metres) count as this before their logs are taken (a zero
+#: scale would give -inf; 1e-30 is far below any splat's scale and far above float32's smallest normal).
+INVARIANT_MIN_SCALE = 1e-30
+#: ``input_encoding="invariant"``: log-ratios of sorted scales are clipped here (e^-6: a disc 400 times thinner than
+#: wide reads as one 400 times thinner), so that the flattest Gaussians of a fit saturate.
+INVARIANT_LOG_RATIO_MIN = -6.0
 #: ``input_encoding="robust"``: coordinates are normalized by the per-axis quantile box at these levels (not the
 #: bounding box, which one floater far outside the room stretches) and clipped to +-``ROBUST_COORD_CLIP``.
 ROBUST_COORD_QUANTILES = (0.01, 0.99)
@@ -177,6 +184,39 @@ def encode_attributes(attributes: Tensor, voxel_size: float) -> Tensor:
     low, high = ROBUST_LOG_SCALE_RANGE
     log_scales = torch.log(attributes[:, 4:7].clamp_min(1e-30) / voxel_size).clamp(low, high) * 0.5
     return torch.cat([colour, opacity, log_scales, attributes[:, 7:11]], dim=1)
+
+
+def invariant_attributes(attributes: Tensor) -> Tensor:
+    """``input_encoding="invariant"`` of the 11 physical attributes (:func:`gaussian_attributes` columns): only what
+    the splat's making cannot move. Splitting a Gaussian into smaller copies (densification), subsampling, another
+    Gaussian count, another metric scale or another opacity spread leave every column of every remaining Gaussian
+    unchanged (the opacity still weights the voxel pooling, ``OVGaussianNet.pool_weights``):
+
+    0-2 colour: DC colour clamped to [0, 1];
+    3 a constant 1 (the opacity is no input);
+    4-5 shape: ``log(s2 / s1)`` and ``log(s3 / s2)`` of the scales sorted ``s1 >= s2 >= s3``, clipped to
+    ``INVARIANT_LOG_RATIO_MIN`` and halved (0, 0 for a sphere), metric size left out;
+    6 planarity ``a = 1 - s3 / s2``: 0 for a sphere or a needle, towards 1 for a disc;
+    7-10 the disc's normal ``n`` (the axis of the smallest scale), weighted by ``a`` so that a Gaussian without a
+    thin axis gives none: ``a (3 n_z^2 - 1) / 2``, ``a (n_x^2 - n_y^2)``, ``a 2 n_x n_y``, ``a 2 |n_z| |n_xy|``.
+    Each is the same for ``n`` and ``-n``, for ``q`` and ``-q``, and for every way of writing one ellipsoid (axes
+    permuted with their scales); the first and last do not move under the training's rotations about z.
+    """
+    colour = attributes[:, 0:3].clamp(0.0, 1.0)
+    constant = torch.ones_like(attributes[:, 3:4])
+    log_scales = torch.log(attributes[:, 4:7].clamp_min(INVARIANT_MIN_SCALE))
+    sorted_log, order = torch.sort(log_scales, dim=1, descending=True)
+    shape = torch.stack([sorted_log[:, 1] - sorted_log[:, 0], sorted_log[:, 2] - sorted_log[:, 1]], dim=1)
+    shape = shape.clamp(INVARIANT_LOG_RATIO_MIN, 0.0) * 0.5
+    planarity = 1.0 - torch.exp(sorted_log[:, 2] - sorted_log[:, 1])  # [N] in [0, 1)
+    rotmats = quats_to_rotmats_torch(attributes[:, 7:11])  # columns: the Gaussian's axes in the world
+    thinnest = order[:, 2].reshape(-1, 1, 1).expand(-1, 3, 1)
+    normal = rotmats.gather(2, thinnest).reshape(-1, 3)
+    nx, ny, nz = normal.unbind(dim=1)
+    horizontal = torch.sqrt((nx * nx + ny * ny).clamp_min(0.0))
+    orientation = torch.stack([0.5 * (3.0 * nz * nz - 1.0), nx * nx - ny * ny, 2.0 * nx * ny,
+                               2.0 * nz.abs() * horizontal], dim=1) * planarity[:, None]
+    return torch.cat([colour, constant, shape, planarity[:, None], orientation], dim=1)
 
 
 def _relu(x: SparseVoxels) -> SparseVoxels:
@@ -374,9 +414,11 @@ class OVGaussianNet(nn.Module):
         if not bool(torch.isfinite(attributes).all()):
             raise ValueError("attributes contain NaN or Inf")
         width = attributes.shape[1]
-        robust = self.config.input_encoding == "robust"
-        if width == NUM_GAUSSIAN_ATTRIBUTES and robust:
+        robust = self.config.input_encoding != "raw"  # robust and invariant share the robust coordinates
+        if width == NUM_GAUSSIAN_ATTRIBUTES and self.config.input_encoding == "robust":
             attributes = encode_attributes(attributes, self.config.voxel_size)
+        elif width == NUM_GAUSSIAN_ATTRIBUTES and self.config.input_encoding == "invariant":
+            attributes = invariant_attributes(attributes)
         if self.config.use_coordinates and width == NUM_GAUSSIAN_ATTRIBUTES:
             coordinates = (robust_coordinates if robust else normalized_coordinates)(means.detach(), batch_index)
             attributes = torch.cat([attributes, coordinates], dim=1)
@@ -386,7 +428,8 @@ class OVGaussianNet(nn.Module):
 
     def pool_weights(self, attributes: Tensor) -> "Tensor | None":
         """``[N]`` weights of the Gaussians in their voxel's pooled input (``pool_weighting="opacity"``: the
-        opacity, column 3 of the attributes, floored at ``POOL_MIN_WEIGHT``), or None for a plain mean."""
+        opacity, column 3 of the attributes as given to the network, before encoding, floored at
+        ``POOL_MIN_WEIGHT``), or None for a plain mean."""
         if self.config.pool_weighting == "mean":
             return None
         return attributes[:, 3].detach().clamp_min(POOL_MIN_WEIGHT)
@@ -396,8 +439,8 @@ class OVGaussianNet(nn.Module):
         """The stage before the per-Gaussian one: ``(voxel_features [M, S], the Gaussians' PointGather (rows
         [N, K]), network inputs [N, A])`` (inputs checked and encoded, voxelized, the sparse U-Net; the gather is
         ``config.devoxelize``'s)."""
+        weights = self.pool_weights(attributes)  # the given opacity: the invariant encoding does not keep it
         attributes = self.prepare_inputs(means, attributes, batch_index)
-        weights = self.pool_weights(attributes)
         vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
                               weights=weights)
         voxels = vox.voxels
@@ -431,6 +474,7 @@ class OVGaussianNet(nn.Module):
 
 __all__ = [
     "ATTRIBUTE_GROUPS", "OVGaussianNet", "OVGaussianNetConfig", "SparseUNet", "VoxelToPointAdapter",
-    "VoxelSites", "canonical_quat_sign", "encode_attributes", "gaussian_attributes", "normalized_coordinates",
+    "VoxelSites", "canonical_quat_sign", "encode_attributes", "gaussian_attributes", "invariant_attributes",
+    "normalized_coordinates",
     "robust_coordinates",
 ]

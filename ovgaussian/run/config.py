@@ -159,10 +159,12 @@ class TrainConfig:
     use_coordinates: bool = False
     """Also give the network each Gaussian's position, normalized by the scene's extent (height above the floor
     tells floor, wall and ceiling objects apart); off keeps the paper's 11 attributes."""
-    input_encoding: Literal["raw", "robust"] = "robust"
+    input_encoding: Literal["raw", "robust", "invariant"] = "robust"
     """How the Gaussians' attributes enter the network: ``robust`` (colour clamped, log-scales relative to the voxel,
     coordinates over the scene's 1-99 % quantile box: a fitted splat's floaters and huge or faint Gaussians throw
-    nothing off) or ``raw`` (as runs trained before fitted splats were supported)."""
+    nothing off), ``invariant`` (colour, the scales' shape without their size, flat Gaussians' normals, opacity as
+    the pooling weight only: a splat densified, subsampled, rescaled or of another opacity spread gives each
+    Gaussian the same inputs) or ``raw`` (as runs trained before fitted splats were supported)."""
     pool_weighting: Literal["mean", "opacity"] = "opacity"
     """Pooling of Gaussians into a voxel: weighted by ``opacity`` (faint Gaussians count little) or a plain
     ``mean``."""

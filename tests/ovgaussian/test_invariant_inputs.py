@@ -1,0 +1,182 @@
+"""``input_encoding="invariant"``: what the network sees of a splat does not move with how the splat was made.
+
+Per Gaussian, exactly: the sign of the quaternion, the way one ellipsoid is written (axes permuted with their
+scales), its metric size and its opacity change no input, and the copies a split makes have their parent's inputs.
+Per voxel, nearly: a room of flat Gaussians on its walls and floor, densified by splitting, subsampled, with its
+opacities spread otherwise or its scales shrunk (another fit's sizes), gives each voxel nearly the same pooled
+inputs. The robust encoding fails the same check for the last two (the test can fail).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ovgaussian.model.config import OVGaussianNetConfig
+from ovgaussian.model.network import NUM_GAUSSIAN_ATTRIBUTES, OVGaussianNet, invariant_attributes
+from ovgaussian.sparse import voxelize_points
+from seggaussian.core.rotations import quats_to_rotmats, rotmats_to_quats
+
+TINY = dict(widths=(4, 4, 8, 8, 8, 8, 4, 4), blocks=(1, 1, 1, 1, 1, 1, 1, 1), stem_width=4, stem_kernel_size=3,
+            embedding_width=12, voxel_size=0.1)
+
+
+def _attributes(colour, opacity, scales, quats) -> torch.Tensor:
+    """``[N, 11]`` in :func:`gaussian_attributes`' column order from numpy arrays."""
+    return torch.from_numpy(np.concatenate([colour, opacity[:, None], scales, quats], axis=1).astype(np.float32))
+
+
+def _random_gaussians(rng, n):
+    colour = rng.uniform(0, 1, (n, 3))
+    opacity = rng.uniform(0.05, 1, n)
+    scales = np.exp(rng.normal(-4, 1, (n, 3)))
+    quats = rng.normal(size=(n, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    return colour, opacity, scales, quats
+
+
+def test_every_column_is_the_same_for_every_way_of_writing_a_gaussian():
+    rng = np.random.default_rng(0)
+    colour, opacity, scales, quats = _random_gaussians(rng, 500)
+    base = invariant_attributes(_attributes(colour, opacity, scales, quats))
+    assert base.shape == (500, NUM_GAUSSIAN_ATTRIBUTES) and torch.isfinite(base).all()
+    # axes permuted with their scales: R' = R P, s' = P^T s, the same covariance R diag(s^2) R^T
+    perm = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]], np.float64)  # a proper rotation (det +1)
+    rot = quats_to_rotmats(quats) @ perm
+    permuted_scales = scales @ perm  # column j of s' is s[:, perm^-1(j)]
+    cov = quats_to_rotmats(quats) @ (scales[:, :, None] ** 2 * np.eye(3)) @ quats_to_rotmats(quats).transpose(0, 2, 1)
+    cov2 = rot @ (permuted_scales[:, :, None] ** 2 * np.eye(3)) @ rot.transpose(0, 2, 1)
+    np.testing.assert_allclose(cov, cov2, atol=1e-12)  # the same ellipsoids, as meant
+    variants = {
+        "-q": (colour, opacity, scales, -quats),
+        "permuted axes": (colour, opacity, permuted_scales, rotmats_to_quats(rot)),
+        "another size": (colour, opacity, scales * 0.37, quats),
+        "another opacity": (colour, rng.uniform(0.01, 1, 500), scales, quats),
+        "split children (scales / 1.6)": (colour, opacity, scales / 1.6, quats),
+    }
+    for name, arrays in variants.items():
+        torch.testing.assert_close(invariant_attributes(_attributes(*arrays)), base, atol=2e-5, rtol=0, msg=name)
+    # what it does keep: another colour, shape or orientation moves it
+    assert not torch.allclose(invariant_attributes(_attributes(1 - colour, opacity, scales, quats)), base)
+    flatter = scales.copy()
+    flatter[:, 0] *= 0.1
+    assert not torch.allclose(invariant_attributes(_attributes(colour, opacity, flatter, quats)), base)
+
+
+def test_flat_gaussians_give_their_normal_and_round_ones_none():
+    up = np.array([[1.0, 0, 0, 0]])  # identity: the axes are the world's
+    disc_z = invariant_attributes(_attributes(np.full((1, 3), 0.5), np.ones(1), np.array([[0.05, 0.05, 0.0005]]), up))
+    disc_x = invariant_attributes(_attributes(np.full((1, 3), 0.5), np.ones(1), np.array([[0.0005, 0.05, 0.05]]), up))
+    ball = invariant_attributes(_attributes(np.full((1, 3), 0.5), np.ones(1), np.array([[0.05, 0.05, 0.05]]), up))
+    needle = invariant_attributes(_attributes(np.full((1, 3), 0.5), np.ones(1), np.array([[0.5, 0.005, 0.005]]), up))
+    assert disc_z[0, 6] == pytest.approx(0.99) and disc_z[0, 7] == pytest.approx(0.99)  # a floor: n_z = 1
+    assert disc_x[0, 7] == pytest.approx(-0.495) and disc_x[0, 8] == pytest.approx(0.99)  # a wall facing x
+    assert disc_z[0, 4] == 0 and disc_z[0, 5] == pytest.approx(0.5 * math.log(0.01))  # log(s3 / s2), halved
+    for no_normal in (ball, needle):
+        assert torch.all(no_normal[0, 6:] == 0)
+    assert ball[0, 4] == 0 and ball[0, 5] == 0 and ball[0, 3] == 1
+
+
+def _flat_room(rng, n):
+    """Flat Gaussians on the floor (z = 0) and two walls (x = 0, y = 0) of a 3 x 3 x 2.5 m room: colour by surface
+    and a stripe pattern, the normal along the thin axis, in-plane sizes about 2 cm."""
+    surface = rng.integers(0, 3, n)
+    uv = rng.uniform(0, 1, (n, 2))
+    means = np.zeros((n, 3))
+    normal_axis = np.array([2, 0, 1])[surface]
+    for k, (a, b) in enumerate([(0, 1), (1, 2), (0, 2)]):
+        rows = surface == k
+        means[rows, a] = uv[rows, 0] * 3.0
+        means[rows, b] = uv[rows, 1] * (3.0 if b != 2 else 2.5)
+    colour = np.stack([surface == 0, surface == 1, surface == 2], 1) * 0.6 + 0.2
+    colour += 0.15 * np.sin(means.sum(axis=1, keepdims=True) * 7.0)
+    scales = np.exp(rng.normal(np.log(0.02), 0.3, (n, 3)))
+    scales[np.arange(n), normal_axis] = 0.002
+    angle = rng.uniform(0, 2 * np.pi, n)  # spin about the normal: no input may see it
+    quats = np.zeros((n, 4))
+    quats[:, 0] = np.cos(angle / 2)
+    quats[np.arange(n), 1 + normal_axis] = np.sin(angle / 2)
+    opacity = rng.uniform(0.3, 1.0, n)
+    return means, colour, opacity, scales, quats
+
+
+def _split(rng, means, colour, opacity, scales, quats):
+    """3DGS's split: two children drawn from each parent's Gaussian, scales / 1.6, the parent's rotation, colour and
+    opacity."""
+    rot = quats_to_rotmats(quats)
+    children = [means + np.einsum("nij,nj->ni", rot, rng.normal(size=means.shape) * scales) for _ in range(2)]
+    return (np.concatenate(children), np.tile(colour, (2, 1)), np.tile(opacity, 2), np.tile(scales / 1.6, (2, 1)),
+            np.tile(quats, (2, 1)))
+
+
+def _pooled(net: OVGaussianNet, means, colour, opacity, scales, quats) -> dict:
+    """{voxel coordinates: pooled network input} as the network's voxel stage makes them."""
+    attributes = _attributes(colour, opacity, scales, quats)
+    means_t = torch.from_numpy(means.astype(np.float32))
+    batch = torch.zeros(len(means), dtype=torch.long)
+    weights = net.pool_weights(attributes)
+    inputs = net.prepare_inputs(means_t, attributes, batch)
+    vox = voxelize_points(means_t, inputs, batch, net.config.voxel_size, net.config.max_grid_extent, weights=weights)
+    coords = vox.voxels.sites.coords.tolist()
+    return {tuple(c): row for c, row in zip(coords, vox.voxels.features[:, :NUM_GAUSSIAN_ATTRIBUTES])}
+
+
+def _voxel_change(a: dict, b: dict) -> float:
+    """Mean absolute change of the pooled inputs over the voxels both have (the room's corner anchors the grid)."""
+    common = sorted(set(a) & set(b))
+    assert len(common) > 0.8 * min(len(a), len(b))
+    return float(torch.stack([(a[k] - b[k]).abs().mean() for k in common]).mean())
+
+
+def _anchored(arrays, anchor):
+    """Prepend the anchor Gaussians (the room's min corner stays where it is, so the grid does not move)."""
+    return tuple(np.concatenate([x, y]) for x, y in zip(anchor, arrays))
+
+
+def _changes(encoding: str) -> dict:
+    """Mean per-voxel change of the pooled inputs under each way of remaking the room (same draws per encoding)."""
+    rng = np.random.default_rng(1)
+    room = _flat_room(rng, 20_000)
+    anchor = (np.zeros((1, 3)),) + tuple(x[:1] for x in room[1:])
+    net = OVGaussianNet(OVGaussianNetConfig(**TINY, input_encoding=encoding))
+    base = _pooled(net, *_anchored(room, anchor))
+    means, colour, opacity, scales, quats = room
+    keep = rng.random(len(means)) < 0.5
+    logits = np.log(opacity / (1 - opacity))
+    return {
+        "split": _voxel_change(base, _pooled(net, *_anchored(_split(rng, *room), anchor))),
+        "subsample": _voxel_change(base, _pooled(net, *_anchored(tuple(x[keep] for x in room), anchor))),
+        "opacity": _voxel_change(base, _pooled(net, *_anchored(
+            (means, colour, 1 / (1 + np.exp(-(2.5 * logits - 1.0))), scales, quats), anchor))),
+        "size": _voxel_change(base, _pooled(net, *_anchored((means, colour, opacity, scales * 0.35, quats), anchor))),
+    }
+
+
+def test_per_voxel_inputs_under_densify_subsample_opacity_and_size():
+    """What is left of the invariant encoding's change comes from Gaussians that move between voxels (a split's
+    children are drawn around their parent; a subsample leaves other Gaussians in each voxel) and from the pooling
+    weights; the robust encoding also sees the sizes and opacities themselves."""
+    invariant, robust = _changes("invariant"), _changes("robust")
+    bounds = {"split": 0.05, "subsample": 0.02, "opacity": 0.01, "size": 1e-4}
+    for name, bound in bounds.items():
+        assert invariant[name] < bound, (name, invariant)
+        assert invariant[name] < 0.3 * robust[name], (name, invariant, robust)
+    assert robust["size"] > 0.05 and robust["split"] > 0.05, robust
+
+
+def test_the_network_runs_on_the_invariant_encoding_and_pools_by_opacity():
+    net = OVGaussianNet(OVGaussianNetConfig(**TINY, input_encoding="invariant", use_coordinates=True))
+    rng = np.random.default_rng(2)
+    room = _flat_room(rng, 3000)
+    means = torch.from_numpy(room[0].astype(np.float32))
+    attributes = _attributes(*room[1:])
+    out = net(means, attributes, torch.zeros(len(means), dtype=torch.long))
+    assert out.shape == (3000, net.config.semantic_width) and torch.isfinite(out).all()
+    weights = net.pool_weights(attributes)
+    torch.testing.assert_close(weights, attributes[:, 3].clamp_min(1e-3))
+    with pytest.raises(ValueError, match="input_encoding"):
+        OVGaussianNetConfig(**TINY, input_encoding="scaled")
+    assert math.isfinite(float(out.sum()))
