@@ -30,19 +30,20 @@ PRESET_HELP = ("FitConfig to start from: `default` (FitConfig()) or `profile` (F
 @config_option(FitConfig, "max_gaussians", "--max-gaussians", type=int, default=None)
 @config_option(FitConfig, "sh_degree", "--sh-degree", type=int, default=None)
 @config_option(FitConfig, "time_budget_seconds", "--time-budget", type=float, default=None)
+@config_option(FitConfig, "opacity_reset", "--opacity-reset/--no-opacity-reset", default=None)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(source, root, scene_id, out, preset, iterations, downscale, max_gaussians, sh_degree, time_budget, seed, progress,
-            as_json) -> None:
+def command(source, root, scene_id, out, preset, iterations, downscale, max_gaussians, sh_degree, time_budget,
+            opacity_reset, seed, progress, as_json) -> None:
     """Fit a scene's train views (novel views held out for PSNR/SSIM) and write SCENE.ply + SCENE.fit.json.
 
     Unset options keep the FitConfig default; --iterations scales the densification/reset schedule with it."""
     from seggaussian.fit.optimize import fit_to_ply, metrics_path
 
     overrides = {"downscale": downscale, "max_gaussians": max_gaussians, "sh_degree": sh_degree,
-                 "time_budget_seconds": time_budget}
+                 "time_budget_seconds": time_budget, "opacity_reset": opacity_reset}
     config = FitConfig.preset(preset)
     if iterations is not None:  # the whole schedule scales with the number of iterations
         config = config.with_iterations(iterations)

@@ -1,0 +1,184 @@
+"""Benchmark: one trained model scored on several renditions of the same rooms (a splat zoo).
+
+A model should label a room whatever made its splat. For the val and cross-domain rooms of a built dataset, this
+writes renditions of each room, builds each as its own dataset (the same raw tree, so the same labels, split and
+views), and scores every given run on every rendition (3D CSA on the val rooms, 3D CDA on the cross-domain rooms,
+K = 20, ``ovgaussian bench``):
+
+- ``own``: the dataset itself (the fits the runs were trained on, or their like);
+- ``default-fit``: ``seggaussian fit`` with the default preset under a time budget (``--fit-seconds``);
+- ``oracle``: Gaussians sampled on the seen surfaces of the labelled mesh (``seggaussian build --gaussians oracle``);
+- ``vertex``: one isotropic Gaussian per mesh vertex with its colour (a scan turned into splats; scale as 3DGS
+  initializes from points: the root mean square distance to the 3 nearest other vertices), opacity 0.99;
+- ``split``: the own fit densified, every Gaussian split in two as 3DGS splits (children drawn from the parent,
+  scales / 1.6), which no run trains on.
+
+Prints a markdown table (runs x renditions) and writes it with the numbers as JSON (``--out``). Example (the demo):
+
+    .venv/bin/python benchmarks/renditions.py --raw out/demo/raw --data out/demo/dataset \\
+        --run robust=out/demo/run --work out/renditions --out out/renditions/table.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+BIN = Path(sys.executable).parent
+
+#: Opacity of the scan-like vertex Gaussians (a scan's points are solid).
+VERTEX_OPACITY = 0.99
+#: Nearest other vertices whose mean squared distance sets a vertex Gaussian's scale (3DGS's initialization: 3).
+VERTEX_NEIGHBOURS = 3
+#: Smallest scale of a vertex Gaussian (metres): a vertex repeated at one position has no distance to go by.
+VERTEX_MIN_SCALE = 1e-4
+
+
+def run(cmd: list[str]) -> str:
+    result = subprocess.run([str(c) for c in cmd], capture_output=True, text=True, cwd=REPO)
+    if result.returncode:
+        raise SystemExit(f"failed ({result.returncode}): {' '.join(map(str, cmd))}\n{result.stdout}\n{result.stderr}")
+    return result.stdout
+
+
+def scored_scenes(data: Path) -> tuple[list[str], list[str]]:
+    from seggaussian.shards.read import list_scenes
+
+    return list_scenes(data, "val"), list_scenes(data, "xval")
+
+
+def scene_gaussians(data: Path, scene_id: str):
+    """The Gaussians of ``scene_id`` in ``data`` (whichever split holds it)."""
+    from seggaussian.shards.read import read_manifest, read_scene
+
+    split = read_manifest(data)["scenes"][scene_id]["split"]
+    return read_scene(data, split, scene_id, views=False).gaussians
+
+
+def write_vertex_splats(raw: Path, scenes: list[str], out: Path) -> None:
+    """``out/<scene>.ply``: one isotropic Gaussian per mesh vertex."""
+    from scipy.spatial import cKDTree
+
+    from seggaussian.core.constants import SH_C0
+    from seggaussian.core.gaussians import Gaussians
+    from seggaussian.fit.optimize import read_source_scene
+    from seggaussian.io.ply.writer import write_gaussians_ply
+
+    out.mkdir(parents=True, exist_ok=True)
+    for scene_id in scenes:
+        scene = read_source_scene("synthetic", raw, scene_id)
+        points = np.asarray(scene.points, np.float64)
+        d, _ = cKDTree(points).query(points, VERTEX_NEIGHBOURS + 1)
+        scale = np.sqrt(np.mean(d[:, 1:] ** 2, axis=1)).clip(VERTEX_MIN_SCALE)
+        n = len(points)
+        colour = np.asarray(scene.colors, np.float64) / 255.0
+        g = Gaussians.from_arrays(points, np.tile([1.0, 0, 0, 0], (n, 1)), np.repeat(np.log(scale)[:, None], 3, 1),
+                                  np.full(n, np.log(VERTEX_OPACITY / (1 - VERTEX_OPACITY))),
+                                  ((colour - 0.5) / SH_C0)[:, None, :])
+        write_gaussians_ply(out / f"{scene_id}.ply", g)
+
+
+def write_split_splats(data: Path, scenes: list[str], out: Path, seed: int) -> None:
+    """``out/<scene>.ply``: the dataset's Gaussians of each scene, every one split in two (3DGS's split)."""
+    from seggaussian.core.gaussians import Gaussians
+    from seggaussian.core.rotations import quats_to_rotmats
+    from seggaussian.io.ply.writer import write_gaussians_ply
+
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for scene_id in scenes:
+        g = scene_gaussians(data, scene_id)
+        quats = g.quats / np.linalg.norm(g.quats, axis=1, keepdims=True)
+        rot = quats_to_rotmats(quats.astype(np.float64))
+        scales = np.exp(g.log_scales.astype(np.float64))
+        children = [g.means + np.einsum("nij,nj->ni", rot, rng.normal(size=g.means.shape) * scales) for _ in range(2)]
+        split = Gaussians.from_arrays(np.concatenate(children), np.tile(g.quats, (2, 1)),
+                                      np.tile(g.log_scales - np.log(1.6), (2, 1)), np.tile(g.opacity_logits, 2),
+                                      np.tile(g.sh, (2, 1, 1)))
+        write_gaussians_ply(out / f"{scene_id}.ply", split)
+
+
+def write_default_fits(raw: Path, scenes: list[str], out: Path, seconds: float) -> None:
+    """``out/<scene>.ply``: ``seggaussian fit`` with the default preset and a time budget (kept when present)."""
+    out.mkdir(parents=True, exist_ok=True)
+    for scene_id in scenes:
+        if not (out / f"{scene_id}.ply").exists():
+            run([BIN / "seggaussian", "fit", "--root", raw, "--scene", scene_id, "--out", out / f"{scene_id}.ply",
+                 "--time-budget", seconds, "--no-progress"])
+
+
+def build(raw: Path, out: Path, scenes: list[str], extra: list) -> None:
+    run([BIN / "seggaussian", "build", "--source", "synthetic", "--root", raw, "--out", out,
+         "--scenes", ",".join(scenes), "--jobs", 2, "--no-progress", *extra])
+    run([BIN / "seggaussian", "split", "--data", out])
+
+
+def score(data: Path, run_dir: Path, metric: str, report: Path) -> float | None:
+    """3D mIoU (percent) of ``metric`` for the run on ``data`` (``ovgaussian bench``; its report kept at ``report``)."""
+    run([BIN / "ovgaussian", "bench", "--data", data, "--run", run_dir, "--metric", metric, "--dim", "3d",
+         "--classes", 20, "--out", report, "--no-progress"])
+    value = json.loads(report.read_text())["row"].get(f"3d_{metric.upper()}")
+    return None if value is None else 100.0 * float(value)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--raw", type=Path, required=True, help="raw tree the dataset was built from (seggaussian synth)")
+    parser.add_argument("--data", type=Path, required=True, help="the dataset the runs were trained on")
+    parser.add_argument("--run", action="append", required=True, help="NAME=RUN_DIR, repeatable")
+    parser.add_argument("--work", type=Path, required=True, help="folder for the renditions and their datasets")
+    parser.add_argument("--fit-seconds", type=float, default=90.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+
+    runs = dict(item.split("=", 1) for item in args.run)
+    val, xval = scored_scenes(args.data)
+    scenes = val + xval
+    work = args.work
+    datasets = {"own": args.data}
+    write_vertex_splats(args.raw, scenes, work / "ply" / "vertex")
+    write_split_splats(args.data, scenes, work / "ply" / "split", args.seed)
+    write_default_fits(args.raw, scenes, work / "ply" / "default-fit", args.fit_seconds)
+    for name in ("default-fit", "vertex", "split"):
+        datasets[name] = work / "data" / name
+        build(args.raw, datasets[name], scenes, ["--ply-dir", work / "ply" / name, "--fit", "never"])
+    datasets["oracle"] = work / "data" / "oracle"
+    build(args.raw, datasets["oracle"], scenes, ["--gaussians", "oracle"])
+    table: dict = {"scenes": {"val": val, "xval": xval}, "gaussians": {}, "scores": {}}
+    for name, data in datasets.items():
+        table["gaussians"][name] = {s: len(scene_gaussians(data, s).means) for s in scenes}
+    for run_name, run_dir in runs.items():
+        for name, data in datasets.items():
+            for metric in ("csa", "cda"):
+                report = work / "reports" / f"{run_name}-{name}-{metric}.json"
+                report.parent.mkdir(parents=True, exist_ok=True)
+                table["scores"].setdefault(run_name, {}).setdefault(name, {})[metric] = score(
+                    data, Path(run_dir), metric, report)
+    names = list(datasets)
+    lines = ["| run | " + " | ".join(f"{n} CSA / CDA" for n in names) + " |",
+             "|---|" + "---:|" * len(names)]
+    for run_name in runs:
+        cells = []
+        for n in names:
+            s = table["scores"][run_name][n]
+            cells.append(" / ".join("-" if s[m] is None else f"{s[m]:.1f}" for m in ("csa", "cda")))
+        lines.append(f"| {run_name} | " + " | ".join(cells) + " |")
+    counts = " ; ".join(f"{n}: " + ", ".join(f"{c:,}" for c in table["gaussians"][n].values()) for n in names)
+    print("\n".join(lines))
+    print(f"\nGaussians per scene ({', '.join(scenes)}): {counts}")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(table, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
