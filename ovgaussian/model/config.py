@@ -34,6 +34,11 @@ class OVGaussianNetConfig:
     max_grid_extent: int = 4096
     """Adaptive cap: a scene wider than this many voxels on some axis gets a larger voxel
     (extent / (max_grid_extent - 1)) instead of overflowing the key range; 4096 x 5 cm = 205 m."""
+    grid_anchor: Literal["min", "lattice"] = "lattice"
+    """Where the voxel grid lies (``ovgaussian.sparse.voxelize_points``): ``lattice`` = on multiples of the voxel
+    size in the frame of the positions given (``predict`` and ``bench`` recentre a scene by a multiple of it, so two
+    splats of one room share the grid); ``min`` = from the scene's minimum corner (runs trained before: one floater
+    outside the room then moves every voxel boundary)."""
     use_coordinates: bool = False
     """Append 3 normalized coordinates (position minus scene centre, divided by the scene's
     half-extent, so in [-1, 1]) to the 11 attributes: backbone and adapter see 14 inputs."""
@@ -90,6 +95,8 @@ class OVGaussianNetConfig:
             raise ValueError(f"input_encoding must be 'raw', 'robust' or 'invariant', got {self.input_encoding!r}")
         if self.pool_weighting not in ("mean", "opacity"):
             raise ValueError(f"pool_weighting must be 'mean' or 'opacity', got {self.pool_weighting!r}")
+        if self.grid_anchor not in ("min", "lattice"):
+            raise ValueError(f"grid_anchor must be 'min' or 'lattice', got {self.grid_anchor!r}")
         if self.devoxelize not in ("nearest", "trilinear"):
             raise ValueError(f"devoxelize must be 'nearest' or 'trilinear', got {self.devoxelize!r}")
         if self.adapter_attention_width % self.adapter_heads:
@@ -116,4 +123,4 @@ class OVGaussianNetConfig:
 #: Values of the fields added after runs were first saved, for a run folder whose config lacks them: such a run
 #: was trained with these behaviours (``ovgaussian.run.checkpoint`` loads it with them, not with today's defaults).
 LEGACY_FIELD_VALUES = {"input_encoding": "raw", "pool_weighting": "mean", "devoxelize": "nearest",
-                       "voxel_geometry": False}
+                       "voxel_geometry": False, "grid_anchor": "min"}

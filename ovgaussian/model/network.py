@@ -63,6 +63,9 @@ INVARIANT_LOG_RATIO_MIN = -6.0
 #: bounding box, which one floater far outside the room stretches) and clipped to +-``ROBUST_COORD_CLIP``.
 ROBUST_COORD_QUANTILES = (0.01, 0.99)
 ROBUST_COORD_CLIP = 1.5
+#: ``grid_anchor="lattice"``: the voxel grid's origin is a multiple of this many voxels, the stride of the U-Net's
+#: coarsest level (four stride-2 down convolutions), so that no level's cells move with a splat's extreme points.
+GRID_LATTICE_VOXELS = 2 ** 4
 #: ``pool_weighting="opacity"``: smallest weight of a Gaussian, so a voxel of only transparent Gaussians still
 #: gets the mean of its inputs rather than 0/0.
 POOL_MIN_WEIGHT = 1e-3
@@ -426,6 +429,12 @@ class OVGaussianNet(nn.Module):
             raise ValueError(f"attributes have {width} columns, the config expects {self.config.num_attributes}")
         return attributes
 
+    @property
+    def grid_lattice(self) -> int | None:
+        """Voxels between the grid origins allowed (``grid_anchor="lattice"``): the stride of the U-Net's coarsest
+        level, so that every level's grid keeps its place; None for ``grid_anchor="min"``."""
+        return GRID_LATTICE_VOXELS if self.config.grid_anchor == "lattice" else None
+
     def pool_weights(self, attributes: Tensor) -> "Tensor | None":
         """``[N]`` weights of the Gaussians in their voxel's pooled input (``pool_weighting="opacity"``: the
         opacity, column 3 of the attributes as given to the network, before encoding, floored at
@@ -442,7 +451,7 @@ class OVGaussianNet(nn.Module):
         weights = self.pool_weights(attributes)  # the given opacity: the invariant encoding does not keep it
         attributes = self.prepare_inputs(means, attributes, batch_index)
         vox = voxelize_points(means, attributes, batch_index, self.config.voxel_size, self.config.max_grid_extent,
-                              weights=weights)
+                              weights=weights, lattice=self.grid_lattice)
         voxels = vox.voxels
         if self.config.voxel_geometry:
             geometry = voxel_geometry_features(vox.point_offsets, vox.point_to_voxel, len(voxels.sites), weights)

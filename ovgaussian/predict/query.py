@@ -80,6 +80,10 @@ class ModelPredictor:
         if not np.isfinite(means64).all():
             raise ValueError("Gaussians.means holds NaN/Inf")
         centre = 0.5 * (means64.min(axis=0) + means64.max(axis=0))  # as ovgaussian.data.training_data.prepare_scene
+        lattice = self.model.grid_lattice
+        if lattice is not None:  # a multiple of the grid's lattice: the voxels stay where the scene's frame has them
+            step = lattice * self.model.config.voxel_size
+            centre = np.round(centre / step) * step
         means = torch.from_numpy((means64 - centre).astype(np.float32)).to(self.device)
         attributes = gaussian_attributes(gaussians).to(self.device)
         batch_index = torch.zeros(n, dtype=torch.int64, device=self.device)

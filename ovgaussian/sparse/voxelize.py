@@ -115,8 +115,15 @@ def voxelize_points(
     voxel_size: float,
     max_grid_extent: int,
     weights: "Tensor | None" = None,  # [N] positive pooling weights; None: plain mean
+    lattice: int | None = None,
 ) -> Voxelization:
-    """Voxelize points per scene: ``coords = floor((p - scene_min) / voxel_size)``.
+    """Voxelize points per scene: ``coords = floor((p - origin) / voxel_size)``.
+
+    ``lattice`` places the grid. None puts the origin at the scene's minimum corner, so one point further out (a
+    floater) moves every voxel boundary relative to the rest. An integer ``k`` rounds that corner down to a multiple
+    of ``k`` voxels in the points' frame: the voxel boundaries, and those of every coarser level whose stride divides
+    ``k`` (a U-Net's strided levels), stay where they are whatever the extreme points are; an outlier only shifts
+    the integer coordinates by a multiple of ``k``, which no convolution of those levels sees.
 
     The voxel size of a scene grows beyond ``voxel_size`` only when the scene would span more than
     ``max_grid_extent`` voxels along some axis; it is then ``extent / (max_grid_extent - 1)`` so that
@@ -148,8 +155,15 @@ def voxelize_points(
     idx3 = batch_index[:, None].expand(-1, 3)
     lo = lo.scatter_reduce(0, idx3, pts, reduce="amin")
     hi = hi.scatter_reduce(0, idx3, pts, reduce="amax")
+    if lattice is not None and not (isinstance(lattice, int) and lattice >= 1):
+        raise ValueError(f"lattice must be a positive number of voxels or None, got {lattice!r}")
     extent = (hi - lo).clamp_min(0).amax(dim=1)  # [B]
+    if lattice is not None:  # the origin may move down by up to one lattice step: the cap allows for it
+        extent = extent + lattice * voxel_size
     sizes = torch.maximum(torch.full_like(extent, voxel_size), extent / max(max_grid_extent - 1, 1))
+    if lattice is not None and num_scenes:
+        step = sizes[:, None] * lattice
+        lo = torch.floor(lo / step) * step
     scaled = (pts - lo[batch_index]) / sizes[batch_index, None]
     coords = torch.floor(scaled).long()
     coords = coords.clamp_(0, max_grid_extent - 1)  # the scene maximum lands exactly on the cap

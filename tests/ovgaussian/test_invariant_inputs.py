@@ -180,3 +180,54 @@ def test_the_network_runs_on_the_invariant_encoding_and_pools_by_opacity():
     with pytest.raises(ValueError, match="input_encoding"):
         OVGaussianNetConfig(**TINY, input_encoding="scaled")
     assert math.isfinite(float(out.sum()))
+
+
+def test_lattice_voxels_stay_put_when_a_point_is_added_outside():
+    """With ``lattice=k`` the grid's origin is a multiple of k voxels: a point added beyond the scene's corner shifts
+    the integer coordinates by a multiple of k or not at all, and every other point keeps its voxel's neighbours and
+    its offset inside it; with the minimum-corner origin (None) the offsets of every point move."""
+    rng = np.random.default_rng(3)
+    points = torch.from_numpy(rng.uniform(0.37, 3.2, (2000, 3)))
+    outside = torch.cat([points, torch.tensor([[0.37 - 0.43, 0.37 - 0.03, 0.3]], dtype=torch.float64)])
+    feats = torch.ones(2001, 1)
+    batch = torch.zeros(2001, dtype=torch.long)
+    for lattice in (1, 16):
+        a = voxelize_points(points, feats[:2000], batch[:2000], 0.1, 4096, lattice=lattice)
+        b = voxelize_points(outside, feats, batch, 0.1, 4096, lattice=lattice)
+        shift = b.voxels.sites.coords[b.point_to_voxel[:2000]] - a.voxels.sites.coords[a.point_to_voxel]
+        assert (shift == shift[0]).all() and bool((shift[0] % lattice == 0).all())
+        torch.testing.assert_close(a.point_offsets, b.point_offsets[:2000])
+    a = voxelize_points(points, feats[:2000], batch[:2000], 0.1, 4096)
+    b = voxelize_points(outside, feats, batch, 0.1, 4096)
+    assert not torch.allclose(a.point_offsets, b.point_offsets[:2000])
+    with pytest.raises(ValueError, match="lattice"):
+        voxelize_points(points, feats[:2000], batch[:2000], 0.1, 4096, lattice=0)
+
+
+@pytest.mark.parametrize("anchor", ["lattice", "min"])
+def test_predictions_do_not_move_with_two_faint_floaters_on_the_lattice(anchor):
+    """A room predicted twice, the second time with two faint Gaussians a few centimetres beyond its opposite corners
+    (the bounding box and its centre move, the room does not): on the lattice the room's Gaussians keep their semantic
+    vectors but for those whose neighbourhood holds a floater; from the minimum corner nearly all move (what runs
+    before the lattice did)."""
+    from ovgaussian.predict.query import ModelPredictor
+    from ovgaussian.run.config import TextConfig
+    from seggaussian.core.constants import SH_C0
+    from seggaussian.core.gaussians import Gaussians
+
+    rng = np.random.default_rng(4)
+    means, colour, opacity, scales, quats = _flat_room(rng, 3000)
+    means = means + np.array([12.34, -5.67, 0.89])  # a room away from the frame's origin
+    net = OVGaussianNet(OVGaussianNetConfig(**TINY, input_encoding="invariant", grid_anchor=anchor))
+    predictor = ModelPredictor(net, TextConfig())
+
+    def splat(m, c, o, s, q):
+        return Gaussians.from_arrays(m, q, np.log(s), np.log(o / (1 - o)), ((c - 0.5) / SH_C0)[:, None, :])
+
+    lo, hi = means.min(axis=0) - 0.037, means.max(axis=0) + 0.071
+    extra = (np.stack([lo, hi]), colour[:2], np.full(2, 0.01), scales[:2], quats[:2])
+    base = predictor.encode_gaussians(splat(means, colour, opacity, scales, quats))
+    more = predictor.encode_gaussians(splat(*(np.concatenate([x, y]) for x, y in
+                                              zip((means, colour, opacity, scales, quats), extra))))[:3000]
+    moved = float((np.abs(more - base).max(axis=1) > 1e-3).mean())
+    assert moved < 0.1 if anchor == "lattice" else moved > 0.5

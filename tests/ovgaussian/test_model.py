@@ -202,7 +202,8 @@ def test_trilinear_devoxelization_is_the_adapter_on_the_reference_blend():
     net = OVGaussianNet(OVGaussianNetConfig(**TINY, devoxelize="trilinear", seed=2))
     means, attrs, batch = random_scenes(4, (400, 300), extent=1.0)
     voxel_features, _, inputs = net.voxel_stage(means, attrs, batch)
-    vox = voxelize_points(means, inputs, batch, net.config.voxel_size, net.config.max_grid_extent)
+    vox = voxelize_points(means, inputs, batch, net.config.voxel_size, net.config.max_grid_extent,
+                          lattice=net.grid_lattice)
     sites = vox.voxels.sites
     blend = trilinear_gather_reference(sites.coords, sites.batch_index, means, batch, vox.voxel_size, vox.origin)
     want = net.adapter(blend.float() @ voxel_features, inputs)
