@@ -28,10 +28,11 @@ backward and SGD: ``compute_s`` = wall - wait - transfer), as ``ovgaussian train
 
 Loader workers (``--loader-workers N``, ``TrainConfig.loader_workers``): the samples of the next step are prepared in
 N spawned processes while the current step runs, as in training. ``--compare-workers N`` measures, in one run, the
-steps without workers and then with N (each block its own warm-up step) and prints the ratio of the median steps
-and of the peak memory: each block's peak is this process's high-water mark during the block (reset through
-``/proc/self/clear_refs``) plus, with workers, the sum of the workers' peaks (a bound on what they held at once).
-CPU seconds are this process's only (the workers' are not counted).
+steps without workers and then with N (each block its own warm-up step; ``--rounds R`` alternates the two blocks R
+times and pools their steps) and prints the ratio of the median steps and of the peak memory: each block's peak is
+this process's high-water mark during the block (reset through ``/proc/self/clear_refs``) plus, with workers, the
+sum of the workers' own peaks (``VmHWM``; a bound on what they held at once). "step CPU" is this process's; the
+figure in brackets adds the CPU seconds of the worker that drew the step's samples.
 
 Budgets (exit status 1 when one is missed, with the figure printed; issue 31's goals on 2 cores): peak resident
 memory of the process <= --max-peak-gb (8), median step wall time <= --max-step-s (20 s), the sparse U-Net's
@@ -226,11 +227,13 @@ def run(args) -> dict:
     timer = PhaseTimer(torch.cuda.synchronize if device.type == "cuda" else None)
     worker_data = TrainingData(InMemorySource(records), config.data, vocabulary)  # pickled to workers: not wrapped
     instrument(timer, data, net)
-    modes = [args.loader_workers] if args.compare_workers is None else [0, args.compare_workers]
-    blocks = {}
+    modes = [args.loader_workers] if args.compare_workers is None else [0, args.compare_workers] * args.rounds
+    blocks: dict[int, list[dict]] = {}
     for workers in modes:
         source_data = data if workers == 0 else worker_data
-        blocks[workers] = run_block(args, workers, source_data, records, net, optimizer, text, config, device, timer)
+        blocks.setdefault(workers, []).append(run_block(args, workers, source_data, records, net, optimizer, text,
+                                                        config, device, timer))
+    blocks = {workers: merge_blocks(runs) for workers, runs in blocks.items()}
     first = blocks[modes[0]]
     peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     result = {
@@ -257,6 +260,35 @@ def run(args) -> dict:
     return result
 
 
+def merge_blocks(runs: list[dict]) -> dict:
+    """The blocks of one worker count (``--rounds``) as one: their measured steps pooled, medians over all of them,
+    the largest peak."""
+    if len(runs) == 1:
+        return runs[0]
+    steps = [s for r in runs for s in r["steps"]]
+    phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
+    peak = max(runs, key=lambda r: r["block_peak_gb"])
+    return {**summarize_steps(steps, runs[0]["loader_workers"]), "phases_s_median": phases,
+            **{k: peak[k] for k in ("block_peak_gb", "block_main_peak_gb", "block_workers_peak_gb",
+                                    "block_peak_exact")},
+            "backward_over_network": phases["backward"] / max(phases["network"], 1e-9), "rounds": len(runs)}
+
+
+def summarize_steps(steps: list[dict], workers: int) -> dict:
+    """Medians of measured steps (wall, CPU of this process and of the worker that sampled, compute, busy share)."""
+    return {
+        "loader_workers": workers, "steps": steps, "step_wall_s_median": statistics.median(s["wall_s"] for s in steps),
+        "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
+        "step_cpu_with_workers_s_median": statistics.median(s["cpu_s"] + (s["worker_cpu_s"] or 0.0) for s in steps),
+        "compute_s_median": statistics.median(s["compute_s"] for s in steps),
+        "device_busy_median": statistics.median(s["device_busy"] for s in steps),
+        "unet_forward_s_median": statistics.median(s["unet_forward_s"] for s in steps),
+        "unet_backward_s_median": statistics.median(s["unet_backward_s"] for s in steps),
+        "unet_backward_over_forward": statistics.median(s["unet_backward_s"] / max(s["unet_forward_s"], 1e-9)
+                                                        for s in steps),
+    }
+
+
 def reset_peak_rss() -> bool:
     """Reset this process's resident high-water mark (``VmHWM``; Linux 4.0+); False where it cannot be."""
     try:
@@ -267,25 +299,12 @@ def reset_peak_rss() -> bool:
         return False
 
 
-def peak_rss_bytes() -> int:
-    """This process's resident high-water mark since the last :func:`reset_peak_rss` (``ru_maxrss`` where /proc has
-    none)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
 def run_block(args, workers: int, data, records, net, optimizer, text, config, device, timer) -> dict:
     """One warm-up step and ``args.steps`` measured steps, their samples from the library's loader with ``workers``
     loader workers (the same draws for every count: generator entropy (step, scene index), as before workers)."""
     import torch
 
-    from ovgaussian.train.loader import StepTask, samples_to_device, step_loader
+    from ovgaussian.train.loader import StepTask, resident_peak_bytes, samples_to_device, step_loader
     from ovgaussian.train.step_losses import batch_losses
 
     tasks = [StepTask(0, step, tuple((r.scene_id, (step, i)) for i, r in enumerate(records)))
@@ -322,6 +341,7 @@ def run_block(args, workers: int, data, records, net, optimizer, text, config, d
                               "phases_s": {p: timer.seconds.get(p, 0.0) for p in PHASES},
                               "compute_s": end - computing, "device_busy": (end - computing) / wall,
                               "worker_sample_s": loaded.sample_s if workers else None,
+                              "worker_cpu_s": loaded.sample_cpu_s if workers else None,
                               "unet_forward_s": timer.unet_forward, "unet_backward_s": unet_backward,
                               "loss": float(loss.detach())})
             print(f"{workers} loader workers, step {step}{' (warm-up)' if step == 0 and args.steps else ''}: "
@@ -330,22 +350,13 @@ def run_block(args, workers: int, data, records, net, optimizer, text, config, d
                   + ", ".join(f"{p} {timer.seconds.get(p, 0.0):.2f}" for p in PHASES), file=sys.stderr, flush=True)
             del samples, terms, loss, loaded
         worker_peak = loader.worker_peak_bytes() if workers else 0
-    main_peak = peak_rss_bytes()
-    median = statistics.median(s["wall_s"] for s in steps)
+    main_peak = resident_peak_bytes()
     phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
     return {
-        "loader_workers": workers, "steps": steps, "step_wall_s_median": median,
-        "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
-        "phases_s_median": phases,
-        "compute_s_median": statistics.median(s["compute_s"] for s in steps),
-        "device_busy_median": statistics.median(s["device_busy"] for s in steps),
+        **summarize_steps(steps, workers), "phases_s_median": phases,
         "block_peak_gb": (main_peak + worker_peak) / 1024**3, "block_main_peak_gb": main_peak / 1024**3,
         "block_workers_peak_gb": worker_peak / 1024**3, "block_peak_exact": exact_peak,
         "backward_over_network": phases["backward"] / max(phases["network"], 1e-9),
-        "unet_forward_s_median": statistics.median(s["unet_forward_s"] for s in steps),
-        "unet_backward_s_median": statistics.median(s["unet_backward_s"] for s in steps),
-        "unet_backward_over_forward": statistics.median(s["unet_backward_s"] / max(s["unet_forward_s"], 1e-9)
-                                                        for s in steps),
     }
 
 
@@ -427,6 +438,8 @@ def main() -> int:
                         help="processes preparing the next step's samples while a step runs (TrainConfig.loader_workers)")
     parser.add_argument("--compare-workers", type=int, default=None, metavar="N",
                         help="measure the steps without loader workers, then with N, in this run; print the ratios")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="with --compare-workers: alternate the two blocks this many times (medians over all)")
     parser.add_argument("--compare-adapter", type=int, metavar="ROWS", default=None,
                         help="only time the adapter fwd+bwd of ROWS Gaussians, einsum reference vs fast forward, "
                              "at checkpoint chunks of 262,144 and 32,768 rows (interleaved)")
@@ -452,13 +465,14 @@ def main() -> int:
     result = run(args)
     print(json.dumps(result))
     phases = result["phases_s_median"]
-    print("| loader workers | " + " | ".join(PHASES) + " | step wall | step CPU | device busy | peak RSS |")
+    print("| loader workers | " + " | ".join(PHASES) + " | step wall | step CPU (+ workers) | device busy | peak RSS |")
     print("|---|" + "---:|" * (len(PHASES) + 4))
     blocks = ([result["compare_workers"]["without"], result["compare_workers"]["with"]] if "compare_workers" in result
               else [result])
     for block in blocks:
         print(f"| {block['loader_workers']} | " + " | ".join(f"{block['phases_s_median'][p]:.2f}" for p in PHASES)
-              + f" | {block['step_wall_s_median']:.1f} | {block['step_cpu_s_median']:.1f} | "
+              + f" | {block['step_wall_s_median']:.1f} | {block['step_cpu_s_median']:.1f} "
+              f"({block['step_cpu_with_workers_s_median']:.1f}) | "
               f"{100 * block['device_busy_median']:.0f} % | {block['block_peak_gb']:.2f} GB |")
     if "compare_workers" in result:
         c = result["compare_workers"]

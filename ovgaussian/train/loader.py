@@ -80,12 +80,14 @@ class LoadedStep(NamedTuple):
         samples: one ``SceneSample`` per scene of ``task.scenes`` (CPU tensors).
         sample_s: seconds spent drawing them (in this process or a worker).
         wait_s: seconds the training process waited for them (all of ``sample_s`` without workers).
+        sample_cpu_s: CPU seconds of the process that drew them, while it did.
     """
 
     task: StepTask
     samples: list[SceneSample]
     sample_s: float
     wait_s: float
+    sample_cpu_s: float = 0.0
 
 
 class PhaseTimes:
@@ -186,10 +188,10 @@ class InlineLoader:
 
     def __iter__(self) -> Iterator[LoadedStep]:
         for task in self.tasks:
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             samples = prepare_step(self.data, task, self.seed)
             elapsed = time.perf_counter() - start
-            yield LoadedStep(task, samples, elapsed, elapsed)
+            yield LoadedStep(task, samples, elapsed, elapsed, time.process_time() - cpu)
 
     def close(self) -> None:
         pass
@@ -201,10 +203,24 @@ class InlineLoader:
         self.close()
 
 
+def resident_peak_bytes() -> int:
+    """This process's resident high-water mark: ``VmHWM`` of /proc/self/status (that of this program: a spawned
+    process's ``ru_maxrss`` still holds the peak of the process it was forked from before its exec), else
+    ``ru_maxrss``."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
 def _worker_main(index: int, data, seed: int, threads: int, tasks, results, parent_pid: int) -> None:
     """Worker ``index``'s loop: take a task, answer ``("scene", key, id)`` before each scene, then ``("done", key,
-    samples, seconds, (index, peak bytes), teacher_uncached)`` or ``("error", key, message)``; leave on ``None`` or
-    when the parent is gone (checked every ``POLL_S``)."""
+    samples, (seconds, CPU seconds), (index, peak bytes), teacher_uncached)`` or ``("error", key, message)``; leave
+    on ``None`` or when the parent is gone (checked every ``POLL_S``)."""
     cap_threads(threads)
     while True:
         try:
@@ -215,15 +231,15 @@ def _worker_main(index: int, data, seed: int, threads: int, tasks, results, pare
             continue
         if task is None:
             return
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         uncached = data.teacher_uncached
         try:
             samples = prepare_step(data, task, seed, lambda scene_id: results.put(("scene", task.key, scene_id)))
         except LoaderError as error:
             results.put(("error", task.key, str(error)))
             continue
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-        results.put(("done", task.key, samples, time.perf_counter() - start, (index, peak),
+        seconds = (time.perf_counter() - start, time.process_time() - cpu)
+        results.put(("done", task.key, samples, seconds, (index, resident_peak_bytes()),
                      data.teacher_uncached - uncached))
 
 
@@ -273,11 +289,11 @@ class WorkerLoader:
         while self._pending:
             task = self._pending.popleft()
             start = time.perf_counter()
-            samples, sample_s = self._wait_for(task, start)
+            samples, (sample_s, sample_cpu_s) = self._wait_for(task, start)
             self._submit()  # keep one step per worker in flight
-            yield LoadedStep(task, samples, sample_s, time.perf_counter() - start)
+            yield LoadedStep(task, samples, sample_s, time.perf_counter() - start, sample_cpu_s)
 
-    def _wait_for(self, task: StepTask, start: float) -> tuple[list[SceneSample], float]:
+    def _wait_for(self, task: StepTask, start: float) -> tuple[list[SceneSample], tuple[float, float]]:
         while task.key not in self._ready:
             waited = time.perf_counter() - start
             if waited > self.timeout_s:
@@ -293,9 +309,9 @@ class WorkerLoader:
         message = self._ready.pop(task.key)
         if message[0] == "error":
             raise LoaderError(message[2])
-        _, _, samples, sample_s, _, uncached = message
+        _, _, samples, seconds, _, uncached = message
         self.teacher_uncached += uncached
-        return samples, sample_s
+        return samples, seconds
 
     def _receive(self, message: tuple) -> None:
         kind, key = message[0], message[1]
