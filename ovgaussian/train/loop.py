@@ -23,10 +23,9 @@ scenes than ``batch_scenes`` trains on all of them per step. Scenes that are emp
 or are all-ignore are skipped and counted (``TrainResult.skipped``, config.json).
 
 Phases: each step's wait for its samples, their copy to the device and the compute (forward, backward, SGD, the
-metric reduction that waits for the device) are timed ; the share of the step spent in the
-compute is the share the device was busy, logged per epoch and returned in ``TrainResult.phases``
-(``loader.PhaseTimes``). The timings
-stay out of metrics.jsonl, which holds only what the seed determines.
+metric reduction that waits for the device) are timed (``loader.PhaseTimes``); the share of the step spent in the
+compute is the share the device was busy, shown on the progress bar, logged per epoch and returned in
+``TrainResult.phases``. The timings stay out of metrics.jsonl, which holds only what the seed determines.
 
 Determinism: the model initialization, scene order, views, augmentations and pixels follow the seed;
 ``--resume`` restores weights, momentum, batch-norm buffers and the step counter from the last
@@ -63,7 +62,9 @@ from ovgaussian.run.folder import (
     METRIC_NAMES, append_metrics, check_resumable, run_config_payload, truncate_metrics,
 )
 from ovgaussian.data.scene_source import ScanResult, ShardSource, class_weights, scan_scenes
-from ovgaussian.train.loader import LoadedStep, PhaseTimes, phase_line, samples_to_device, step_loader, step_tasks
+from ovgaussian.train.loader import (
+    LoadedStep, PhaseTimes, phase_line, samples_to_device, step_loader, step_tasks, workers_for_gaussians,
+)
 from ovgaussian.train.schedule import epoch_batches, learning_rate
 from ovgaussian.text.teacher import DenseTeacher
 from ovgaussian.text.encoders import load_or_encode_texts
@@ -90,7 +91,8 @@ class TrainResult(NamedTuple):
         checkpoint: the last checkpoint folder.
         notes: things the user should know (loss switched off, batch clamped, ...).
         phases: this call's step timings (``PhaseTimes.summary``): seconds waiting for samples, drawing them,
-            copying them to the device, computing, whole steps, and ``device_busy`` (compute / step).
+            copying them to the device, computing, whole steps, and ``device_busy`` (compute / step); and the
+            ``loader_workers`` this process used.
     """
 
     run_dir: Path
@@ -246,13 +248,17 @@ def global_batch_size(config: TrainConfig, scan: ScanResult, group: ProcessGroup
     return batch_scenes
 
 
-def training_threads(config: TrainConfig, scan: ScanResult, batch_scenes: int, group: ProcessGroup) -> int:
-    """torch and numba threads of this process: ``config.threads``, else chosen from the Gaussians of its share of a
-    step (the usable scenes' mean size times its scenes per step; ``threads_for_gaussians``)."""
+def step_gaussians(scan: ScanResult, batch_scenes: int, group: ProcessGroup) -> int:
+    """Gaussians in this process's share of a step: the usable scenes' mean size times its scenes per step."""
     usable = set(scan.usable)
     sizes = [s.num_gaussians for s in scan.summaries if s.scene_id in usable]
-    per_step = (sum(sizes) / max(len(sizes), 1)) * max(1, batch_scenes // group.world_size)
-    return threads_for_gaussians(int(per_step), config.threads)
+    return int((sum(sizes) / max(len(sizes), 1)) * max(1, batch_scenes // group.world_size))
+
+
+def training_threads(config: TrainConfig, scan: ScanResult, batch_scenes: int, group: ProcessGroup) -> int:
+    """torch and numba threads of this process: ``config.threads``, else chosen from the Gaussians of its share of a
+    step (``threads_for_gaussians``)."""
+    return threads_for_gaussians(step_gaussians(scan, batch_scenes, group), config.threads)
 
 
 def run_cache_budget(source) -> int | None:
@@ -343,11 +349,12 @@ def train_epoch(run: _Run, epoch: int, global_step: int, loaded_steps, times: Ph
         sums += means
         if is_main:
             append_metrics(run.metrics_path, record)
-        if bar is not None:
-            bar.set_postfix({n: f"{v:.3f}" for n, v in zip(METRIC_NAMES, means)})
-            bar.update(1)
         epoch_times.add(step=time.perf_counter() - start)
         epoch_times.steps += 1
+        if bar is not None:
+            busy = epoch_times.summary()["device_busy"]
+            bar.set_postfix({**{n: f"{v:.3f}" for n, v in zip(METRIC_NAMES, means)}, "busy": f"{100 * busy:.0f}%"})
+            bar.update(1)
     if bar is not None:
         bar.close()
     for name, value in epoch_times.seconds.items():
@@ -467,10 +474,11 @@ def train_in_process_group(
     last_epoch_metrics: dict = {}
     end_epoch = config.epochs if config.stop_after_epochs is None else min(config.epochs, config.stop_after_epochs)
     times = PhaseTimes()
+    workers = workers_for_gaussians(step_gaussians(scan, batch_scenes, group), config.loader_workers)
     tasks = step_tasks(config.seed, data.scene_ids, batch_scenes, steps_per_epoch, group.rank, group.world_size,
                        start_epoch, end_epoch)
     with thread_cap(threads):
-        with step_loader(data, tasks, config.seed, config.loader_workers, threads, config.loader_timeout_s) as loader:
+        with step_loader(data, tasks, config.seed, workers, threads, config.loader_timeout_s) as loader:
             loaded_steps = iter(loader)
             for epoch in range(start_epoch, end_epoch):
                 last_epoch_metrics, global_step, checkpoint = train_epoch(run, epoch, global_step, loaded_steps,
@@ -483,4 +491,5 @@ def train_in_process_group(
         if is_main:
             LOG.warning(notes[-1])
     return TrainResult(run_dir, max(end_epoch, start_epoch), global_step, last_epoch_metrics, dict(scan.skipped),
-                       len(scan.usable), last_checkpoint, tuple(notes), times.summary())
+                       len(scan.usable), last_checkpoint, tuple(notes),
+                       {**times.summary(), "loader_workers": workers})

@@ -106,6 +106,7 @@ def test_phase_times_add_up_to_the_step(scenes, tmp_path):
     result = train(tiny_config(tmp_path, 1), source=InMemorySource(scenes), model_config=tiny_model_config(12),
                    text_embeddings=text_stub())
     total = result.phases["total_s"]
+    assert result.phases["loader_workers"] == 0  # not asked for: tiny steps sample in the training process
     assert result.phases["steps"] == 2 and all(v > 0 for k, v in total.items() if k != "transfer")
     assert total["wait"] == total["sample"]  # without workers the step waits for all of its sampling
     assert total["wait"] + total["transfer"] + total["compute"] <= total["step"]
@@ -173,7 +174,17 @@ def test_the_json_summary_reports_the_device_busy_share(scenes, tmp_path):
     assert result.exit_code == 0, result.output
     payload = json.loads(result.output[result.output.index("{"):])
     assert payload["phases"]["steps"] == 2 and 0 < payload["phases"]["device_busy"] < 1
-    assert "device busy" in payload["summary"]
+    assert "device busy" in payload["summary"] and "0 loader workers" in payload["summary"]
+
+
+def test_default_loader_workers_follow_the_step_s_gaussians():
+    from ovgaussian.train.loader import LOADER_MIN_GAUSSIANS, workers_for_gaussians
+
+    assert workers_for_gaussians(LOADER_MIN_GAUSSIANS - 1) == 0
+    assert workers_for_gaussians(LOADER_MIN_GAUSSIANS) == 1 and workers_for_gaussians(3_000_000) == 1
+    assert workers_for_gaussians(3_000_000, 0) == 0 and workers_for_gaussians(10, 2) == 2
+    with pytest.raises(ValueError, match="loader workers"):
+        workers_for_gaussians(10, -1)
 
 
 def test_negative_loader_workers_are_refused():
