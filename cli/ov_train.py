@@ -66,8 +66,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(TrainConfig, "keep_checkpoints", "--keep-checkpoints", type=click.IntRange(min=0),
                default=TrainConfig.keep_checkpoints, show_default=True)
 @config_option(TrainConfig, "threads", "--threads", type=click.IntRange(min=1), default=None)
-@config_option(TrainConfig, "loader_workers", "--loader-workers", type=click.IntRange(min=0), default=None,
-               metavar="N")
+@config_option(TrainConfig, "loader_workers", "--loader-workers", type=click.IntRange(min=0),
+               default=TrainConfig.loader_workers, show_default=True, metavar="N")
 @config_option(TrainConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded

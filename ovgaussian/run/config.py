@@ -150,14 +150,14 @@ class TrainConfig:
     """torch and numba threads of each training process; not given: one thread when a process's step holds fewer than
     1,000,000 Gaussians (with passive OpenMP waits a demo step takes 1.4-1.6 s on one thread, 2.4-2.7 s on two),
     else all of them (``seggaussian.util.threads.threads_for_gaussians``)."""
-    loader_workers: Optional[int] = None
+    loader_workers: int = 0
     """Processes that prepare the next steps' samples (view, augmentation, pixels, blend weights) while the current
     step runs, one step ahead each (pinned and copied without blocking on CUDA); 0 draws them in the training process
     before each step. Every count gives the same samples and weights: each scene's draws are seeded by the run's
-    seed, the epoch, the step and the scene. Not given: 1 when a process's step holds at least 1,000,000 Gaussians,
-    else 0 (at the paper's scale sampling was 6 % of a step on 2 CPU cores and a worker took it off the step, for
-    26 % more peak memory; on smaller steps it is 2-3 % and a worker costs a process; benchmarks/results/
-    paper_scale.md, "Loader workers")."""
+    seed, the epoch, the step and the scene. 0 by default: on 2 CPU cores a worker did not make the paper-scale step
+    shorter (sampling is 5-6 % of it and the step's two threads keep both cores busy) and raised the peak memory by
+    a quarter (benchmarks/results/paper_scale.md, "Loader workers"); on a GPU, where sampling was half of the step,
+    1 is the setting to measure."""
     loader_timeout_s: float = 600.0
     """Seconds the training waits for a step's samples from the loader workers before it stops with an error naming
     the scene (a hung worker)."""
@@ -203,7 +203,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.keep_checkpoints < 0:
             raise ValueError(f"keep_checkpoints must be 0 (keep every epoch) or more, got {self.keep_checkpoints}")
-        if self.loader_workers is not None and self.loader_workers < 0:
+        if self.loader_workers < 0:
             raise ValueError(f"loader_workers must be 0 (sample in the training process) or more, got "
                              f"{self.loader_workers}")
         if not self.loader_timeout_s > 0:

@@ -39,12 +39,8 @@ import torch.multiprocessing as torch_mp
 
 from ovgaussian.data.training_data import SceneSample
 from ovgaussian.train.schedule import epoch_batches, rank_slice, sample_seed
-from seggaussian.util.threads import PARALLEL_MIN_GAUSSIANS, cap_threads
+from seggaussian.util.threads import cap_threads
 
-#: Gaussians in a process's step from which one loader worker is used when none is asked for: at the paper's scale
-#: (3 x 1,000,000) sampling was 6 % of a step on 2 CPU cores and one worker took it off the step; at 3 x 100,000 it
-#: was 2-3 % (benchmarks/results/paper_scale.md, "Loader workers").
-LOADER_MIN_GAUSSIANS = PARALLEL_MIN_GAUSSIANS
 #: Seconds between a worker's checks that its parent still lives, and between the training process's checks that
 #: its workers do while it waits.
 POLL_S = 1.0
@@ -139,16 +135,6 @@ def phase_line(phases: dict) -> str:
     return (f"device busy {100 * phases['device_busy']:.0f} % of a {p['step_s']:.2f} s step (waiting for samples "
             f"{p['wait_s']:.2f} s, drawing them {p['sample_s']:.2f} s, transfer {p['transfer_s']:.2f} s, "
             f"compute {p['compute_s']:.2f} s{workers})")
-
-
-def workers_for_gaussians(gaussians: int, requested: int | None = None) -> int:
-    """Loader workers of a process whose step holds ``gaussians`` Gaussians: ``requested`` when given, else 1 from
-    :data:`LOADER_MIN_GAUSSIANS` on and 0 below."""
-    if requested is not None:
-        if requested < 0:
-            raise ValueError(f"loader workers must be 0 or more, got {requested}")
-        return int(requested)
-    return 1 if gaussians >= LOADER_MIN_GAUSSIANS else 0
 
 
 def task_seed(seed: int, epoch: int, step: int) -> int:

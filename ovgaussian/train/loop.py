@@ -62,9 +62,7 @@ from ovgaussian.run.folder import (
     METRIC_NAMES, append_metrics, check_resumable, run_config_payload, truncate_metrics,
 )
 from ovgaussian.data.scene_source import ScanResult, ShardSource, class_weights, scan_scenes
-from ovgaussian.train.loader import (
-    LoadedStep, PhaseTimes, phase_line, samples_to_device, step_loader, step_tasks, workers_for_gaussians,
-)
+from ovgaussian.train.loader import LoadedStep, PhaseTimes, phase_line, samples_to_device, step_loader, step_tasks
 from ovgaussian.train.schedule import epoch_batches, learning_rate
 from ovgaussian.text.teacher import DenseTeacher
 from ovgaussian.text.encoders import load_or_encode_texts
@@ -248,17 +246,13 @@ def global_batch_size(config: TrainConfig, scan: ScanResult, group: ProcessGroup
     return batch_scenes
 
 
-def step_gaussians(scan: ScanResult, batch_scenes: int, group: ProcessGroup) -> int:
-    """Gaussians in this process's share of a step: the usable scenes' mean size times its scenes per step."""
-    usable = set(scan.usable)
-    sizes = [s.num_gaussians for s in scan.summaries if s.scene_id in usable]
-    return int((sum(sizes) / max(len(sizes), 1)) * max(1, batch_scenes // group.world_size))
-
-
 def training_threads(config: TrainConfig, scan: ScanResult, batch_scenes: int, group: ProcessGroup) -> int:
     """torch and numba threads of this process: ``config.threads``, else chosen from the Gaussians of its share of a
-    step (``threads_for_gaussians``)."""
-    return threads_for_gaussians(step_gaussians(scan, batch_scenes, group), config.threads)
+    step (the usable scenes' mean size times its scenes per step; ``threads_for_gaussians``)."""
+    usable = set(scan.usable)
+    sizes = [s.num_gaussians for s in scan.summaries if s.scene_id in usable]
+    per_step = (sum(sizes) / max(len(sizes), 1)) * max(1, batch_scenes // group.world_size)
+    return threads_for_gaussians(int(per_step), config.threads)
 
 
 def run_cache_budget(source) -> int | None:
@@ -474,7 +468,7 @@ def train_in_process_group(
     last_epoch_metrics: dict = {}
     end_epoch = config.epochs if config.stop_after_epochs is None else min(config.epochs, config.stop_after_epochs)
     times = PhaseTimes()
-    workers = workers_for_gaussians(step_gaussians(scan, batch_scenes, group), config.loader_workers)
+    workers = config.loader_workers
     tasks = step_tasks(config.seed, data.scene_ids, batch_scenes, steps_per_epoch, group.rank, group.world_size,
                        start_epoch, end_epoch)
     with thread_cap(threads):
