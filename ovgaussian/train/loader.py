@@ -27,6 +27,7 @@ samples as they are.
 from __future__ import annotations
 
 import os
+import pickle
 import queue
 import resource
 import time
@@ -274,7 +275,11 @@ class WorkerLoader:
                            for i in range(workers)]
         try:
             for process in self._processes:
-                process.start()
+                try:
+                    process.start()  # pickles ``data`` for the spawned process
+                except (pickle.PicklingError, AttributeError, TypeError) as error:
+                    raise LoaderError(f"loader workers: the training data cannot be sent to a worker process "
+                                      f"({_one_line(error)}); use 0 loader workers") from error
             for _ in range(workers):
                 self._submit()
         except BaseException:

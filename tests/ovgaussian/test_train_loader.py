@@ -49,7 +49,8 @@ class BrokenAfterScan(InMemorySource):
 
 
 def hanging_blend(*args, **kwargs):
-    """A blend-weight function that never returns in time (a hung worker)."""
+    """A blend-weight function that does not return within the test's timeout (a hung worker); were the worker waited
+    on, the run would fail after 300 s with another message."""
     time.sleep(300)
 
 
@@ -153,13 +154,11 @@ def test_a_scene_that_fails_to_load_ends_the_run_with_one_line_naming_it(scenes,
 def test_a_hung_worker_is_reported_within_the_timeout(scenes, tmp_path):
     from ovgaussian.train.loop import train
 
-    start = time.perf_counter()
     with pytest.raises(LoaderError, match=r"^scene scene0\d \(epoch 0 step 0\): no sample from the loader workers "
                                           r"after 4 s \(a worker hung\)$"):
         train(tiny_config(tmp_path, 1, loader_workers=1, loader_timeout_s=4.0), source=InMemorySource(scenes),
               model_config=tiny_model_config(12), text_embeddings=text_stub(), pixel_blend_function=hanging_blend)
-    assert time.perf_counter() - start < 60  # the sleeping worker was terminated, not waited for
-    assert _no_children_left()
+    assert _no_children_left()  # the sleeping worker was terminated, not waited for
 
 
 def test_cli_reports_a_worker_error_in_one_line_without_a_traceback(scenes, tmp_path):
@@ -198,6 +197,17 @@ def test_the_json_summary_reports_the_device_busy_share(scenes, tmp_path):
     payload = json.loads(result.output[result.output.index("{"):])
     assert payload["phases"]["steps"] == 2 and 0 < payload["phases"]["device_busy"] < 1
     assert "device busy" in payload["summary"] and "0 loader workers" in payload["summary"]
+
+
+def test_training_data_that_cannot_reach_a_worker_is_refused_in_one_line(scenes):
+    """A blend function defined in a function cannot be pickled for a spawned worker: one line saying so, no worker
+    left behind."""
+    data = TrainingData(InMemorySource(scenes), DataConfig(blend_top_k=8, pixels_per_view=50), training_vocabulary(20),
+                        pixel_blend_function=lambda *args, **kwargs: None)
+    with pytest.raises(LoaderError, match=r"^loader workers: the training data cannot be sent to a worker process "
+                                          r"\(.*\); use 0 loader workers$"):
+        WorkerLoader(data, _tasks(["scene00"], 1), 0, workers=1, threads=1, timeout_s=60)
+    assert _no_children_left()
 
 
 def test_negative_loader_workers_are_refused():
