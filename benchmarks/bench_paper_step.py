@@ -7,8 +7,12 @@ not part of a step). A step = sampling (view, augmentation, pixels), blend weigh
 (computed on the fly, nothing cached), network forward, M = W S, the three losses, backward, SGD step.
 
 Phases (wall seconds, timed by wrapping the library functions in this process only):
-    sample      view, augmentation of the Gaussians, pixel draw (ovgaussian.data.training_data, without the next line)
+    wait        waiting for the step's samples (ovgaussian.train.loader), less the nested sample and blend: about 0
+                without loader workers; with them, the sampling the workers had not done while the previous step ran
+    sample      view, augmentation of the Gaussians, pixel draw (ovgaussian.data.training_data, without the next line);
+                0 here with loader workers (they sample; their seconds are ``worker_sample_s``)
     blend       blend weights at the sampled pixels (projection, tile binning, pixel kernel)
+    transfer    the samples' copy to the device (ovgaussian.train.loader.samples_to_device; nothing on the CPU)
     voxelize    ovgaussian.sparse.voxelize_points
     kernel_maps submanifold / downsample maps and their gather plans (built once per step: new voxels)
     network     the rest of the network forward (sparse U-Net, adapter; on the eager path the U-Net only)
@@ -18,6 +22,17 @@ Phases (wall seconds, timed by wrapping the library functions in this process on
                 there, so part of what was backward is counted here: compare steps, not this phase
     backward    loss.backward()
     optimizer   SGD step
+
+Device busy: the share of a step's wall time spent after its samples are on the device (the network, the losses,
+backward and SGD: ``compute_s`` = wall - wait - transfer), as ``ovgaussian train`` reports it.
+
+Loader workers (``--loader-workers N``, ``TrainConfig.loader_workers``): the samples of the next step are prepared in
+N spawned processes while the current step runs, as in training. ``--compare-workers N`` measures, in one run, the
+steps without workers and then with N (each block its own warm-up step; ``--rounds R`` alternates the two blocks R
+times and pools their steps) and prints the ratio of the median steps and of the peak memory: each block's peak is
+this process's high-water mark during the block (reset through ``/proc/self/clear_refs``) plus, with workers, the
+sum of the workers' own peaks (``VmHWM``; a bound on what they held at once). "step CPU" is this process's; the
+figure in brackets adds the CPU seconds of the worker that drew the step's samples.
 
 Budgets (exit status 1 when one is missed, with the figure printed; issue 31's goals on 2 cores): peak resident
 memory of the process <= --max-peak-gb (8), median step wall time <= --max-step-s, the sparse U-Net's
@@ -70,7 +85,8 @@ CUDA_STEP_BUDGET_S = 20.0
 
 WIDTH, HEIGHT = 876, 584
 FOCAL = 450.0
-PHASES = ("sample", "blend", "voxelize", "kernel_maps", "network", "render", "losses", "backward", "optimizer")
+PHASES = ("wait", "sample", "blend", "transfer", "voxelize", "kernel_maps", "network", "render", "losses", "backward",
+          "optimizer")
 
 
 def make_room(seed: int, num_gaussians: int, width: int = WIDTH, height: int = HEIGHT, views: int = 1):
@@ -199,7 +215,6 @@ def instrument(timer: PhaseTimer, data, net) -> None:
 
 
 def run(args) -> dict:
-    import numpy as np
     import torch
 
     from ovgaussian.data.scene_source import InMemorySource
@@ -208,7 +223,6 @@ def run(args) -> dict:
     from ovgaussian.run.config import DataConfig, TrainConfig
     from ovgaussian.text.vocabulary import training_vocabulary
     from ovgaussian.train.loop import make_model_config
-    from ovgaussian.train.step_losses import batch_losses
     from seggaussian.util.allocator import settings as allocator_settings
 
     t_setup = time.perf_counter()
@@ -224,39 +238,18 @@ def run(args) -> dict:
     optimizer = torch.optim.SGD(net.parameters(), lr=0.02, momentum=0.9)
     setup_s = time.perf_counter() - t_setup
     timer = PhaseTimer(torch.cuda.synchronize if device.type == "cuda" else None)
+    worker_data = TrainingData(InMemorySource(records), config.data, vocabulary)  # pickled to workers: not wrapped
     instrument(timer, data, net)
-    steps = []
-    voxels = None
-    for step in range(args.steps + 1):
-        timer.seconds.clear()
-        timer.unet_forward, timer.unet_backward_start = 0.0, None
-        t0, c0 = time.perf_counter(), time.process_time()
-        samples = [data.sample(r.scene_id, np.random.default_rng([step, i])) for i, r in enumerate(records)]
-        samples = [s._replace(teacher=torch.randn(len(s.pixels), 384)) for s in samples]
-        optimizer.zero_grad(set_to_none=True)
-        with timer.measure("losses"):
-            terms = batch_losses(net, samples, text, config, True, device)
-            loss = sum(t.total for t in terms) / len(terms)
-        with timer.measure("backward"):
-            loss.backward()
-            timer.synchronize()
-            unet_backward = time.perf_counter() - (timer.unet_backward_start or time.perf_counter())
-        with timer.measure("optimizer"):
-            optimizer.step()
-        timer.synchronize()
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        if step > 0 or args.steps == 0:
-            steps.append({"wall_s": wall, "cpu_s": cpu, "voxels": getattr(timer, "voxels", None), "phases_s": {p: timer.seconds.get(p, 0.0) for p in PHASES},
-                          "unet_forward_s": timer.unet_forward, "unet_backward_s": unet_backward,
-                          "loss": float(loss.detach())})
-        print(f"step {step}{' (warm-up)' if step == 0 and args.steps else ''}: {getattr(timer, 'voxels', 0):,} voxels, "
-              f"{wall:.1f} s wall, {cpu:.1f} s CPU, "
-              + ", ".join(f"{p} {timer.seconds.get(p, 0.0):.2f}" for p in PHASES), file=sys.stderr, flush=True)
-        del samples, terms, loss
+    modes = [args.loader_workers] if args.compare_workers is None else [0, args.compare_workers] * args.rounds
+    blocks: dict[int, list[dict]] = {}
+    for workers in modes:
+        source_data = data if workers == 0 else worker_data
+        blocks.setdefault(workers, []).append(run_block(args, workers, source_data, records, net, optimizer, text,
+                                                        config, device, timer))
+    blocks = {workers: merge_blocks(runs) for workers, runs in blocks.items()}
+    first = blocks[modes[0]]
     peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
-    median = statistics.median(s["wall_s"] for s in steps)
-    phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
-    return {
+    result = {
         "workload": {"scenes": args.scenes, "gaussians_per_scene": args.gaussians, "image": f"{HEIGHT}x{WIDTH}",
                      "pixels_per_view": args.pixels, "preset": args.preset, "devoxelize": args.devoxelize,
                      "loss_gaussians": args.loss_gaussians,
@@ -264,19 +257,120 @@ def run(args) -> dict:
         "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "platform": platform.platform(),
                     "loadavg_at_end": os.getloadavg(),
                     "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "allocator": allocator_settings()},
-        "setup_s": setup_s, "steps": steps, "step_wall_s_median": median,
-        "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
-        "phases_s_median": phases, "peak_rss_gb": peak_gb,
-        "backward_over_network": phases["backward"] / max(phases["network"], 1e-9),
-        "unet_forward_s_median": statistics.median(s["unet_forward_s"] for s in steps),
-        "unet_backward_s_median": statistics.median(s["unet_backward_s"] for s in steps),
-        "unet_backward_over_forward": statistics.median(s["unet_backward_s"] / max(s["unet_forward_s"], 1e-9)
-                                                        for s in steps),
+        "setup_s": setup_s, **first, "peak_rss_gb": peak_gb,
         "device": str(device), "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "peak_gpu_gb": torch.cuda.max_memory_allocated(device) / 1024**3 if device.type == "cuda" else None,
         "machine_type": args.machine.label, "step_budget_enforced": args.step_budget_enforced,
         "budgets": {"peak_rss_gb": args.max_peak_gb, "step_wall_s": args.max_step_s,
                     "unet_backward_over_forward": args.max_backward_ratio},
+    }
+    if args.compare_workers is not None:
+        without, with_ = blocks[0], blocks[args.compare_workers]
+        result["compare_workers"] = {
+            "workers": args.compare_workers, "without": without, "with": with_,
+            "step_ratio": with_["step_wall_s_median"] / without["step_wall_s_median"],
+            "peak_ratio": with_["block_peak_gb"] / without["block_peak_gb"],
+        }
+    return result
+
+
+def merge_blocks(runs: list[dict]) -> dict:
+    """The blocks of one worker count (``--rounds``) as one: their measured steps pooled, medians over all of them,
+    the largest peak."""
+    if len(runs) == 1:
+        return runs[0]
+    steps = [s for r in runs for s in r["steps"]]
+    phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
+    peak = max(runs, key=lambda r: r["block_peak_gb"])
+    return {**summarize_steps(steps, runs[0]["loader_workers"]), "phases_s_median": phases,
+            **{k: peak[k] for k in ("block_peak_gb", "block_main_peak_gb", "block_workers_peak_gb",
+                                    "block_peak_exact")},
+            "backward_over_network": phases["backward"] / max(phases["network"], 1e-9), "rounds": len(runs)}
+
+
+def summarize_steps(steps: list[dict], workers: int) -> dict:
+    """Medians of measured steps (wall, CPU of this process and of the worker that sampled, compute, busy share)."""
+    return {
+        "loader_workers": workers, "steps": steps, "step_wall_s_median": statistics.median(s["wall_s"] for s in steps),
+        "step_cpu_s_median": statistics.median(s["cpu_s"] for s in steps),
+        "step_cpu_with_workers_s_median": statistics.median(s["cpu_s"] + (s["worker_cpu_s"] or 0.0) for s in steps),
+        "compute_s_median": statistics.median(s["compute_s"] for s in steps),
+        "device_busy_median": statistics.median(s["device_busy"] for s in steps),
+        "unet_forward_s_median": statistics.median(s["unet_forward_s"] for s in steps),
+        "unet_backward_s_median": statistics.median(s["unet_backward_s"] for s in steps),
+        "unet_backward_over_forward": statistics.median(s["unet_backward_s"] / max(s["unet_forward_s"], 1e-9)
+                                                        for s in steps),
+    }
+
+
+def reset_peak_rss() -> bool:
+    """Reset this process's resident high-water mark (``VmHWM``; Linux 4.0+); False where it cannot be."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def run_block(args, workers: int, data, records, net, optimizer, text, config, device, timer) -> dict:
+    """One warm-up step and ``args.steps`` measured steps, their samples from the library's loader with ``workers``
+    loader workers (the same draws for every count: generator entropy (step, scene index), as before workers)."""
+    import torch
+
+    from ovgaussian.train.loader import StepTask, resident_peak_bytes, samples_to_device, step_loader
+    from ovgaussian.train.step_losses import batch_losses
+
+    tasks = [StepTask(0, step, tuple((r.scene_id, (step, i)) for i, r in enumerate(records)))
+             for step in range(args.steps + 1)]
+    steps = []
+    exact_peak = reset_peak_rss()
+    with step_loader(data, tasks, 0, workers, torch.get_num_threads(), 3600.0) as loader:
+        loaded_steps = iter(loader)
+        for step in range(args.steps + 1):
+            timer.seconds.clear()
+            timer.unet_forward, timer.unet_backward_start = 0.0, None
+            t0, c0 = time.perf_counter(), time.process_time()
+            with timer.measure("wait"):
+                loaded = next(loaded_steps)
+            with timer.measure("transfer"):
+                samples = samples_to_device(loaded.samples, device)
+            samples = [s._replace(teacher=torch.randn(len(s.pixels), 384)) for s in samples]
+            computing = time.perf_counter()
+            optimizer.zero_grad(set_to_none=True)
+            with timer.measure("losses"):
+                terms = batch_losses(net, samples, text, config, True, device)
+                loss = sum(t.total for t in terms) / len(terms)
+            with timer.measure("backward"):
+                loss.backward()
+                timer.synchronize()
+                unet_backward = time.perf_counter() - (timer.unet_backward_start or time.perf_counter())
+            with timer.measure("optimizer"):
+                optimizer.step()
+            timer.synchronize()
+            end = time.perf_counter()
+            wall, cpu = end - t0, time.process_time() - c0
+            if step > 0 or args.steps == 0:
+                steps.append({"wall_s": wall, "cpu_s": cpu, "voxels": getattr(timer, "voxels", None),
+                              "phases_s": {p: timer.seconds.get(p, 0.0) for p in PHASES},
+                              "compute_s": end - computing, "device_busy": (end - computing) / wall,
+                              "worker_sample_s": loaded.sample_s if workers else None,
+                              "worker_cpu_s": loaded.sample_cpu_s if workers else None,
+                              "unet_forward_s": timer.unet_forward, "unet_backward_s": unet_backward,
+                              "loss": float(loss.detach())})
+            print(f"{workers} loader workers, step {step}{' (warm-up)' if step == 0 and args.steps else ''}: "
+                  f"{getattr(timer, 'voxels', 0):,} voxels, {wall:.1f} s wall, {cpu:.1f} s CPU, device busy "
+                  f"{100 * (end - computing) / wall:.0f} %, "
+                  + ", ".join(f"{p} {timer.seconds.get(p, 0.0):.2f}" for p in PHASES), file=sys.stderr, flush=True)
+            del samples, terms, loss, loaded
+        worker_peak = loader.worker_peak_bytes() if workers else 0
+    main_peak = resident_peak_bytes()
+    phases = {p: statistics.median(s["phases_s"][p] for s in steps) for p in PHASES}
+    return {
+        **summarize_steps(steps, workers), "phases_s_median": phases,
+        "block_peak_gb": (main_peak + worker_peak) / 1024**3, "block_main_peak_gb": main_peak / 1024**3,
+        "block_workers_peak_gb": worker_peak / 1024**3, "block_peak_exact": exact_peak,
+        "backward_over_network": phases["backward"] / max(phases["network"], 1e-9),
     }
 
 
@@ -367,6 +461,12 @@ def main() -> int:
                              "idle threads spinning, which with other processes running burnt 3-7x the CPU of the "
                              "sparse "
                              "U-Net's GEMMs; 'default' leaves the environment as it is")
+    parser.add_argument("--loader-workers", type=int, default=0, metavar="N",
+                        help="processes preparing the next step's samples while a step runs (TrainConfig.loader_workers)")
+    parser.add_argument("--compare-workers", type=int, default=None, metavar="N",
+                        help="measure the steps without loader workers, then with N, in this run; print the ratios")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="with --compare-workers: alternate the two blocks this many times (medians over all)")
     parser.add_argument("--compare-adapter", type=int, metavar="ROWS", default=None,
                         help="only time the adapter fwd+bwd of ROWS Gaussians, einsum reference vs fast forward, "
                              "at checkpoint chunks of 262,144 and 32,768 rows (interleaved)")
@@ -394,10 +494,20 @@ def main() -> int:
     result = run(args)
     print(json.dumps(result))
     phases = result["phases_s_median"]
-    print("| phase | " + " | ".join(PHASES) + " | step wall | step CPU | peak RSS |")
-    print("|---|" + "---:|" * (len(PHASES) + 3))
-    print("| seconds | " + " | ".join(f"{phases[p]:.2f}" for p in PHASES)
-          + f" | {result['step_wall_s_median']:.1f} | {result['step_cpu_s_median']:.1f} | {result['peak_rss_gb']:.2f} GB |")
+    print("| loader workers | " + " | ".join(PHASES) + " | step wall | step CPU (+ workers) | device busy | peak RSS |")
+    print("|---|" + "---:|" * (len(PHASES) + 4))
+    blocks = ([result["compare_workers"]["without"], result["compare_workers"]["with"]] if "compare_workers" in result
+              else [result])
+    for block in blocks:
+        print(f"| {block['loader_workers']} | " + " | ".join(f"{block['phases_s_median'][p]:.2f}" for p in PHASES)
+              + f" | {block['step_wall_s_median']:.1f} | {block['step_cpu_s_median']:.1f} "
+              f"({block['step_cpu_with_workers_s_median']:.1f}) | "
+              f"{100 * block['device_busy_median']:.0f} % | {block['block_peak_gb']:.2f} GB |")
+    if "compare_workers" in result:
+        c = result["compare_workers"]
+        print(f"with {c['workers']} loader workers / without: step {c['step_ratio']:.3f}x, peak memory "
+              f"{c['peak_ratio']:.3f}x ({c['with']['block_main_peak_gb']:.2f} GB here + "
+              f"{c['with']['block_workers_peak_gb']:.2f} GB in the workers, against {c['without']['block_peak_gb']:.2f} GB)")
     failed = []
     if result["peak_rss_gb"] > args.max_peak_gb:
         failed.append(f"peak memory {result['peak_rss_gb']:.2f} GB > {args.max_peak_gb} GB")
@@ -417,7 +527,8 @@ def main() -> int:
     print(f"paper step ({args.scenes} x {args.gaussians:,} Gaussians, {args.pixels:,} px, {args.preset}, "
           f"{args.devoxelize}): "
           f"{result['step_wall_s_median']:.1f} s wall, {result['step_cpu_s_median']:.1f} s CPU, "
-          f"peak {result['peak_rss_gb']:.2f} GB, step budget {args.max_step_s:g} s ({args.machine.label}) -> {status}")
+          f"device busy {100 * result['device_busy_median']:.0f} %, peak {result['peak_rss_gb']:.2f} GB, "
+          f"step budget {args.max_step_s:g} s ({args.machine.label}) -> {status}")
     return 1 if failed else 0
 
 

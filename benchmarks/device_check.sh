@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # GPU checks, run on a lent GPU machine (the project's CI has none): the CUDA-marked tests and the paper-scale
 # training step with the network and the losses on the GPU (bench_paper_step.py --device cuda), once per
-# devoxelization named in $DEVOXELIZE (default "nearest"; e.g. DEVOXELIZE="nearest trilinear").
+# devoxelization named in $DEVOXELIZE (default "nearest"; e.g. DEVOXELIZE="nearest trilinear"); then the step
+# without loader workers against with N, in one run, for each N in $WORKERS (default "1 2"; empty: none).
 #
 #   bash benchmarks/device_check.sh [SOURCE_DIR]     # results under $OUT (default /tmp/device-check)
 #
@@ -29,7 +30,8 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 torch.cuda.is_available(), 'numba', numba.__version__, 'numpy', numpy.__version__)"; } 2>&1 | tee "$OUT/machine.txt"
 echo "== CUDA tests"
 timeout "${TEST_TIMEOUT:-240}" python3 -m pytest -q -p no:cacheprovider -m cuda -rs \
-    tests/ovgaussian/test_train.py tests/ovgaussian/test_ensemble.py tests/seggaussian/render/test_pixel_blend.py \
+    tests/ovgaussian/test_train.py tests/ovgaussian/test_train_loader.py tests/ovgaussian/test_ensemble.py \
+    tests/seggaussian/render/test_pixel_blend.py \
     > "$OUT/pytest_cuda.log" 2>&1
 echo "pytest exit $?"; tail -n 12 "$OUT/pytest_cuda.log"
 [ "${STEPS:-3}" = 0 ] && exit 0  # STEPS=0: the tests alone
@@ -38,4 +40,10 @@ for devoxelize in ${DEVOXELIZE:-nearest}; do
   timeout "${STEP_TIMEOUT:-300}" python3 benchmarks/bench_paper_step.py --device cuda --steps "${STEPS:-3}" \
       --devoxelize "$devoxelize" --max-peak-gb 128 > "$OUT/paper_step_cuda_$devoxelize.txt" 2>&1
   echo "bench exit $?"; tail -n 8 "$OUT/paper_step_cuda_$devoxelize.txt"
+done
+for workers in ${WORKERS-1 2}; do
+  echo "== paper-scale step on the GPU without and with $workers loader workers"
+  timeout "${STEP_TIMEOUT:-300}" python3 benchmarks/bench_paper_step.py --device cuda --steps "${STEPS:-3}" \
+      --compare-workers "$workers" --max-peak-gb 128 > "$OUT/paper_step_cuda_workers$workers.txt" 2>&1
+  echo "bench exit $?"; tail -n 9 "$OUT/paper_step_cuda_workers$workers.txt"
 done

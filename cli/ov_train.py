@@ -66,6 +66,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(TrainConfig, "keep_checkpoints", "--keep-checkpoints", type=click.IntRange(min=0),
                default=TrainConfig.keep_checkpoints, show_default=True)
 @config_option(TrainConfig, "threads", "--threads", type=click.IntRange(min=1), default=None)
+@config_option(TrainConfig, "loader_workers", "--loader-workers", type=click.IntRange(min=0),
+               default=TrainConfig.loader_workers, show_default=True, metavar="N")
 @config_option(TrainConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
@@ -74,7 +76,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
             voxel_size,
             use_coordinates, input_encoding, pool_weighting, devoxelize, voxel_geometry, class_balance, lovasz_weight,
             opacity_power, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
-            splat_augment, verify, keep_checkpoints, threads, progress, as_json):
+            splat_augment, verify, keep_checkpoints, threads, loader_workers, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).
@@ -85,7 +87,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
         voxel_size=voxel_size, use_coordinates=use_coordinates, input_encoding=input_encoding,
         pool_weighting=pool_weighting, devoxelize=devoxelize, voxel_geometry=voxel_geometry,
-        keep_checkpoints=keep_checkpoints, threads=threads,
+        keep_checkpoints=keep_checkpoints, threads=threads, loader_workers=loader_workers,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
                         loss_gaussians=loss_gaussians,
                         holdout_classes=tuple(n.strip() for n in holdout_classes.split(",") if n.strip()),
@@ -98,15 +100,16 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
                         unlabelled_weight=unlabelled_weight),
         optim=OptimConfig(lr=lr, schedule=schedule),
     )
-    from ovgaussian.train.loop import train
+    from ovgaussian.train.loop import phase_line, train
 
     result = train(config)
     m = result.last_epoch_metrics
     skipped = sum(result.skipped.values())
     summary = (f"trained {result.epochs} epochs ({result.steps} steps) on {result.num_scenes} scenes"
-               f" ({skipped} skipped): loss {m.get('loss', float('nan')):.4f} -> {result.checkpoint}")
+               f" ({skipped} skipped): loss {m.get('loss', float('nan')):.4f} -> {result.checkpoint}"
+               f"; {phase_line(result.phases)}")
     payload = {"run": str(result.run_dir), "epochs": result.epochs, "steps": result.steps,
                "metrics": m, "skipped": result.skipped, "scenes": result.num_scenes,
                "checkpoint": None if result.checkpoint is None else str(result.checkpoint),
-               "notes": list(result.notes)}
+               "notes": list(result.notes), "phases": result.phases}
     finish(summary, payload, as_json, details="\n".join(result.notes) or None)

@@ -150,6 +150,17 @@ class TrainConfig:
     """torch and numba threads of each training process; not given: one thread when a process's step holds fewer than
     1,000,000 Gaussians (with passive OpenMP waits a demo step takes 1.4-1.6 s on one thread, 2.4-2.7 s on two),
     else all of them (``seggaussian.util.threads.threads_for_gaussians``)."""
+    loader_workers: int = 0
+    """Processes that prepare the next steps' samples (view, augmentation, pixels, blend weights) while the current
+    step runs, one step ahead each (pinned and copied without blocking on CUDA); 0 draws them in the training process
+    before each step. Every count gives the same samples and weights: each scene's draws are seeded by the run's
+    seed, the epoch, the step and the scene. 0 by default: on 2 CPU cores a worker did not make the paper-scale step
+    shorter (sampling is 5-6 % of it and the step's two threads keep both cores busy) and raised the peak memory by
+    a quarter (benchmarks/results/paper_scale.md, "Loader workers"); on a GPU, where sampling was half of the step,
+    1 is the setting to measure."""
+    loader_timeout_s: float = 600.0
+    """Seconds the training waits for a step's samples from the loader workers before it stops with an error naming
+    the scene (a hung worker)."""
     model_preset: Literal["default", "slim"] = "default"
     """Model width preset: ``default`` (paper widths) or ``slim`` (narrow backbone for CPU)."""
     use_adapter: bool = True
@@ -194,6 +205,11 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.keep_checkpoints < 0:
             raise ValueError(f"keep_checkpoints must be 0 (keep every epoch) or more, got {self.keep_checkpoints}")
+        if self.loader_workers < 0:
+            raise ValueError(f"loader_workers must be 0 (sample in the training process) or more, got "
+                             f"{self.loader_workers}")
+        if not self.loader_timeout_s > 0:
+            raise ValueError(f"loader_timeout_s must be positive, got {self.loader_timeout_s}")
 
 
 def config_to_dict(config) -> dict:

@@ -13,7 +13,7 @@ from seggaussian.util.atomic import write_text_atomic
 
 #: Config fields that may change between an interrupted run and its ``--resume``.
 RESUMABLE_FIELDS = ("epochs", "resume", "stop_after_epochs", "progress", "device", "out", "keep_checkpoints",
-                    "threads")
+                    "threads", "loader_workers", "loader_timeout_s")
 #: Per-step metric names (means over the scenes of the global batch).
 METRIC_NAMES = ("loss", "text_3d", "text_2d", "cosine")
 

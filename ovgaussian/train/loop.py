@@ -4,7 +4,9 @@ One step (global batch of ``batch_scenes`` scenes, one train view each):
 
 1. every process takes its contiguous slice of the batch (``schedule.rank_slice``) and draws each scene's
    view, augmentation and pixels from a generator seeded by (seed, epoch, step, scene id), so the
-   draws do not depend on the number of processes (``data.TrainingData.sample``);
+   draws do not depend on the number of processes (``data.TrainingData.sample``), nor on the number of loader
+   workers that draw them ahead (``loader``, ``TrainConfig.loader_workers``); they are then copied to the device
+   (pinned, without blocking, on CUDA);
 2. the network maps the concatenated scenes to semantic vectors ``s [N, 16]``;
 3. per scene: 3D-to-text CE on ``phi(s)``; ``M = render_features(W, s)`` at the sampled pixels;
    2D-to-text CE on ``phi(M)``; cosine loss of ``psi(M)`` against the MaskCLIP teacher on covered pixels
@@ -20,6 +22,11 @@ The last incomplete batch of an epoch is dropped (the global batch is fixed); a 
 scenes than ``batch_scenes`` trains on all of them per step. Scenes that are empty, have no train view
 or are all-ignore are skipped and counted (``TrainResult.skipped``, config.json).
 
+Phases: each step's wait for its samples, their copy to the device and the compute (forward, backward, SGD, the
+metric reduction that waits for the device) are timed (``loader.PhaseTimes``); the share of the step spent in the
+compute is the share the device was busy, shown on the progress bar, logged per epoch and returned in
+``TrainResult.phases``. The timings stay out of metrics.jsonl, which holds only what the seed determines.
+
 Determinism: the model initialization, scene order, views, augmentations and pixels follow the seed;
 ``--resume`` restores weights, momentum, batch-norm buffers and the step counter from the last
 epoch checkpoint (``run_folder.check_resumable`` refuses other settings or data), and the epoch-indexed
@@ -30,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -54,7 +62,8 @@ from ovgaussian.run.folder import (
     METRIC_NAMES, append_metrics, check_resumable, run_config_payload, truncate_metrics,
 )
 from ovgaussian.data.scene_source import ScanResult, ShardSource, class_weights, scan_scenes
-from ovgaussian.train.schedule import epoch_batches, learning_rate, rank_slice, sample_seed
+from ovgaussian.train.loader import LoadedStep, PhaseTimes, phase_line, samples_to_device, step_loader, step_tasks
+from ovgaussian.train.schedule import epoch_batches, learning_rate
 from ovgaussian.text.teacher import DenseTeacher
 from ovgaussian.text.encoders import load_or_encode_texts
 from ovgaussian.run.config import TrainConfig, config_from_dict
@@ -79,6 +88,9 @@ class TrainResult(NamedTuple):
         num_scenes: usable scenes.
         checkpoint: the last checkpoint folder.
         notes: things the user should know (loss switched off, batch clamped, ...).
+        phases: this call's step timings (``PhaseTimes.summary``): seconds waiting for samples, drawing them,
+            copying them to the device, computing, whole steps, and ``device_busy`` (compute / step); and the
+            ``loader_workers`` this process used.
     """
 
     run_dir: Path
@@ -89,6 +101,7 @@ class TrainResult(NamedTuple):
     num_scenes: int
     checkpoint: Path | None
     notes: tuple[str, ...]
+    phases: dict = {}
 
 
 # --- settings checked before any work --------------------------------------------------------------
@@ -272,15 +285,19 @@ class _Run(NamedTuple):
     metrics_path: Path  # run_dir / METRICS_NAME
 
 
-def train_step(run: _Run, epoch: int, step: int, batch: list[str], global_step: int) -> tuple[dict, np.ndarray]:
-    """One optimizer step on a global batch: ``(metrics record, [4] metric means over the global batch)``."""
+def train_step(run: _Run, epoch: int, step: int, batch: list[str], global_step: int, loaded: LoadedStep,
+               times: PhaseTimes) -> tuple[dict, np.ndarray]:
+    """One optimizer step on a global batch, on this process's ``loaded`` samples: ``(metrics record, [4] metric
+    means over the global batch)``; the transfer and compute seconds are added to ``times``."""
     config, group, optimizer = run.config, run.group, run.optimizer
+    if loaded.task.key != (epoch, step):
+        raise RuntimeError(f"the loader gave the samples of {loaded.task.where()} for epoch {epoch} step {step}")
     lr = learning_rate(global_step, run.total_steps, config.optim.lr, config.optim.schedule)
     for param_group in optimizer.param_groups:
         param_group["lr"] = lr
-    local = rank_slice(batch, group.rank, group.world_size)
-    samples = [run.data.sample(sid, np.random.default_rng(sample_seed(config.seed, epoch, step, sid)))
-               for sid in local]
+    start = time.perf_counter()
+    samples = samples_to_device(loaded.samples, run.device)
+    computing = time.perf_counter()
     optimizer.zero_grad(set_to_none=True)
     terms = batch_losses(run.net, samples, run.text_embeddings, config, run.use_teacher, run.device,
                          run.class_weights, run.unlabelled_columns)
@@ -294,6 +311,7 @@ def train_step(run: _Run, epoch: int, step: int, batch: list[str], global_step: 
     local_sums = [sum(float(getattr(t, name).detach()) for t in terms)
                   for name in ("total", "text_3d", "text_2d", "cosine")]
     means = np.array(reduce_sums(local_sums, group, run.device)) / len(batch)
+    times.add(transfer=computing - start, compute=time.perf_counter() - computing)
     if not np.isfinite(means).all():
         raise FloatingPointError(f"epoch {epoch} step {step}: non-finite loss {means.tolist()}")
     record = {"kind": "step", "epoch": epoch, "step": step, "global_step": global_step + 1, "lr": lr,
@@ -301,8 +319,10 @@ def train_step(run: _Run, epoch: int, step: int, batch: list[str], global_step: 
     return record, means
 
 
-def train_epoch(run: _Run, epoch: int, global_step: int) -> tuple[dict, int, Path | None]:
-    """One epoch: ``(mean metrics, global step after it, its checkpoint folder (rank 0; else None))``."""
+def train_epoch(run: _Run, epoch: int, global_step: int, loaded_steps, times: PhaseTimes
+                ) -> tuple[dict, int, Path | None]:
+    """One epoch on the next steps of the iterator ``loaded_steps`` (``LoadedStep``): ``(mean metrics, global step
+    after it, its checkpoint folder (rank 0; else None))``; its step timings are added to ``times``."""
     config, is_main = run.config, run.group.rank == 0
     torch.manual_seed(config.seed * 100003 + epoch)
     batches = epoch_batches(run.data.scene_ids, run.batch_scenes, config.seed, epoch)[:run.steps_per_epoch]
@@ -310,17 +330,32 @@ def train_epoch(run: _Run, epoch: int, global_step: int) -> tuple[dict, int, Pat
     if config.progress and is_main:
         bar = tqdm(total=len(batches), desc=f"epoch {epoch + 1}/{config.epochs}", unit="step", leave=False)
     sums = np.zeros(len(METRIC_NAMES))
+    epoch_times = PhaseTimes()
     for step, batch in enumerate(batches):
-        record, means = train_step(run, epoch, step, batch, global_step)
+        start = time.perf_counter()
+        loaded = next(loaded_steps, None)
+        if loaded is None:
+            raise RuntimeError(f"the loader ended before epoch {epoch} step {step}")
+        epoch_times.add(wait=loaded.wait_s, sample=loaded.sample_s)
+        record, means = train_step(run, epoch, step, batch, global_step, loaded, epoch_times)
+        del loaded
         global_step += 1
         sums += means
         if is_main:
             append_metrics(run.metrics_path, record)
+        epoch_times.add(step=time.perf_counter() - start)
+        epoch_times.steps += 1
         if bar is not None:
-            bar.set_postfix({n: f"{v:.3f}" for n, v in zip(METRIC_NAMES, means)})
+            busy = epoch_times.summary()["device_busy"]
+            bar.set_postfix({**{n: f"{v:.3f}" for n, v in zip(METRIC_NAMES, means)}, "busy": f"{100 * busy:.0f}%"})
             bar.update(1)
     if bar is not None:
         bar.close()
+    for name, value in epoch_times.seconds.items():
+        times.add(**{name: value})
+    times.steps += epoch_times.steps
+    if is_main and epoch_times.steps:
+        LOG.info("epoch %d: %s", epoch + 1, phase_line(epoch_times.summary()))
     epoch_metrics = dict(zip(METRIC_NAMES, (sums / max(len(batches), 1)).tolist()))
     checkpoint = None
     if is_main:
@@ -432,14 +467,23 @@ def train_in_process_group(
                batch_scenes, steps_per_epoch, steps_per_epoch * config.epochs, run_dir, metrics_path)
     last_epoch_metrics: dict = {}
     end_epoch = config.epochs if config.stop_after_epochs is None else min(config.epochs, config.stop_after_epochs)
+    times = PhaseTimes()
+    workers = config.loader_workers
+    tasks = step_tasks(config.seed, data.scene_ids, batch_scenes, steps_per_epoch, group.rank, group.world_size,
+                       start_epoch, end_epoch)
     with thread_cap(threads):
-        for epoch in range(start_epoch, end_epoch):
-            last_epoch_metrics, global_step, checkpoint = train_epoch(run, epoch, global_step)
-            last_checkpoint = checkpoint if is_main else last_checkpoint
-    if data.teacher_uncached:
-        notes.append(f"teacher features computed {data.teacher_uncached} times without caching: the run folder's "
+        with step_loader(data, tasks, config.seed, workers, threads, config.loader_timeout_s) as loader:
+            loaded_steps = iter(loader)
+            for epoch in range(start_epoch, end_epoch):
+                last_epoch_metrics, global_step, checkpoint = train_epoch(run, epoch, global_step, loaded_steps,
+                                                                          times)
+                last_checkpoint = checkpoint if is_main else last_checkpoint
+            teacher_uncached = data.teacher_uncached + getattr(loader, "teacher_uncached", 0)
+    if teacher_uncached:
+        notes.append(f"teacher features computed {teacher_uncached} times without caching: the run folder's "
                      f"caches reached {100 * CACHE_BUDGET_FRACTION:.0f} % of the dataset's size")
         if is_main:
             LOG.warning(notes[-1])
     return TrainResult(run_dir, max(end_epoch, start_epoch), global_step, last_epoch_metrics, dict(scan.skipped),
-                       len(scan.usable), last_checkpoint, tuple(notes))
+                       len(scan.usable), last_checkpoint, tuple(notes),
+                       {**times.summary(), "loader_workers": workers})
