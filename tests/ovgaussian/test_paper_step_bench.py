@@ -1,3 +1,4 @@
+"""benchmarks/bench_paper_step.py at a tiny scale: it runs, times every phase and the sparse U-Net on its own, and
 it reports the device's busy share and, with ``--compare-workers``, the steps with a loader worker against those
 without, and its budget check fails loudly (exit status 1, the missed figure named) when a budget is missed. Its step
 budget follows the CPU type (benchmarks/machine_type.py): the slower type gets its own, an unknown type is reported
