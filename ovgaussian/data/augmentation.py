@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ovgaussian.run.config import DataConfig
-from seggaussian.core.constants import SH_C0
+from seggaussian.core.constants import QUAT_NORM_EPS, SH_C0
 from seggaussian.core.rotations import quats_to_rotmats, rotmats_to_quats
 
 
@@ -167,3 +167,57 @@ def splat_statistics(rng: np.random.Generator, means: np.ndarray, quats: np.ndar
         sh = np.concatenate([sh, f_sh])
         labels = np.concatenate([labels, np.full(k, ignore_label, labels.dtype)])
     return SplatStatistics(means, quats, scales, opacity, sh, labels)
+
+
+#: ``DataConfig.rendition_augment``: probability that a training sample is remade as another rendition of its splat.
+RENDITION_PROBABILITY = 0.5
+#: Share of the Gaussians split in two is drawn uniformly from this range (0: only moved and rescaled).
+RENDITION_SPLIT_SHARE = (0.0, 1.0)
+#: Every Gaussian moves by a draw from its own Gaussian times a factor drawn from this range (a refit places the
+#: same surface's Gaussians elsewhere on it); split children are drawn at factor 1, as 3DGS draws them.
+RENDITION_JITTER = (0.0, 1.0)
+#: Global log-scale shift (another fit's sizes: the default preset's Gaussians are about 2.5x smaller than the profile's).
+RENDITION_LOG_SCALE_SHIFT = (float(np.log(0.35)), float(np.log(1.2)))
+#: Opacity logits are remapped to ``a * logit + b`` with ``a`` and ``b`` drawn from these ranges (another spread).
+RENDITION_OPACITY_GAIN = (0.5, 2.0)
+RENDITION_OPACITY_BIAS = (-1.5, 1.5)
+#: Children of a split get their parent's scales divided by this (3DGS: 1.6).
+RENDITION_SPLIT_DIVISOR = 1.6
+
+
+def rendition(rng: np.random.Generator, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
+              opacity_logits: np.ndarray, sh_dc: np.ndarray, labels: np.ndarray) -> SplatStatistics:
+    """The same room as another splat would give it, drawn from ``rng``: a share of the Gaussians split in two as
+    3DGS splits (children drawn from the parent, scales divided by ``RENDITION_SPLIT_DIVISOR``, the parent's rotation,
+    colour, opacity and label), every Gaussian moved within its own extent, all sizes shifted and the opacity spread
+    remapped. Row ``i < N`` is still Gaussian ``i`` (its first child where it was split) and second children are
+    appended, so pixel blend weights computed on the stored Gaussians still index the right rows."""
+    n = means.shape[0]
+    if not n:
+        return SplatStatistics(means, quats, log_scales, opacity_logits, sh_dc, labels)
+    rotmats = quats_to_rotmats(quats.astype(np.float64) / np.linalg.norm(quats, axis=1, keepdims=True)
+                               .clip(QUAT_NORM_EPS))
+    scales = np.exp(log_scales.astype(np.float64))
+
+    def draws(rows: np.ndarray, factor) -> np.ndarray:  # positions drawn from the Gaussians of ``rows``
+        local = rng.normal(size=(len(rows), 3)) * scales[rows] * np.reshape(factor, (-1, 1))
+        return means[rows].astype(np.float64) + np.einsum("nij,nj->ni", rotmats[rows], local)
+
+    split = rng.random(n) < rng.uniform(*RENDITION_SPLIT_SHARE)
+    jitter = rng.uniform(*RENDITION_JITTER)
+    every = np.arange(n)
+    new_means = draws(every, np.where(split, 1.0, jitter))
+    new_log_scales = log_scales.astype(np.float64) - np.where(split, np.log(RENDITION_SPLIT_DIVISOR), 0.0)[:, None]
+    rows = np.flatnonzero(split)
+    children = draws(rows, 1.0)
+    shift = rng.uniform(*RENDITION_LOG_SCALE_SHIFT)
+    gain, bias = rng.uniform(*RENDITION_OPACITY_GAIN), rng.uniform(*RENDITION_OPACITY_BIAS)
+    opacity = opacity_logits.astype(np.float64) * gain + bias
+    return SplatStatistics(
+        np.concatenate([new_means, children]).astype(np.float32),
+        np.concatenate([quats, quats[rows]]).astype(np.float32),
+        (np.concatenate([new_log_scales, new_log_scales[rows]]) + shift).astype(np.float32),
+        np.concatenate([opacity, opacity[rows]]).astype(np.float32),
+        np.concatenate([sh_dc, sh_dc[rows]]).astype(np.float32),
+        np.concatenate([labels, labels[rows]]),
+    )

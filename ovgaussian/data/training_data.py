@@ -29,7 +29,8 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 import numpy as np
 import torch
 
-from ovgaussian.data.augmentation import SPLAT_AUGMENT_PROBABILITY, augment_gaussians, sample_augmentation, splat_statistics
+from ovgaussian.data.augmentation import (RENDITION_PROBABILITY, SPLAT_AUGMENT_PROBABILITY, augment_gaussians,
+                                          rendition, sample_augmentation, splat_statistics)
 from ovgaussian.data.cache_budget import folder_bytes
 from ovgaussian.data.scene_source import ScanResult, SceneSource, scan_scenes
 from ovgaussian.text.teacher import sample_patch_features
@@ -301,6 +302,9 @@ class TrainingData:
         if self.config.splat_augment and rng.random() < SPLAT_AUGMENT_PROBABILITY:
             means, quats, log_scales, opacity_logits, sh_dc, labels = splat_statistics(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels, IGNORE_LABEL)
+        if self.config.rendition_augment and rng.random() < RENDITION_PROBABILITY:
+            means, quats, log_scales, opacity_logits, sh_dc, labels = rendition(
+                rng, means, quats, log_scales, opacity_logits, sh_dc, labels)
         loss_rows = None
         wanted = self.config.loss_gaussians
         if wanted is not None and wanted < len(labels):  # drawn last: without it a run draws as before, bitwise

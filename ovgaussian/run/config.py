@@ -42,6 +42,10 @@ class DataConfig:
     """Give any scene a fitted splat's statistics at training time (``ovgaussian.data.augmentation.splat_statistics``):
     per scene, with probability 1/2, opacities redrawn from a fit's spread, log-scales made anisotropic,
     colour noise, and unlabelled floaters added. For training on oracle Gaussians that must then work on fits."""
+    rendition_augment: bool = False
+    """Show each scene, with probability 1/2 per sample, as another splat of the same room would give it
+    (``ovgaussian.data.augmentation.rendition``): a random share of its Gaussians split in two as 3DGS splits, every
+    Gaussian moved within its own extent, sizes shifted and the opacity spread remapped, labels carried along."""
     verify: bool = False
     """Check every shard read against the manifest's sha256 (sizes are always checked)."""
     loss_gaussians: Optional[int] = None

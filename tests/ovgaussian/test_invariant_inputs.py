@@ -231,3 +231,56 @@ def test_predictions_do_not_move_with_two_faint_floaters_on_the_lattice(anchor):
                                               zip((means, colour, opacity, scales, quats), extra))))[:3000]
     moved = float((np.abs(more - base).max(axis=1) > 1e-3).mean())
     assert moved < 0.1 if anchor == "lattice" else moved > 0.5
+
+
+def test_rendition_keeps_rows_labels_and_the_room():
+    """``rendition``: the first N rows are still the N Gaussians (moved within their own extent), second children
+    are appended with their parent's label, colour and rotation, and the same rng gives the same rendition."""
+    from ovgaussian.data.augmentation import RENDITION_SPLIT_DIVISOR, rendition
+
+    rng = np.random.default_rng(5)
+    means, colour, opacity, scales, quats = _flat_room(rng, 4000)
+    labels = rng.integers(0, 5, 4000)
+    args = (means.astype(np.float32), quats.astype(np.float32), np.log(scales).astype(np.float32),
+            np.log(opacity / (1 - opacity)).astype(np.float32), colour.astype(np.float32), labels)
+    out = rendition(np.random.default_rng(7), *args)
+    again = rendition(np.random.default_rng(7), *args)
+    for a, b in zip(out, again):
+        np.testing.assert_array_equal(a, b)
+    n = len(means)
+    extra = len(out.means) - n
+    assert 0 <= extra <= n and len(out.labels) == len(out.means) == len(out.quats)
+    np.testing.assert_array_equal(out.labels[:n], labels)
+    np.testing.assert_array_equal(out.sh_dc[:n], colour.astype(np.float32))
+    # every Gaussian stays within a few of its own largest scales of where it was
+    reach = np.linalg.norm(out.means[:n] - means, axis=1) / scales.max(axis=1)
+    assert np.quantile(reach, 0.999) < 5.0
+    # sizes: one global shift, split ones divided by 1.6 on top
+    shift = out.log_scales[:n] - np.log(scales)
+    assert np.ptp(np.round(shift - shift.min(), 4)) <= np.log(RENDITION_SPLIT_DIVISOR) + 1e-3
+    # the appended children copy a parent: same label, colour and rotation as some original row
+    if extra:
+        parents = {tuple(np.round(q, 5)) + (int(l),) for q, l in zip(quats.astype(np.float32), labels)}
+        assert all(tuple(np.round(q, 5)) + (int(l),) in parents for q, l in zip(out.quats[n:], out.labels[n:]))
+    empty = rendition(np.random.default_rng(0), *(a[:0] for a in args))
+    assert all(len(a) == 0 for a in empty)
+
+
+def test_the_training_data_draws_renditions_only_when_asked():
+    """The trainer's data path applies it (opt-in): some samples then hold more Gaussians than the scene (appended
+    children), with a label for each; without it every sample holds the scene's Gaussians."""
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.data.training_data import TrainingData
+    from ovgaussian.run.config import DataConfig
+    from ovgaussian.text.vocabulary import training_vocabulary
+    from test_train import make_scene
+
+    scene = make_scene(0)
+    n = len(scene.gaussians.means)
+    for flag in (False, True):
+        data = TrainingData(InMemorySource([scene]), DataConfig(rendition_augment=flag, pixels_per_view=64),
+                            training_vocabulary(20))
+        samples = [data.sample(scene.scene_id, np.random.default_rng(s)) for s in range(8)]
+        assert all(len(x.labels) == len(x.means) == len(x.opacity_logits) for x in samples)
+        grew = sum(len(x.means) > n for x in samples)
+        assert (grew > 0) if flag else (grew == 0)
