@@ -63,7 +63,7 @@ def scene_gaussians(data: Path, scene_id: str):
 
 
 def write_vertex_splats(raw: Path, scenes: list[str], out: Path) -> None:
-    """``out/<scene>.ply``: one isotropic Gaussian per mesh vertex."""
+    """``out/<scene>.ply``: one isotropic Gaussian per mesh vertex (kept when present)."""
     from scipy.spatial import cKDTree
 
     from seggaussian.core.constants import SH_C0
@@ -73,6 +73,8 @@ def write_vertex_splats(raw: Path, scenes: list[str], out: Path) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     for scene_id in scenes:
+        if (out / f"{scene_id}.ply").exists():  # kept: the rendition datasets' build caches stay valid
+            continue
         scene = read_source_scene("synthetic", raw, scene_id)
         points = np.asarray(scene.points, np.float64)
         d, _ = cKDTree(points).query(points, VERTEX_NEIGHBOURS + 1)
@@ -86,14 +88,17 @@ def write_vertex_splats(raw: Path, scenes: list[str], out: Path) -> None:
 
 
 def write_split_splats(data: Path, scenes: list[str], out: Path, seed: int) -> None:
-    """``out/<scene>.ply``: the dataset's Gaussians of each scene, every one split in two (3DGS's split)."""
+    """``out/<scene>.ply``: the dataset's Gaussians of each scene, every one split in two (3DGS's split; kept when
+    present, so the split datasets of several runs' benches are the same)."""
     from seggaussian.core.gaussians import Gaussians
     from seggaussian.core.rotations import quats_to_rotmats
     from seggaussian.io.ply.writer import write_gaussians_ply
 
     out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
     for scene_id in scenes:
+        if (out / f"{scene_id}.ply").exists():  # kept: the rendition datasets' build caches stay valid
+            continue
+        rng = np.random.default_rng([seed, scenes.index(scene_id)])
         g = scene_gaussians(data, scene_id)
         quats = g.quats / np.linalg.norm(g.quats, axis=1, keepdims=True)
         rot = quats_to_rotmats(quats.astype(np.float64))
