@@ -27,7 +27,7 @@ NODE_STAMP := $(NODE_DIR)/.installed-$(SPLAT_TRANSFORM_VERSION)-spz$(NIANTIC_SPZ
 # test extra through executable_path; `playwright install` is never run).
 CHROMIUM := /usr/bin/chromium
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test clean
 
 setup: $(STAMP) $(NODE_STAMP) $(CHROMIUM)
 
@@ -69,9 +69,6 @@ demo: $(STAMP) $(NODE_STAMP)
 
 test: $(STAMP) $(NODE_STAMP) $(CHROMIUM)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
-
-bench: $(STAMP)
-	bash benchmarks/run_all.sh
 
 clean:
 	rm -rf out .pytest_cache
