@@ -34,11 +34,11 @@ class OVGaussianNetConfig:
     max_grid_extent: int = 4096
     """Adaptive cap: a scene wider than this many voxels on some axis gets a larger voxel
     (extent / (max_grid_extent - 1)) instead of overflowing the key range; 4096 x 5 cm = 205 m."""
-    grid_anchor: Literal["min", "lattice"] = "lattice"
-    """Where the voxel grid lies (``ovgaussian.sparse.voxelize_points``): ``lattice`` = on multiples of the voxel
-    size in the frame of the positions given (``predict`` and ``bench`` recentre a scene by a multiple of it, so two
-    splats of one room share the grid); ``min`` = from the scene's minimum corner (runs trained before: one floater
-    outside the room then moves every voxel boundary)."""
+    grid_anchor: Literal["min", "lattice"] = "min"
+    """Where the voxel grid lies (``ovgaussian.sparse.voxelize_points``): ``min`` = from the scene's minimum corner
+    (one floater outside the room then moves every voxel boundary); ``lattice`` = on multiples of 16 voxels (the
+    coarsest level's stride) in the frame of the positions given (``predict`` and ``bench`` recentre a scene by a
+    multiple of it, so two splats of one room share every level's grid)."""
     use_coordinates: bool = False
     """Append 3 normalized coordinates (position minus scene centre, divided by the scene's
     half-extent, so in [-1, 1]) to the 11 attributes: backbone and adapter see 14 inputs."""

@@ -187,6 +187,11 @@ class TrainConfig:
     """How a Gaussian reads the voxel features: its own voxel's (``nearest``: all Gaussians of a voxel alike) or a
     ``trilinear`` blend of the occupied voxels around it, by its position (Gaussians at a boundary lean to the side
     they lie on)."""
+    grid_anchor: Literal["min", "lattice"] = "min"
+    """Where the network's voxel grid lies: ``min`` (from each scene's minimum corner, so a floater beyond the room
+    moves every voxel boundary and with them the labels) or ``lattice`` (on multiples of 16 voxels of the scene's
+    frame: floaters move nothing). ``min`` stays the default until ``lattice`` is measured on the benchmark profile
+    (benchmarks/results/renditions.md)."""
     voxel_geometry: bool = False
     """Also give the backbone how the Gaussians' centres lie in each voxel (their mean offset and covariance: a
     surface's orientation, which a fitted splat's own rotations do not carry); off: the pooled attributes alone."""

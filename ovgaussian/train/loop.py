@@ -112,7 +112,7 @@ def make_model_config(config: TrainConfig, text_width: int) -> OVGaussianNetConf
     fields = dict(embedding_width=int(text_width), use_adapter=config.use_adapter, seed=config.seed,
                   use_coordinates=config.use_coordinates, input_encoding=config.input_encoding,
                   pool_weighting=config.pool_weighting, devoxelize=config.devoxelize,
-                  voxel_geometry=config.voxel_geometry)
+                  voxel_geometry=config.voxel_geometry, grid_anchor=config.grid_anchor)
     if config.voxel_size is not None:
         fields["voxel_size"] = float(config.voxel_size)
     if config.model_preset == "slim":
