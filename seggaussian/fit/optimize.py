@@ -229,7 +229,8 @@ def fit_scene(scene: Scene, config: FitConfig, *, seed: int, progress: bool = Tr
                 densify_log.append(dict(counts, iteration=iteration))
             if (config.opacity_reset and iteration < config.densify_until
                     and iteration % config.opacity_reset_every == 0):
-                if iterations_left(iteration, config, time.perf_counter() - start, step_times) >= config.opacity_reset_every:
+                left = iterations_left(iteration, config, time.perf_counter() - start, step_times)
+                if left >= config.opacity_reset_every:
                     reset_opacity(params, config.opacity_reset_value)
                     opacity_resets.append(iteration)
                 else:  # the run would end before the Gaussians are opaque again: the reset goes

@@ -25,11 +25,12 @@ against every triangle (float64; tiny meshes only).
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from seggaussian.core.cameras import Camera
+from seggaussian.labels.transfer import HiddenSurfaceHits
 from seggaussian.sources.raycast import RAY_PARALLEL_EPS, MeshRaycaster
 
 #: Default of ``TransferConfig.occlusion_tolerance`` (metres): half the 2 cm between the synthetic rooms' windows and
@@ -44,21 +45,6 @@ DEFAULT_ON_SURFACE_TOLERANCE = 0.003
 #: Triangles whose doubled area is below this (square metres) have no usable barycentric frame in the reference's
 #: closest-point search; only their corners and edges are measured there.
 DEGENERATE_TRIANGLE_AREA = 1e-18
-
-
-class HiddenSurfaceHits(NamedTuple):
-    """Gaussians that lie on a surface no train view sees.
-
-    Fields:
-        rows: ``[R]`` int64 rows of the Gaussians, ascending.
-        vertex: ``[R]`` int64 the mesh vertex whose labels each takes (largest barycentric weight of its closest
-            point on its closest triangle).
-        distances: ``[R]`` float32 distance (metres) from each Gaussian centre to that closest point.
-    """
-
-    rows: np.ndarray
-    vertex: np.ndarray
-    distances: np.ndarray
 
 
 def points_in_image(points: np.ndarray, camera: Camera) -> np.ndarray:  # [P, 3] -> [P] bool
@@ -168,11 +154,11 @@ def _check_means(means: np.ndarray, on_surface_tolerance: float) -> np.ndarray:
 
 
 def _hits(rows, tri, bary, distance, faces, occluded) -> HiddenSurfaceHits:
-    """The rows (of the candidates ``rows``) whose closest point is occluded, with their label vertex."""
-    keep = occluded
-    corner = np.argmax(bary[keep], axis=1)
-    vertex = faces[tri[keep], corner]
-    return HiddenSurfaceHits(rows[keep].astype(np.int64), vertex.astype(np.int64), distance[keep].astype(np.float32))
+    """Of the Gaussians ``rows`` near the mesh, those whose closest point is ``occluded``, with the vertex of the
+    largest barycentric weight ``bary`` on their closest triangle ``tri``."""
+    vertex = faces[tri[occluded], np.argmax(bary[occluded], axis=1)]
+    return HiddenSurfaceHits(rows[occluded].astype(np.int64), vertex.astype(np.int64),
+                             distance[occluded].astype(np.float32))
 
 
 def _no_hits() -> HiddenSurfaceHits:

@@ -27,16 +27,13 @@ Conventions (documented again in ``data_specs/SHARDS.md``):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from seggaussian.labels.config import TransferConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.knn import nearest_neighbours
-
-if TYPE_CHECKING:
-    from seggaussian.labels.occlusion import HiddenSurfaceHits
 
 #: Distance written for a Gaussian that was never queried (outside the box, non-finite centre, or no
 #: candidate point): a finite, impossible distance instead of inf so that columns stay NaN/Inf-free.
@@ -124,11 +121,18 @@ class PreparedInputs(NamedTuple):
     multilabel: np.ndarray  # [P, 3] int32
     candidate_index: np.ndarray  # [C] int64 rows of points that may give labels
     all_candidates: bool  # candidate_index == arange(P)
-    on_surface: SurfaceRows  # Gaussians on a hidden surface and the point whose labels they take
+    on_surface: HiddenSurfaceHits  # Gaussians on a hidden surface and the point whose labels they take
 
 
-class SurfaceRows(NamedTuple):
-    """``rows [R]`` Gaussians that take the labels of ``vertex [R]`` (rows of the points) at ``distances [R]``."""
+class HiddenSurfaceHits(NamedTuple):
+    """Gaussians that lie on a surface no train view sees (``seggaussian.labels.occlusion.on_hidden_surface``).
+
+    Fields:
+        rows: ``[R]`` int64 rows of the Gaussians, ascending.
+        vertex: ``[R]`` int64 the point whose labels each takes (a mesh vertex: the largest barycentric weight of its
+            closest point on its closest triangle).
+        distances: ``[R]`` float32 distance (metres) from each Gaussian centre to that closest point.
+    """
 
     rows: np.ndarray
     vertex: np.ndarray
@@ -158,7 +162,7 @@ def transfer_labels(
     query = nearest_neighbours(cand_points, config.backend)
     spacing = median_spacing(query, cand_points, config)
     gate = distance_gate(spacing, config)
-    query_mask, outside_box, nonfinite = _prefilter(prep.means, cand_points, max(config.box_margin, gate))
+    query_mask, nonfinite = _prefilter(prep.means, cand_points, max(config.box_margin, gate))
     n = len(prep.means)
     if len(cand_points) and n and query_mask.all():  # common case: no row copies
         d, i = query(prep.means, 1)
@@ -266,9 +270,9 @@ def prepare_inputs(means, points, semantic, instance, multilabel, config: Transf
         candidate_index = candidate_index[~hidden[candidate_index]]
     candidate_index = candidate_index.astype(np.int64, copy=False)
     if on_surface is None:
-        on_surface = SurfaceRows(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+        on_surface = HiddenSurfaceHits(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
     else:
-        on_surface = SurfaceRows(*(np.asarray(a) for a in (on_surface.rows, on_surface.vertex, on_surface.distances)))
+        on_surface = HiddenSurfaceHits(*(np.asarray(a) for a in on_surface))
         r = len(on_surface.rows)
         if any(a.shape != (r,) for a in on_surface):
             raise ValueError("transfer: on_surface rows, vertex and distances must be equally long 1-D arrays")
@@ -330,22 +334,21 @@ def distance_gate(spacing: float, config: TransferConfig) -> float:
     return float(max(config.gate_min, config.gate_factor * spacing))
 
 
-def _prefilter(means: np.ndarray, cand_points: np.ndarray, margin: float) -> tuple[np.ndarray, int, int]:
-    """(rows to query, count outside the enlarged box, count non-finite) -- every row lands in one bin."""
+def _prefilter(means: np.ndarray, cand_points: np.ndarray, margin: float) -> tuple[np.ndarray, int]:
+    """(rows to query: finite and inside the enlarged box, count non-finite)."""
     if not len(cand_points):
         finite = np.isfinite(means).all(axis=1)
-        return np.zeros(len(means), bool), 0, int((~finite).sum())
+        return np.zeros(len(means), bool), int((~finite).sum())
     lo = cand_points.min(axis=0) - margin
     hi = cand_points.max(axis=0) + margin
     if len(means):
         mn, mx = means.min(axis=0), means.max(axis=0)  # NaN propagates, so all-finite bounds mean no NaN
         if np.isfinite(mn).all() and np.isfinite(mx).all() and (mn >= lo).all() and (mx <= hi).all():
-            return np.ones(len(means), bool), 0, 0  # fast path: everything inside
+            return np.ones(len(means), bool), 0  # fast path: everything inside
     finite = np.isfinite(means).all(axis=1)
     with np.errstate(invalid="ignore"):
         inside = ((means >= lo) & (means <= hi)).all(axis=1)
-    query = finite & inside
-    return query, int((finite & ~inside).sum()), int((~finite).sum())
+    return finite & inside, int((~finite).sum())
 
 
 def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, query_mask, nonfinite) -> TransferResult:
@@ -359,7 +362,8 @@ def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, que
         nearest[prep.on_surface.rows] = prep.on_surface.vertex
         distances[prep.on_surface.rows] = prep.on_surface.distances
         forced[prep.on_surface.rows] = True
-    outside_box = int((np.isfinite(prep.means).all(axis=1) & ~query_mask & ~forced).sum()) if len(prep.candidate_index) else 0
+    finite = np.isfinite(prep.means).all(axis=1)
+    outside_box = int((finite & ~query_mask & ~forced).sum()) if len(prep.candidate_index) else 0
     queried = nearest >= 0
     within = queried & ((distances <= gate) | forced)
     safe = np.where(within, nearest, 0) if len(prep.points) else np.zeros(n, np.int64)
@@ -376,7 +380,7 @@ def _finish(prep: PreparedInputs, nearest, distances, spacing, gate, margin, que
     if unlabelled_nearest:  # only with candidates="all"
         inst[unlabelled] = IGNORE_LABEL
         multi[unlabelled] = IGNORE_LABEL
-    no_candidates = int((np.isfinite(prep.means).all(axis=1) & ~forced).sum()) if not len(prep.candidate_index) else 0
+    no_candidates = int((finite & ~forced).sum()) if not len(prep.candidate_index) else 0
     beyond_gate = int((queried & ~within).sum())
     ignored = int((sem == IGNORE_LABEL).sum())
     measured = distances[queried]

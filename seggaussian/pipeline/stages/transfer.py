@@ -2,8 +2,8 @@
 
 The algorithm (KD-tree, distance gate, statistics) is ``seggaussian.labels.transfer``; this module feeds it the
 scene's points, densified along the mesh faces, less those its train views look at but never see (a wall behind a
-window: ``seggaussian.labels.occlusion``) except to the Gaussians that lie on such a surface, scores the result against the oracle truth (or the surface
-labels) and writes the per-scene ``gaussians`` table.
+window: ``seggaussian.labels.occlusion``) except to the Gaussians that lie on such a surface, scores the result
+against the oracle truth (or the surface labels) and writes the per-scene ``gaussians`` table.
 """
 
 from __future__ import annotations
@@ -19,13 +19,13 @@ from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.labels.config import TransferConfig
-from seggaussian.labels.occlusion import HiddenSurfaceHits, occluded_points, on_hidden_surface
+from seggaussian.labels.occlusion import occluded_points, on_hidden_surface
 from seggaussian.labels.placement import check_placement, measure_placement
 from seggaussian.core.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
 from seggaussian.shards.tables import gaussians_table
 from seggaussian.pipeline.stages.gaussians import save_npz
-from seggaussian.labels.transfer import densify_labelled_mesh, distance_gate, transfer_labels
+from seggaussian.labels.transfer import HiddenSurfaceHits, densify_labelled_mesh, distance_gate, transfer_labels
 from seggaussian.labels.scoring import label_accuracy, surface_labels
 
 #: Files the stage writes into the scene's cache folder.
@@ -68,9 +68,8 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
             vertex_occluded = occluded[: len(scene.points)]  # the label points start with the vertices, samples after
             faces = faces[~vertex_occluded[faces].all(axis=1)]
         truth = surface_labels(gaussians.means, scene.points, faces, scene.semantic)
-        if on_surface is not None and len(on_surface.rows):  # ... except for the Gaussians that lie on a hidden one
-            truth[on_surface.rows] = surface_labels(gaussians.means[on_surface.rows], scene.points, scene.faces,
-                                                    scene.semantic)
+        if on_surface is not None:  # ... except for the Gaussians on a hidden one: its closest vertex, found already
+            truth[on_surface.rows] = scene.semantic[on_surface.vertex]
     accuracy = label_accuracy(result.semantic, truth) if truth is not None else {"scored": 0, "correct": 0,
                                                                                    "accuracy": None}
     inst = result.instance
@@ -87,22 +86,28 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
     return labelled, {"transfer": stats, "label_accuracy": accuracy}
 
 
-def occluded_label_points(scene: Scene, points: np.ndarray, tolerance: float | None) -> np.ndarray | None:
-    """``[P]`` True for the label points (vertices and face samples) the scene's ``train`` views look at but never
-    see (``seggaussian.labels.occlusion``); None where the test does not apply: ``tolerance`` None, no faces or no
-    train view."""
+def occlusion_cameras(scene: Scene, tolerance: float | None) -> list | None:
+    """The cameras of the scene's ``train`` views, against which label points and Gaussians are tested for surfaces
+    no view sees (``seggaussian.labels.occlusion``); None where the test does not apply: ``tolerance`` None, no faces
+    or no train view."""
     cameras = [view.camera for view in scene.views if view.role == "train"]
     if tolerance is None or scene.faces is None or not len(scene.faces) or not cameras:
         return None
-    return occluded_points(scene.points, scene.faces, points, cameras, tolerance)
+    return cameras
+
+
+def occluded_label_points(scene: Scene, points: np.ndarray, tolerance: float | None) -> np.ndarray | None:
+    """``[P]`` True for the label points (vertices and face samples) the scene's ``train`` views look at but never
+    see; None where the test does not apply (``occlusion_cameras``)."""
+    cameras = occlusion_cameras(scene, tolerance)
+    return None if cameras is None else occluded_points(scene.points, scene.faces, points, cameras, tolerance)
 
 
 def hidden_surface_gaussians(scene: Scene, means: np.ndarray, transfer: TransferConfig) -> HiddenSurfaceHits | None:
     """The Gaussians that lie on a surface the scene's ``train`` views look at but never see, with the vertex whose
-    labels each keeps (``seggaussian.labels.occlusion.on_hidden_surface``); None where the occlusion test does not
-    apply (as ``occluded_label_points``)."""
-    cameras = [view.camera for view in scene.views if view.role == "train"]
-    if transfer.occlusion_tolerance is None or scene.faces is None or not len(scene.faces) or not cameras:
+    labels each keeps (``seggaussian.labels.occlusion.on_hidden_surface``); None where the test does not apply."""
+    cameras = occlusion_cameras(scene, transfer.occlusion_tolerance)
+    if cameras is None:
         return None
     return on_hidden_surface(means, scene.points, scene.faces, cameras, transfer.occlusion_tolerance,
                              transfer.on_surface_tolerance)
