@@ -90,6 +90,7 @@ def write_vertex_splats(raw: Path, scenes: list[str], out: Path) -> None:
 def write_split_splats(data: Path, scenes: list[str], out: Path, seed: int) -> None:
     """``out/<scene>.ply``: the dataset's Gaussians of each scene, every one split in two (3DGS's split; kept when
     present, so the split datasets of several runs' benches are the same)."""
+    from ovgaussian.data.augmentation import drawn_positions
     from seggaussian.core.gaussians import Gaussians
     from seggaussian.core.rotations import quats_to_rotmats
     from seggaussian.io.ply.writer import write_gaussians_ply
@@ -103,7 +104,7 @@ def write_split_splats(data: Path, scenes: list[str], out: Path, seed: int) -> N
         quats = g.quats / np.linalg.norm(g.quats, axis=1, keepdims=True)
         rot = quats_to_rotmats(quats.astype(np.float64))
         scales = np.exp(g.log_scales.astype(np.float64))
-        children = [g.means + np.einsum("nij,nj->ni", rot, rng.normal(size=g.means.shape) * scales) for _ in range(2)]
+        children = [drawn_positions(rng, g.means, rot, scales) for _ in range(2)]
         split = Gaussians.from_arrays(np.concatenate(children), np.tile(g.quats, (2, 1)),
                                       np.tile(g.log_scales - np.log(1.6), (2, 1)), np.tile(g.opacity_logits, 2),
                                       np.tile(g.sh, (2, 1, 1)))

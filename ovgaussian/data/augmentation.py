@@ -185,6 +185,15 @@ RENDITION_OPACITY_BIAS = (-1.5, 1.5)
 RENDITION_SPLIT_DIVISOR = 1.6
 
 
+def drawn_positions(rng: np.random.Generator, means: np.ndarray, rotmats: np.ndarray, scales: np.ndarray,
+                    factor: float | np.ndarray = 1.0) -> np.ndarray:  # [N, 3] float64
+    """One position drawn from each Gaussian, as 3DGS draws a split's children: ``mean + R (factor * s * z)`` with
+    ``z ~ N(0, I)`` (``means [N, 3]``, ``rotmats [N, 3, 3]``, ``scales [N, 3]`` in metres, ``factor`` a number or
+    ``[N]``)."""
+    local = rng.normal(size=(len(means), 3)) * scales * np.reshape(factor, (-1, 1))
+    return means.astype(np.float64) + np.einsum("nij,nj->ni", rotmats, local)
+
+
 def rendition(rng: np.random.Generator, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
               opacity_logits: np.ndarray, sh_dc: np.ndarray, labels: np.ndarray) -> SplatStatistics:
     """The same room as another splat would give it, drawn from ``rng``: a share of the Gaussians split in two as
@@ -199,17 +208,12 @@ def rendition(rng: np.random.Generator, means: np.ndarray, quats: np.ndarray, lo
                                .clip(QUAT_NORM_EPS))
     scales = np.exp(log_scales.astype(np.float64))
 
-    def draws(rows: np.ndarray, factor) -> np.ndarray:  # positions drawn from the Gaussians of ``rows``
-        local = rng.normal(size=(len(rows), 3)) * scales[rows] * np.reshape(factor, (-1, 1))
-        return means[rows].astype(np.float64) + np.einsum("nij,nj->ni", rotmats[rows], local)
-
     split = rng.random(n) < rng.uniform(*RENDITION_SPLIT_SHARE)
     jitter = rng.uniform(*RENDITION_JITTER)
-    every = np.arange(n)
-    new_means = draws(every, np.where(split, 1.0, jitter))
+    new_means = drawn_positions(rng, means, rotmats, scales, np.where(split, 1.0, jitter))
     new_log_scales = log_scales.astype(np.float64) - np.where(split, np.log(RENDITION_SPLIT_DIVISOR), 0.0)[:, None]
     rows = np.flatnonzero(split)
-    children = draws(rows, 1.0)
+    children = drawn_positions(rng, means[rows], rotmats[rows], scales[rows])
     shift = rng.uniform(*RENDITION_LOG_SCALE_SHIFT)
     gain, bias = rng.uniform(*RENDITION_OPACITY_GAIN), rng.uniform(*RENDITION_OPACITY_BIAS)
     opacity = opacity_logits.astype(np.float64) * gain + bias

@@ -63,9 +63,6 @@ INVARIANT_LOG_RATIO_MIN = -6.0
 #: bounding box, which one floater far outside the room stretches) and clipped to +-``ROBUST_COORD_CLIP``.
 ROBUST_COORD_QUANTILES = (0.01, 0.99)
 ROBUST_COORD_CLIP = 1.5
-#: ``grid_anchor="lattice"``: the voxel grid's origin is a multiple of this many voxels, the stride of the U-Net's
-#: coarsest level (four stride-2 down convolutions), so that no level's cells move with a splat's extreme points.
-GRID_LATTICE_VOXELS = 2 ** 4
 #: ``pool_weighting="opacity"``: smallest weight of a Gaussian, so a voxel of only transparent Gaussians still
 #: gets the mean of its inputs rather than 0/0.
 POOL_MIN_WEIGHT = 1e-3
@@ -417,13 +414,14 @@ class OVGaussianNet(nn.Module):
         if not bool(torch.isfinite(attributes).all()):
             raise ValueError("attributes contain NaN or Inf")
         width = attributes.shape[1]
-        robust = self.config.input_encoding != "raw"  # robust and invariant share the robust coordinates
+        robust_coordinates_wanted = self.config.input_encoding != "raw"  # robust and invariant share them
         if width == NUM_GAUSSIAN_ATTRIBUTES and self.config.input_encoding == "robust":
             attributes = encode_attributes(attributes, self.config.voxel_size)
         elif width == NUM_GAUSSIAN_ATTRIBUTES and self.config.input_encoding == "invariant":
             attributes = invariant_attributes(attributes)
         if self.config.use_coordinates and width == NUM_GAUSSIAN_ATTRIBUTES:
-            coordinates = (robust_coordinates if robust else normalized_coordinates)(means.detach(), batch_index)
+            coordinates = (robust_coordinates if robust_coordinates_wanted else normalized_coordinates)(
+                means.detach(), batch_index)
             attributes = torch.cat([attributes, coordinates], dim=1)
         elif width != self.config.num_attributes:
             raise ValueError(f"attributes have {width} columns, the config expects {self.config.num_attributes}")
@@ -433,7 +431,7 @@ class OVGaussianNet(nn.Module):
     def grid_lattice(self) -> int | None:
         """Voxels between the grid origins allowed (``grid_anchor="lattice"``): the stride of the U-Net's coarsest
         level, so that every level's grid keeps its place; None for ``grid_anchor="min"``."""
-        return GRID_LATTICE_VOXELS if self.config.grid_anchor == "lattice" else None
+        return 2 ** len(self.backbone.down) if self.config.grid_anchor == "lattice" else None  # stride-2 levels
 
     def pool_weights(self, attributes: Tensor) -> "Tensor | None":
         """``[N]`` weights of the Gaussians in their voxel's pooled input (``pool_weighting="opacity"``: the

@@ -106,8 +106,10 @@ def _flat_room(rng, n):
 def _split(rng, means, colour, opacity, scales, quats):
     """3DGS's split: two children drawn from each parent's Gaussian, scales / 1.6, the parent's rotation, colour and
     opacity."""
+    from ovgaussian.data.augmentation import drawn_positions
+
     rot = quats_to_rotmats(quats)
-    children = [means + np.einsum("nij,nj->ni", rot, rng.normal(size=means.shape) * scales) for _ in range(2)]
+    children = [drawn_positions(rng, means, rot, scales) for _ in range(2)]
     return (np.concatenate(children), np.tile(colour, (2, 1)), np.tile(opacity, 2), np.tile(scales / 1.6, (2, 1)),
             np.tile(quats, (2, 1)))
 
