@@ -8,8 +8,8 @@ K = 20, ``ovgaussian bench``):
 - ``own``: the dataset itself (the fits the runs were trained on, or their like);
 - ``default-fit``: ``seggaussian fit`` with the default preset under a time budget (``--fit-seconds``);
 - ``oracle``: Gaussians sampled on the seen surfaces of the labelled mesh (``seggaussian build --gaussians oracle``);
-- ``vertex``: one isotropic Gaussian per mesh vertex with its colour (a scan turned into splats; scale as 3DGS
-  initializes from points: the root mean square distance to the 3 nearest other vertices), opacity 0.99;
+- ``scan``: one isotropic Gaussian per mesh vertex with its colour (a scan turned into splats,
+  ``seggaussian build --gaussians scan``);
 - ``split``: the own fit densified, every Gaussian split in two as 3DGS splits (children drawn from the parent,
   scales / 1.6), which no run trains on.
 
@@ -33,14 +33,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 BIN = Path(sys.executable).parent
 
-#: Opacity of the scan-like vertex Gaussians (a scan's points are solid).
-VERTEX_OPACITY = 0.99
-#: Nearest other vertices whose mean squared distance sets a vertex Gaussian's scale (3DGS's initialization: 3).
-VERTEX_NEIGHBOURS = 3
-#: Smallest scale of a vertex Gaussian (metres): a vertex repeated at one position has no distance to go by.
-VERTEX_MIN_SCALE = 1e-4
-
-
 def run(cmd: list[str]) -> str:
     result = subprocess.run([str(c) for c in cmd], capture_output=True, text=True, cwd=REPO)
     if result.returncode:
@@ -60,31 +52,6 @@ def scene_gaussians(data: Path, scene_id: str):
 
     split = read_manifest(data)["scenes"][scene_id]["split"]
     return read_scene(data, split, scene_id, views=False).gaussians
-
-
-def write_vertex_splats(raw: Path, scenes: list[str], out: Path) -> None:
-    """``out/<scene>.ply``: one isotropic Gaussian per mesh vertex (kept when present)."""
-    from scipy.spatial import cKDTree
-
-    from seggaussian.core.constants import SH_C0
-    from seggaussian.core.gaussians import Gaussians
-    from seggaussian.fit.optimize import read_source_scene
-    from seggaussian.io.ply.writer import write_gaussians_ply
-
-    out.mkdir(parents=True, exist_ok=True)
-    for scene_id in scenes:
-        if (out / f"{scene_id}.ply").exists():  # kept: the rendition datasets' build caches stay valid
-            continue
-        scene = read_source_scene("synthetic", raw, scene_id)
-        points = np.asarray(scene.points, np.float64)
-        d, _ = cKDTree(points).query(points, VERTEX_NEIGHBOURS + 1)
-        scale = np.sqrt(np.mean(d[:, 1:] ** 2, axis=1)).clip(VERTEX_MIN_SCALE)
-        n = len(points)
-        colour = np.asarray(scene.colors, np.float64) / 255.0
-        g = Gaussians.from_arrays(points, np.tile([1.0, 0, 0, 0], (n, 1)), np.repeat(np.log(scale)[:, None], 3, 1),
-                                  np.full(n, np.log(VERTEX_OPACITY / (1 - VERTEX_OPACITY))),
-                                  ((colour - 0.5) / SH_C0)[:, None, :])
-        write_gaussians_ply(out / f"{scene_id}.ply", g)
 
 
 def write_split_splats(data: Path, scenes: list[str], out: Path, seed: int) -> None:
@@ -150,14 +117,14 @@ def main() -> int:
     scenes = val + xval
     work = args.work
     datasets = {"own": args.data}
-    write_vertex_splats(args.raw, scenes, work / "ply" / "vertex")
     write_split_splats(args.data, scenes, work / "ply" / "split", args.seed)
     write_default_fits(args.raw, scenes, work / "ply" / "default-fit", args.fit_seconds)
-    for name in ("default-fit", "vertex", "split"):
+    for name in ("default-fit", "split"):
         datasets[name] = work / "data" / name
         build(args.raw, datasets[name], scenes, ["--ply-dir", work / "ply" / name, "--fit", "never"])
-    datasets["oracle"] = work / "data" / "oracle"
-    build(args.raw, datasets["oracle"], scenes, ["--gaussians", "oracle"])
+    for name in ("scan", "oracle"):
+        datasets[name] = work / "data" / name
+        build(args.raw, datasets[name], scenes, ["--gaussians", name])
     table: dict = {"scenes": {"val": val, "xval": xval}, "gaussians": {}, "scores": {}}
     for name, data in datasets.items():
         table["gaussians"][name] = {s: len(scene_gaussians(data, s).means) for s in scenes}

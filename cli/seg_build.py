@@ -27,7 +27,7 @@ from seggaussian.fit.config import PRESETS, FitConfig
 @config_option(BuildConfig, "address", "--address", default=None)
 @config_option(BuildConfig, "fit", "--fit", "fit_mode", type=click.Choice(["auto", "always", "never"]), default="auto",
                show_default=True)
-@config_option(BuildConfig, "gaussians", "--gaussians", "gaussians_mode", type=click.Choice(["fit", "oracle"]),
+@config_option(BuildConfig, "gaussians", "--gaussians", "gaussians_mode", type=click.Choice(["fit", "oracle", "scan"]),
                default="fit", show_default=True)
 @config_option(BuildConfig, "ply_dir", "--ply-dir", type=click.Path(path_type=Path), default=None)
 @config_option(BuildConfig, "seed", "--seed", type=int, default=0, show_default=True)

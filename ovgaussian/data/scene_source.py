@@ -155,3 +155,21 @@ def scan_scenes(source: SceneSource, vocabulary: Vocabulary) -> ScanResult:
     fingerprint = hashlib.sha256(payload.encode()).hexdigest()
     usable = tuple(s.scene_id for s in summaries if s.skip_reason is None)
     return ScanResult(tuple(summaries), usable, skipped, fingerprint)
+
+
+def with_renditions(scan: ScanResult, renditions: Sequence[SceneSource], names: Sequence[str],
+                    vocabulary: Vocabulary) -> ScanResult:
+    """``scan`` of the dataset, checked against other renditions of its rooms (other splats of the same scenes):
+    every scene trained on must be trainable in each rendition too (ValueError naming the rendition ``names[i]``
+    and the scene otherwise); the fingerprint then covers the renditions' data as well (what ``--resume`` checks)."""
+    digests = [scan.fingerprint]
+    for name, source in zip(names, renditions):
+        other = scan_scenes(source, vocabulary)
+        missing = [s for s in scan.usable if s not in set(other.usable)]
+        if missing:
+            raise ValueError(f"{name}: rendition has no trainable scene {missing[0]!r} of the training split "
+                             f"({len(missing)} of {len(scan.usable)} missing; build it from the same raw tree and "
+                             f"split it the same way)")
+        digests.append(other.fingerprint)
+    fingerprint = hashlib.sha256(json.dumps(digests).encode()).hexdigest() if renditions else scan.fingerprint
+    return scan._replace(fingerprint=fingerprint)

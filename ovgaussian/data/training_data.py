@@ -4,7 +4,8 @@ Flow, one scene at a time (memory bounded):
 
 1. The split's scenes come from a ``scene_source.SceneSource``, scanned once by ``scene_source.scan_scenes``
    (skipped scenes counted, a data fingerprint).
-2. :class:`TrainingData` prepares a scene on demand (in-memory LRU of ``scene_cache_size``): means
+2. :class:`TrainingData` prepares a scene on demand (from the dataset or, with renditions, from the dataset of
+   another splat of the same room that the sample drew) (in-memory LRU of ``scene_cache_size``): means
    recentred on the bounding-box centre (float64 subtraction, then float32), unit quaternions (their
    sign is made canonical by ``ovgaussian.model.network.gaussian_attributes``, as on every path),
    colours, labels mapped from top-100 class ids to the *seen-class index* (0..C_seen-1) with
@@ -24,7 +25,7 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -185,14 +186,15 @@ class TrainingData:
     def __init__(self, source: SceneSource, config: DataConfig, vocabulary: Vocabulary, *,
                  cache_dir: Path | None = None, teacher: "DenseTeacher | None" = None,
                  pixel_blend_function: Callable | None = None, scan: ScanResult | None = None,
-                 cache_budget_bytes: int | None = None):
+                 cache_budget_bytes: int | None = None, renditions: Sequence[SceneSource] = ()):
         self.source, self.config, self.vocabulary = source, config, vocabulary
+        self.sources = (source, *renditions)  # rendition 0 is the dataset itself
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.teacher = teacher
         self.pixel_blend_function = pixel_blend_function or default_pixel_blend_function()
         self.scan = scan if scan is not None else scan_scenes(source, vocabulary)
-        self._scenes: OrderedDict[str, tuple[PreparedScene, object, GeometryTensors]] = OrderedDict()
-        self._views: OrderedDict[tuple[str, str], PreparedView] = OrderedDict()
+        self._scenes: OrderedDict[tuple[int, str], tuple[PreparedScene, object, GeometryTensors]] = OrderedDict()
+        self._views: OrderedDict[tuple[int, str, str], PreparedView] = OrderedDict()
         self.blend_computations = 0  # calls of the pixel blend function (one per sample)
         self.cache_budget_bytes = cache_budget_bytes
         self._cache_bytes: int | None = None  # bytes under cache_dir, counted on first use
@@ -203,26 +205,27 @@ class TrainingData:
         return self.scan.usable
 
     # scenes ---------------------------------------------------------------------------------
-    def _record_and_scene(self, scene_id: str):
-        if scene_id in self._scenes:
-            self._scenes.move_to_end(scene_id)
-            return self._scenes[scene_id]
-        record = self.source.read_scene(scene_id)
+    def _record_and_scene(self, scene_id: str, rendition: int = 0):
+        key = (rendition, scene_id)
+        if key in self._scenes:
+            self._scenes.move_to_end(key)
+            return self._scenes[key]
+        record = self.sources[rendition].read_scene(scene_id)
         if hasattr(record, "_replace"):  # keep only what later steps need: the train views, no instance maps
             record = record._replace(views=[v._replace(instance=None) for v in record.views if v.role == "train"])
         entry = (prepare_scene(record, self.vocabulary), record, geometry_tensors(record.gaussians))
-        self._scenes[scene_id] = entry
+        self._scenes[key] = entry
         while len(self._scenes) > max(1, self.config.scene_cache_size):
             self._scenes.popitem(last=False)
         return entry
 
-    def prepared_scene(self, scene_id: str) -> PreparedScene:
-        return self._record_and_scene(scene_id)[0]
+    def prepared_scene(self, scene_id: str, rendition: int = 0) -> PreparedScene:
+        return self._record_and_scene(scene_id, rendition)[0]
 
     # views ----------------------------------------------------------------------------------
-    def pixel_blend_weights(self, scene_id: str, view: PreparedView, pixels: "torch.Tensor"):
+    def pixel_blend_weights(self, scene_id: str, view: PreparedView, pixels: "torch.Tensor", rendition: int = 0):
         """``(ids [P, K], weights [P, K])`` of the view at ``pixels [P, 2]`` (u, v), on the stored geometry."""
-        geometry = self._record_and_scene(scene_id)[2]
+        geometry = self._record_and_scene(scene_id, rendition)[2]
         cam = view.camera
         viewmat, K = camera_tensors(cam)  # float64, as the benchmark's and the build's blend weights
         blend = self.pixel_blend_function(*geometry, viewmat, K, cam.width, cam.height, pixels,
@@ -230,12 +233,12 @@ class TrainingData:
         self.blend_computations += 1
         return blend.ids.long(), blend.weights.float()
 
-    def prepared_view(self, scene_id: str, view_name: str) -> PreparedView:
-        key = (scene_id, view_name)
+    def prepared_view(self, scene_id: str, view_name: str, rendition: int = 0) -> PreparedView:
+        key = (rendition, scene_id, view_name)
         if key in self._views:
             self._views.move_to_end(key)
             return self._views[key]
-        record = self._record_and_scene(scene_id)[1]
+        record = self._record_and_scene(scene_id, rendition)[1]
         view = next((v for v in record.views if v.name == view_name), None)
         if view is None:
             raise KeyError(f"scene {scene_id}: no view named {view_name!r}")
@@ -251,7 +254,9 @@ class TrainingData:
         if self.teacher is not None:
             if view.rgb is None:
                 raise ValueError(f"scene {scene_id} view {view_name}: no RGB image for the teacher")
-            teacher = self._teacher_features(view.rgb, f"{safe_name(scene_id)}__{safe_name(view_name)}")
+            # a rendition's views may be rendered from its own Gaussians: its features are cached apart
+            prefix = "" if rendition == 0 else f"rendition{rendition}__"
+            teacher = self._teacher_features(view.rgb, f"{prefix}{safe_name(scene_id)}__{safe_name(view_name)}")
         prepared = PreparedView(view_name, view.camera, labels, teacher)
         self._views[key] = prepared
         while len(self._views) > max(1, self.config.view_cache_size):
@@ -280,10 +285,11 @@ class TrainingData:
 
     # samples --------------------------------------------------------------------------------
     def sample(self, scene_id: str, rng: np.random.Generator) -> SceneSample:
-        """One view, augmentation and pixel set of a scene, drawn from ``rng``."""
-        scene = self.prepared_scene(scene_id)
+        """One rendition of a scene (when there are several), view, augmentation and pixel set, drawn from ``rng``."""
+        drawn = int(rng.integers(len(self.sources))) if len(self.sources) > 1 else 0  # one source: as before
+        scene = self.prepared_scene(scene_id, drawn)
         view_name = scene.train_views[int(rng.integers(len(scene.train_views)))]
-        view = self.prepared_view(scene_id, view_name)
+        view = self.prepared_view(scene_id, view_name, drawn)
         augmentation = sample_augmentation(rng, self.config)
         means, quats, log_scales = augment_gaussians(scene.means, scene.quats, scene.log_scales, augmentation)
         h, w = view.labels.shape
@@ -294,7 +300,7 @@ class TrainingData:
             flat = np.sort(rng.choice(num_pixels, size=self.config.pixels_per_view, replace=False))
         rows, cols = flat // w, flat % w
         pixels = torch.from_numpy(np.stack([cols, rows], axis=1)).long()
-        pixel_ids, pixel_weights = self.pixel_blend_weights(scene_id, view, pixels)
+        pixel_ids, pixel_weights = self.pixel_blend_weights(scene_id, view, pixels, drawn)
         teacher = None
         if view.teacher is not None:
             teacher = sample_patch_features(view.teacher, pixels, (h, w))

@@ -46,6 +46,11 @@ class DataConfig:
     """Show each scene, with probability 1/2 per sample, as another splat of the same room would give it
     (``ovgaussian.data.augmentation.rendition``): a random share of its Gaussians split in two as 3DGS splits, every
     Gaussian moved within its own extent, sizes shifted and the opacity spread remapped, labels carried along."""
+    renditions: tuple[Path, ...] = ()
+    """Other datasets of the same rooms, each another splat of them (``seggaussian build --gaussians scan|oracle`` or
+    ``--ply-dir`` splats from the same raw tree, split the same way): each training sample draws its splat
+    uniformly among the dataset and these, with that splat's labels and label maps. Every scene trained on must be
+    in each. Cheap renditions (scan, oracle) need no fit."""
     verify: bool = False
     """Check every shard read against the manifest's sha256 (sizes are always checked)."""
     loss_gaussians: Optional[int] = None
@@ -250,9 +255,10 @@ def config_from_dict(cls: type, payload: dict):
         hint = hints[name]
         if dataclasses.is_dataclass(hint):
             value = config_from_dict(hint, value)
+        elif isinstance(value, list):  # tuple fields; tuple[Path, ...] holds paths
+            element = getattr(hint, "__args__", (None,))[0]
+            value = tuple(Path(v) if element is Path else v for v in value)
         elif value is not None and Path in getattr(hint, "__args__", (hint,)):
             value = Path(value)
-        elif isinstance(value, list):
-            value = tuple(value)
         kwargs[name] = value
     return cls(**kwargs)

@@ -61,7 +61,7 @@ from ovgaussian.train.process_group import (
 from ovgaussian.run.folder import (
     METRIC_NAMES, append_metrics, check_resumable, run_config_payload, truncate_metrics,
 )
-from ovgaussian.data.scene_source import ScanResult, ShardSource, class_weights, scan_scenes
+from ovgaussian.data.scene_source import ScanResult, ShardSource, class_weights, scan_scenes, with_renditions
 from ovgaussian.train.loader import LoadedStep, PhaseTimes, phase_line, samples_to_device, step_loader, step_tasks
 from ovgaussian.train.schedule import epoch_batches, learning_rate
 from ovgaussian.text.teacher import DenseTeacher
@@ -414,6 +414,8 @@ def train_in_process_group(
     vocabulary = training_vocabulary(config.data.num_classes, config.data.holdout_classes)
     source = source if source is not None else ShardSource(config.data.dataset, config.data.split, config.data.verify)
     scan = scan_split(config, source, vocabulary, notes)
+    renditions = tuple(ShardSource(d, config.data.split, config.data.verify) for d in config.data.renditions)
+    scan = with_renditions(scan, renditions, [str(d) for d in config.data.renditions], vocabulary)
     saved = saved_run(config, run_dir, scan)
     names = scored_class_names(config, vocabulary)
     if text_embeddings is None:
@@ -430,7 +432,7 @@ def train_in_process_group(
     steps_per_epoch = len(scan.usable) // batch_scenes
     data = TrainingData(source, config.data, vocabulary, cache_dir=cache_dir, teacher=teacher,
                         pixel_blend_function=pixel_blend_function, scan=scan,
-                        cache_budget_bytes=run_cache_budget(source))
+                        cache_budget_bytes=run_cache_budget(source), renditions=renditions)
 
     start_epoch, global_step, last_checkpoint = 0, 0, None
     if saved is not None:

@@ -65,8 +65,9 @@ class BuildConfig:
     address: str | None = None
     #: ``auto`` fits when no trained PLY exists, ``always`` refits, ``never`` requires a PLY.
     fit: Literal["auto", "always", "never"] = "auto"
-    #: ``fit`` = optimized Gaussians (or imported PLY); ``oracle`` = sampled from the labelled mesh.
-    gaussians: Literal["fit", "oracle"] = "fit"
+    #: ``fit`` = optimized Gaussians (or imported PLY); ``oracle`` = sampled from the labelled mesh; ``scan`` = one
+    #: isotropic Gaussian per mesh vertex with its colour (a scan turned into splats, no fit).
+    gaussians: Literal["fit", "oracle", "scan"] = "fit"
     #: Fitting settings for ``--gaussians fit`` when a scene needs fitting.
     fit_config: FitConfig = field(default_factory=FitConfig)
     #: Folder of trained PLYs for ``--source ply`` (``<scene>.ply`` or ``<scene>/point_cloud/iteration_*/point_cloud.ply``).

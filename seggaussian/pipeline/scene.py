@@ -1,6 +1,6 @@
 """One scene through the build's stage chain, each stage served from the cache when its key is unchanged.
 
-    gaussians  stages.gaussians_{oracle,fit,import}  -> gaussians.npz
+    gaussians  stages.gaussians_{oracle,scan,fit,import}  -> gaussians.npz
     transfer   stages.transfer                       -> gaussians.parquet, labels.npz
     views      stages.views                          -> views.parquet
 
@@ -25,13 +25,14 @@ from seggaussian.core.constants import read_class_names
 from seggaussian.fit.optimize import needs_fit
 from seggaussian.sources.layout import reader
 from seggaussian.pipeline.stages import gaussians as gaussians_stage
-from seggaussian.pipeline.stages import gaussians_fit, gaussians_import, gaussians_oracle
+from seggaussian.pipeline.stages import gaussians_fit, gaussians_import, gaussians_oracle, gaussians_scan
 from seggaussian.pipeline.stages import transfer as transfer_stage
 from seggaussian.pipeline.stages import views as views_stage
 
 STAGES = ("gaussians", "transfer", "views")
 #: The module of each mode of the gaussians stage (``gaussians_stage_config``'s ``mode``).
-GAUSSIANS_MODES = {"oracle": gaussians_oracle, "fit": gaussians_fit, "import": gaussians_import}
+GAUSSIANS_MODES = {"oracle": gaussians_oracle, "scan": gaussians_scan, "fit": gaussians_fit,
+                   "import": gaussians_import}
 #: The entry module of the transfer and views stages (the gaussians stage's depends on its mode).
 STAGE_MODULES = {"transfer": transfer_stage.__name__, "views": views_stage.__name__}
 OUTPUTS = {"gaussians": gaussians_stage.OUTPUTS, "transfer": transfer_stage.OUTPUTS, "views": views_stage.OUTPUTS}
@@ -41,6 +42,8 @@ def gaussians_stage_config(config: BuildConfig, task: SceneTask) -> dict:
     """What the gaussians stage depends on: its mode, the fitting/oracle settings, the trained PLY's stat."""
     if config.gaussians == "oracle":
         return {"mode": "oracle", "oracle": asdict(config.oracle), "seed": config.seed}
+    if config.gaussians == "scan":
+        return {"mode": "scan"}
     if config.source == "ply" and task.trained_ply is None:
         raise FileNotFoundError(f"--source ply: no trained PLY for scene {task.scene_id} in {config.ply_dir}")
     if needs_fit(config.fit, task.trained_ply):

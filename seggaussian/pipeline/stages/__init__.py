@@ -1,8 +1,8 @@
 """The per-scene stages of ``seggaussian build``, one module per stage (mode), each computing and writing its outputs.
 
-    gaussians  gaussians_oracle | gaussians_fit | gaussians_import  -> gaussians.npz (+ oracle truth)
-    transfer   transfer                                             -> gaussians.parquet, labels.npz
-    views      views                                                -> views.parquet
+    gaussians  gaussians_oracle | gaussians_scan | gaussians_fit | gaussians_import  -> gaussians.npz (+ oracle truth)
+    transfer   transfer                                                              -> gaussians.parquet, labels.npz
+    views      views                                                                 -> views.parquet
 
 A stage module is the entry point of its stage's code: the build cache key of a stage hashes the source of
 every seggaussian module that its module imports, transitively (``seggaussian.pipeline.cache``). So a stage
@@ -10,4 +10,4 @@ module imports what it runs, and nothing it does not run: the orchestration (mod
 executors) lives in ``seggaussian.pipeline.scene`` and ``seggaussian.pipeline.dataset``.
 """
 
-__all__ = ["gaussians", "gaussians_fit", "gaussians_import", "gaussians_oracle", "transfer", "views"]
+__all__ = ["gaussians", "gaussians_fit", "gaussians_import", "gaussians_oracle", "gaussians_scan", "transfer", "views"]
