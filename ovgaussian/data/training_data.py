@@ -215,7 +215,7 @@ class TrainingData:
             record = record._replace(views=[v._replace(instance=None) for v in record.views if v.role == "train"])
         entry = (prepare_scene(record, self.vocabulary), record, geometry_tensors(record.gaussians))
         self._scenes[key] = entry
-        while len(self._scenes) > max(1, self.config.scene_cache_size):
+        while len(self._scenes) > max(1, self.config.scene_cache_size) * len(self.sources):
             self._scenes.popitem(last=False)
         return entry
 
@@ -259,7 +259,7 @@ class TrainingData:
             teacher = self._teacher_features(view.rgb, f"{prefix}{safe_name(scene_id)}__{safe_name(view_name)}")
         prepared = PreparedView(view_name, view.camera, labels, teacher)
         self._views[key] = prepared
-        while len(self._views) > max(1, self.config.view_cache_size):
+        while len(self._views) > max(1, self.config.view_cache_size) * len(self.sources):
             self._views.popitem(last=False)
         return prepared
 

@@ -29,9 +29,9 @@ class DataConfig:
     pixels_per_view: Optional[int] = None
     """Pixels sampled per view for the 2D losses (uniformly, seeded); None uses every pixel."""
     scene_cache_size: int = 4
-    """Preprocessed scenes kept in memory (LRU); older ones are re-read from the shards."""
+    """Preprocessed scenes kept in memory (LRU), per rendition (``renditions``); older ones are re-read from the shards."""
     view_cache_size: int = 16
-    """Views (label map, teacher patch features) kept in memory (LRU) on top of the teacher's disk cache."""
+    """Views (label map, teacher patch features) kept in memory (LRU) on top of the teacher's disk cache, per rendition."""
     augment: bool = True
     """Apply random scale, rotation about z and flips to the network input (see ovgaussian.data.training_data)."""
     scale_range: tuple[float, float] = (0.9, 1.1)
