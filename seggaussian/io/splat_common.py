@@ -34,6 +34,7 @@ FORMAT_TITLES = {
     "splat": "antimatter15 .splat",
     "spz": "Niantic SPZ",
     "ksplat": "mkkellogg .ksplat",
+    "gltf": "glTF (KHR_gaussian_splatting)",
 }
 
 #: An 8-bit opacity a/255 is clamped to [eps, 1 - eps] before the logit, so a stored 0 or 255 becomes a
