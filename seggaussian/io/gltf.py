@@ -71,9 +71,9 @@ from seggaussian.io.splat_common import (
     unit_from_logit,
     unorm_to_byte,
 )
-from seggaussian.io.spz import frame_signs
+from seggaussian.io.spz import decode_spz, encode_spz, frame_signs
 
-__all__ = ["GLB_MAGIC", "EXTENSION", "GLTF_FRAME", "GltfSplat", "looks_like_gltf", "decode_gltf", "read_gltf",
+__all__ = ["GLB_MAGIC", "EXTENSION", "SPZ_EXTENSION", "COMPRESSIONS", "GLTF_FRAME", "GltfSplat", "looks_like_gltf", "decode_gltf", "read_gltf",
            "encode_gltf", "write_gltf", "attribute_name", "extra_name"]
 
 TITLE = "glTF (KHR_gaussian_splatting)"
@@ -85,6 +85,18 @@ GLB_HEADER = struct.Struct("<4sII")
 CHUNK_HEADER = struct.Struct("<II")
 EXTENSION = "KHR_gaussian_splatting"
 PREFIX = EXTENSION + ":"
+#: The SPZ compression extension (a draft extending this one; CesiumJS renders splats only from it).
+SPZ_EXTENSION = "KHR_gaussian_splatting_compression_spz_2"
+#: The SPZ version its blob holds ("v2 of the SPZ compression format").
+SPZ_BLOB_VERSION = 2
+#: Compressions written: ``none`` (the base extension's float attributes) or ``spz`` (``SPZ_EXTENSION``).
+COMPRESSIONS = ("none", "spz")
+#: The SPZ blob stores glTF's coordinates as they are (LUF, not SPZ's own RUB), as CesiumJS reads it (it unpacks the
+#: blob with the coordinate system ``UNSPECIFIED``: no conversion; tests/seggaussian/io/test_cesium_viewer.py renders
+#: our files so: correlation 0.9995 with our rasterizer, 0.47 when the blob is written in RUB). Our SPZ writer stores RUB from RDF and our reader undoes it, so the Gaussians (RDF) are turned by
+#: the flips taking LUF to RUB (``LDB``: x and z negated) before writing the blob and after reading it. (The draft's
+#: text asks for "LUF" in Niantic's pack/unpack options, which would store RUB; the renderer of its authors decides.)
+SPZ_BLOB_CORRECTION = "LDB"
 #: The frame glTF stores, as axis letters (``Gaussians`` hold RDF).
 GLTF_FRAME = "LUF"
 KERNEL = "ellipse"
@@ -101,6 +113,8 @@ EXTRAS_KEY = "seggaussian"
 FLOAT_EXACT_INT = 1 << 24
 
 BYTE, UBYTE, SHORT, USHORT, UINT, FLOAT = 5120, 5121, 5122, 5123, 5125, 5126
+#: ``bufferView.target`` of vertex attributes.
+ARRAY_BUFFER = 34962
 COMPONENT_DTYPES = {BYTE: np.dtype("<i1"), UBYTE: np.dtype("<u1"), SHORT: np.dtype("<i2"), USHORT: np.dtype("<u2"),
                     UINT: np.dtype("<u4"), FLOAT: np.dtype("<f4")}
 TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
@@ -398,17 +412,57 @@ def _check_primitive(doc: _Document, field: str, primitive: dict) -> dict:
         if value != expected:
             raise doc.fail(f"{field}.extensions.{EXTENSION}.{key}", f"{value!r}, expected {expected!r} ({why})")
     nested = ext.get("extensions") or {}
-    if nested:
+    if not isinstance(nested, dict) or set(nested) - {SPZ_EXTENSION}:
         raise doc.fail(f"{field}.extensions.{EXTENSION}.extensions",
-                       f"{', '.join(sorted(map(str, nested)))} not supported (only the uncompressed base extension "
-                       "is read)")
+                       f"{', '.join(sorted(map(str, nested)))} not supported (read: the base extension and "
+                       f"{SPZ_EXTENSION})")
     attributes = primitive.get("attributes")
     if not isinstance(attributes, dict):
         raise doc.fail(f"{field}.attributes", "expected a JSON object")
-    return attributes
+    spz = nested.get(SPZ_EXTENSION)
+    if spz is not None and not isinstance(spz, dict):
+        raise doc.fail(f"{field}.extensions.{EXTENSION}.extensions.{SPZ_EXTENSION}", "expected a JSON object")
+    return attributes, spz
 
 
-def _decode_primitive(doc: _Document, field: str, attributes: dict) -> tuple[dict[str, np.ndarray], int]:
+def _decode_spz_primitive(doc: _Document, field: str, attributes: dict, spz: dict) -> dict[str, np.ndarray]:
+    """The attribute values (glTF frame) of a primitive compressed by ``SPZ_EXTENSION``: its buffer view holds an
+    SPZ file (gzip-wrapped) storing glTF's coordinates as they are (``SPZ_BLOB_CORRECTION``)."""
+    where = f"{field}.extensions.{EXTENSION}.extensions.{SPZ_EXTENSION}"
+    view = spz.get("bufferView")
+    blob = bytes(doc._view_bytes(doc.item("bufferViews", view, f"{where}.bufferView"), view))
+    g = flipped(decode_spz(blob, f"{doc.where}: {where}"), SPZ_BLOB_CORRECTION)
+    values = _file_frame_values(flipped(g, GLTF_FRAME))
+    for semantic in ("POSITION", PREFIX + "SCALE", PREFIX + "ROTATION"):
+        accessor = doc.item("accessors", attributes.get(semantic), f"{field}.attributes.{semantic}")
+        if accessor.get("count") != len(g):
+            raise doc.fail(f"{field}.attributes.{semantic}", f"count {accessor.get('count')!r} differs from the "
+                                                             f"{len(g)} Gaussians of the SPZ data")
+    values.update(_extra_values(doc, attributes, len(g)))
+    return values
+
+
+def _file_frame_values(g: Gaussians) -> dict[str, np.ndarray]:
+    """``Gaussians`` (already in the file's frame) as the attribute values of the base extension."""
+    return {"POSITION": g.means.astype(np.float64),
+            PREFIX + "ROTATION": g.normalized_quats().astype(np.float64)[:, [1, 2, 3, 0]],
+            PREFIX + "SCALE": np.exp(g.log_scales.astype(np.float64)),
+            PREFIX + "OPACITY": unit_from_logit(g.opacity_logits)[:, None],
+            "sh": g.sh.astype(np.float64)}
+
+
+def flipped(g: Gaussians, frame: str) -> Gaussians:
+    """``g`` under the axis flips that take the standard-family ``frame`` to RDF (and back: each is its own inverse):
+    positions, quaternions and SH coefficients (``seggaussian.io.spz.frame_signs``); extras kept."""
+    if frame == "RDF":
+        return g
+    position_signs, quat_signs, sh_signs = frame_signs(frame)
+    sh = g.sh.copy()
+    sh[:, 1:] *= sh_signs[: sh.shape[1] - 1, None]
+    return Gaussians(g.means * position_signs, g.quats * quat_signs, g.log_scales, g.opacity_logits, sh, g.extras)
+
+
+def _decode_primitive(doc: _Document, field: str, attributes: dict) -> dict[str, np.ndarray]:
     missing = [s for s in (*ATTRIBUTE_TYPES, attribute_name(0, 0)) if s not in attributes]
     if missing:
         raise doc.fail(f"{field}.attributes", f"missing {', '.join(missing)} (required by the extension)")
@@ -438,12 +492,19 @@ def _decode_primitive(doc: _Document, field: str, attributes: dict) -> tuple[dic
             semantic = attribute_name(d, c)
             sh[:, d * d + c] = doc.accessor(attributes[semantic], semantic, SH_TYPE, n)
     values["sh"] = sh
+    values.update(_extra_values(doc, attributes, n))
+    return values
+
+
+def _extra_values(doc: _Document, attributes: dict, n: int) -> dict[str, np.ndarray]:
+    """The ``_NAME`` attributes (our extras columns) as ``{"_name": [n]}``."""
+    out = {}
     for semantic, accessor in attributes.items():
         if semantic.startswith("_"):
             column = semantic[1:].lower()
             if _EXTRA_NAME.match(column):
-                values["_" + column] = doc.accessor(accessor, semantic, EXTRA_TYPE, n)[:, 0]
-    return values, n
+                out["_" + column] = doc.accessor(accessor, semantic, EXTRA_TYPE, n)[:, 0]
+    return out
 
 
 def _check_values(doc: _Document, field: str, values: dict) -> None:
@@ -476,10 +537,8 @@ def _transform(values: dict, matrix: np.ndarray) -> dict:
                          "undefined")
     moved = transform_gaussians(_gaussians_in_file_frame(values), sim)
     out = dict(values)
-    out["POSITION"] = moved.means.astype(np.float64)
-    out[PREFIX + "ROTATION"] = moved.normalized_quats().astype(np.float64)[:, [1, 2, 3, 0]]
-    out[PREFIX + "SCALE"] = np.exp(moved.log_scales.astype(np.float64))
-    out["sh"] = moved.sh.astype(np.float64)
+    out.update(_file_frame_values(moved))
+    out[PREFIX + "OPACITY"] = values[PREFIX + "OPACITY"]
     return out
 
 
@@ -505,7 +564,8 @@ def decode_gltf(data: bytes, source: str | os.PathLike = "<bytes>", base: Path |
     if not isinstance(version, str) or not re.fullmatch(r"2\.\d+", version):
         raise SplatFormatError(f"{where}: {TITLE}: asset.version {version!r}, expected glTF 2.x")
     required = doc.get("extensionsRequired", [])
-    unknown = [e for e in required if e != EXTENSION] if isinstance(required, list) else [str(required)]
+    unknown = ([e for e in required if e not in (EXTENSION, SPZ_EXTENSION)] if isinstance(required, list)
+               else [str(required)])
     if unknown:
         raise SplatFormatError(f"{where}: {TITLE}: extensionsRequired names {', '.join(map(str, unknown))}, "
                                "which this reader does not support")
@@ -516,9 +576,12 @@ def decode_gltf(data: bytes, source: str | os.PathLike = "<bytes>", base: Path |
                                "file, but not a splat")
     parts, extras_names = [], None
     for field, primitive, mesh_index in primitives:
-        attributes = _check_primitive(document, field, primitive)
-        values, _ = _decode_primitive(document, field, attributes)
-        _check_values(document, field, values)
+        attributes, spz = _check_primitive(document, field, primitive)
+        if spz is None:
+            values = _decode_primitive(document, field, attributes)
+            _check_values(document, field, values)
+        else:
+            values = _decode_spz_primitive(document, field, attributes, spz)
         names = sorted(k for k in values if k.startswith("_"))
         if extras_names is not None and names != extras_names:
             raise document.fail(field, f"its extra attributes {names} differ from the first primitive's {extras_names}")
@@ -532,16 +595,13 @@ def decode_gltf(data: bytes, source: str | os.PathLike = "<bytes>", base: Path |
     if len(degrees) > 1:
         raise SplatFormatError(f"{where}: {TITLE}: the splat primitives have different SH degrees")
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    g = _gaussians_in_file_frame(merged)
-    position_signs, quat_signs, sh_signs = frame_signs(GLTF_FRAME)  # LUF -> RDF
-    sh = g.sh.copy()
-    sh[:, 1:] *= sh_signs[: sh.shape[1] - 1, None]
+    g = flipped(_gaussians_in_file_frame(merged), GLTF_FRAME)  # LUF -> RDF
     extras = {}
     for key in extras_names or []:
         column = merged[key]
         integral = np.isfinite(column).all() and np.array_equal(column, np.round(column))
         extras[key[1:]] = column.astype(np.int32) if integral else column.astype(np.float32)
-    gaussians = Gaussians(g.means * position_signs, g.quats * quat_signs, g.log_scales, g.opacity_logits, sh, extras)
+    gaussians = g.with_extras(**extras)
     legend = doc.get("extras", {}).get(EXTRAS_KEY, {}) if isinstance(doc.get("extras"), dict) else {}
     return GltfSplat(gaussians, legend if isinstance(legend, dict) else {})
 
@@ -580,15 +640,18 @@ def _label_column(name: str, column: np.ndarray) -> tuple[np.ndarray, int]:
     return values, FLOAT
 
 
-def encode_gltf(gaussians: Gaussians, *, binary: bool = True, legend: Mapping | None = None) -> bytes:
-    """``Gaussians`` (RDF) -> the bytes of a ``.glb`` (``binary``) or a ``.gltf`` with an embedded buffer."""
+def encode_gltf(gaussians: Gaussians, *, binary: bool = True, legend: Mapping | None = None,
+                compression: str = "none") -> bytes:
+    """``Gaussians`` (RDF) -> the bytes of a ``.glb`` (``binary``) or a ``.gltf`` with an embedded buffer;
+    ``compression`` ``spz`` stores the splat as an SPZ blob (``SPZ_EXTENSION``), extras stay plain attributes."""
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"{TITLE}: unknown compression {compression!r}, expected one of {', '.join(COMPRESSIONS)}")
     g = gaussians
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
         if not np.isfinite(getattr(g, name)).all():
             raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
     n = len(g)
-    position_signs, quat_signs, sh_signs = frame_signs(GLTF_FRAME)  # RDF -> LUF
-    unit = g.normalized_quats().astype(np.float64) * quat_signs
+    stored = flipped(g, GLTF_FRAME)  # RDF -> LUF
     with np.errstate(over="ignore"):
         scales = np.exp(g.log_scales.astype(np.float64)).astype("<f4")
     if not np.isfinite(scales).all():
@@ -598,30 +661,43 @@ def encode_gltf(gaussians: Gaussians, *, binary: bool = True, legend: Mapping | 
     colour = np.empty((n, 4), np.uint8)
     colour[:, :3] = unorm_to_byte(_srgb_to_linear(rgb))
     colour[:, 3] = unorm_to_byte(opacity)
-    sh = g.sh.astype(np.float64).copy()
-    sh[:, 1:] *= sh_signs[: sh.shape[1] - 1, None]
-    means = (g.means * position_signs).astype("<f4")
-
-    columns: list[tuple[str, np.ndarray, int, str, bool]] = [
+    means = stored.means.astype("<f4")
+    sh = stored.sh
+    # (semantic, values or None when the SPZ blob holds them, component type, type, normalized)
+    columns: list[tuple[str, np.ndarray | None, int, str, bool]] = [
         ("POSITION", means, FLOAT, "VEC3", False),
         ("COLOR_0", colour, UBYTE, "VEC4", True),
         (PREFIX + "SCALE", scales, FLOAT, "VEC3", False),
-        (PREFIX + "ROTATION", unit[:, [1, 2, 3, 0]].astype("<f4"), FLOAT, "VEC4", False),
-        (PREFIX + "OPACITY", opacity.astype("<f4"), FLOAT, "SCALAR", False),
+        (PREFIX + "ROTATION", stored.normalized_quats()[:, [1, 2, 3, 0]].astype("<f4"), FLOAT, "VEC4", False),
     ]
-    for d in range(g.sh_degree + 1):
+    if compression == "none":
+        columns.append((PREFIX + "OPACITY", opacity.astype("<f4"), FLOAT, "SCALAR", False))
+    for d in range(0 if compression == "none" else 1, g.sh_degree + 1):
         for c in range(2 * d + 1):
             columns.append((attribute_name(d, c), sh[:, d * d + c].astype("<f4"), FLOAT, "VEC3", False))
+    if compression == "spz":
+        columns = [(semantic, None, *rest) for semantic, _, *rest in columns]
     for name in sorted(g.extras):
         values, ctype = _label_column(name, np.asarray(g.extras[name]))
         columns.append((extra_name(name), values, ctype, "SCALAR", False))
 
     blob, views, accessors, attributes = bytearray(), [], [], {}
+
+    def add_view(data: bytes, target: int | None) -> int:
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
+        if target is not None:
+            views[-1]["target"] = target
+        blob.extend(data + b"\x00" * (-len(data) % 4))
+        return len(views) - 1
+
+    ext: dict = {"kernel": KERNEL, "colorSpace": COLOR_SPACE, "projection": PROJECTION, "sortingMethod": SORTING}
+    if compression == "spz":
+        ext["extensions"] = {SPZ_EXTENSION: {"bufferView": add_view(
+            encode_spz(flipped(g, SPZ_BLOB_CORRECTION), version=SPZ_BLOB_VERSION), None)}}
     for semantic, values, ctype, kind, normalized in columns:
-        data = np.ascontiguousarray(values).tobytes()
-        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data), "target": 34962})
-        blob += data + b"\x00" * (-len(data) % 4)
-        accessor = {"bufferView": len(views) - 1, "componentType": ctype, "count": n, "type": kind}
+        accessor = {"componentType": ctype, "count": n, "type": kind}
+        if values is not None:
+            accessor = {"bufferView": add_view(np.ascontiguousarray(values).tobytes(), ARRAY_BUFFER), **accessor}
         if normalized:
             accessor["normalized"] = True
         if semantic == "POSITION":
@@ -632,21 +708,19 @@ def encode_gltf(gaussians: Gaussians, *, binary: bool = True, legend: Mapping | 
     buffer = {"byteLength": len(blob)}
     if not binary:
         buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode("ascii")
-    doc = {
-        "asset": {"version": "2.0", "generator": "seggaussian"},
-        "extensionsUsed": [EXTENSION],
+    used = [EXTENSION] + ([SPZ_EXTENSION] if compression == "spz" else [])
+    doc = {"asset": {"version": "2.0", "generator": "seggaussian"}, "extensionsUsed": used}
+    if compression == "spz":  # no attribute data outside the blob: no fallback without the extension
+        doc["extensionsRequired"] = used
+    doc.update({
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"mesh": 0}],
-        "meshes": [{"primitives": [{
-            "attributes": attributes, "mode": POINTS_MODE,
-            "extensions": {EXTENSION: {"kernel": KERNEL, "colorSpace": COLOR_SPACE, "projection": PROJECTION,
-                                       "sortingMethod": SORTING}},
-        }]}],
+        "meshes": [{"primitives": [{"attributes": attributes, "mode": POINTS_MODE, "extensions": {EXTENSION: ext}}]}],
         "buffers": [buffer],
         "bufferViews": views,
         "accessors": accessors,
-    }
+    })
     if legend:
         doc["extras"] = {EXTRAS_KEY: dict(legend)}
     text = json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
@@ -659,8 +733,9 @@ def encode_gltf(gaussians: Gaussians, *, binary: bool = True, legend: Mapping | 
 
 
 def write_gltf(path: str | os.PathLike, gaussians: Gaussians, *, binary: bool | None = None,
-               legend: Mapping | None = None) -> None:
-    """Write ``gaussians`` (RDF) atomically as a ``.glb`` (``binary``; default: unless the name ends in ``.gltf``)."""
+               legend: Mapping | None = None, compression: str = "none") -> None:
+    """Write ``gaussians`` (RDF) atomically as a ``.glb`` (``binary``; default: unless the name ends in ``.gltf``),
+    ``compression`` as in ``encode_gltf``."""
     if binary is None:
         binary = not str(path).lower().endswith(".gltf")
-    write_atomic(path, [encode_gltf(gaussians, binary=binary, legend=legend)])
+    write_atomic(path, [encode_gltf(gaussians, binary=binary, legend=legend, compression=compression)])
