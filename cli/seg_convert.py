@@ -19,11 +19,13 @@ from seggaussian.io.converting import ConvertConfig
 @config_option(ConvertConfig, "drop", "--drop", is_flag=True)
 @config_option(ConvertConfig, "spz_version", "--spz-version", type=click.Choice(["2", "3", "4"]), default="3",
                show_default=True)
+@config_option(ConvertConfig, "gltf_compression", "--gltf-compression", type=click.Choice(["none", "spz"]),
+               default="none", show_default=True)
 @transform_options
 @json_option
 @guarded
-def command(source: Path, out: Path, on_invalid: str, drop: bool, spz_version: str, transform: str | None,
-            from_frame: str | None, as_json: bool) -> None:
+def command(source: Path, out: Path, on_invalid: str, drop: bool, spz_version: str, gltf_compression: str,
+            transform: str | None, from_frame: str | None, as_json: bool) -> None:
     """Convert SOURCE (3DGS PLY, compressed PLY, .splat, SPZ, .ksplat or glTF; detected by content) to OUT, whose
     name picks the format: .ply, .compressed.ply, .splat, .spz, .ksplat, .glb or .gltf (KHR_gaussian_splatting).
     What OUT's format cannot hold (SH bands, labels) is refused unless --drop."""
@@ -32,7 +34,7 @@ def command(source: Path, out: Path, on_invalid: str, drop: bool, spz_version: s
     from seggaussian.io.splat_common import FORMAT_TITLES
 
     config = ConvertConfig(on_invalid=on_invalid, drop=drop, spz_version=int(spz_version),
-                           frame=FrameConfig(transform, from_frame))
+                           gltf_compression=gltf_compression, frame=FrameConfig(transform, from_frame))
     result = convert_splat(source, out, config)
     report = result.report
     dropped = result.dropped

@@ -28,6 +28,9 @@ class ConvertConfig:
     drop: bool = False
     #: SPZ version written when OUT ends in .spz (2 and 3: gzip; 4: zstd streams).
     spz_version: int = DEFAULT_WRITE_VERSION
+    #: glTF output (.glb, .gltf): ``none`` (the extension's float attributes, read by any KHR_gaussian_splatting reader)
+    #: or ``spz`` (KHR_gaussian_splatting_compression_spz_2, smaller; the form CesiumJS draws).
+    gltf_compression: str = "none"
     #: The splat's frame (``--transform``, ``--from-frame``); the default keeps it as stored.
     frame: FrameConfig = FrameConfig()
 
@@ -70,7 +73,8 @@ def convert_splat(source: str | os.PathLike, out: str | os.PathLike, config: Con
     gaussians, lost = check_writable(gaussians, out_format, drop=config.drop)
     gaussians, frame = to_scene_frame(gaussians, config.frame)
     legend = read_gltf(source).legend if in_format == "gltf" and out_format == "gltf" and gaussians.extras else None
-    write_gaussians(out, gaussians, out_format, spz_version=config.spz_version, legend=legend)
+    write_gaussians(out, gaussians, out_format, spz_version=config.spz_version, legend=legend,
+                    gltf_compression=config.gltf_compression)
     dropped = {k: list(v) for k, v in lost.items()}
     return ConvertResult(source, out, in_format, out_format, len(gaussians), gaussians.sh_degree, dropped, report,
                          frame_record(frame))

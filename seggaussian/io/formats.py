@@ -196,11 +196,12 @@ def format_for_output(path: str | os.PathLike, fmt: str | None = None) -> str:
 
 def write_gaussians(path: str | os.PathLike, gaussians: Gaussians, fmt: str | None = None, *,
                     spz_version: int = DEFAULT_WRITE_VERSION, ksplat_level: int = 1, ply_comments: tuple[str, ...] = (),
-                    legend: dict | None = None) -> str:
+                    legend: dict | None = None, gltf_compression: str = "none") -> str:
     """Write ``gaussians`` atomically in ``fmt`` (or the format of the name) -> the format written.
 
     ``ply`` and ``gltf`` keep extras (labels); the other formats hold the splat attributes alone. ``legend`` (class
-    names and colours) goes into a glTF file's extras; ``ply_comments`` into a PLY header.
+    names and colours) goes into a glTF file's extras; ``ply_comments`` into a PLY header; ``gltf_compression``
+    ``spz`` writes glTF with the SPZ compression extension (what CesiumJS renders).
     """
     fmt = format_for_output(path, fmt)
     if fmt == "ply":
@@ -212,7 +213,7 @@ def write_gaussians(path: str | os.PathLike, gaussians: Gaussians, fmt: str | No
     elif fmt == "ksplat":
         write_ksplat(path, gaussians, compression_level=ksplat_level)
     elif fmt == "gltf":
-        write_gltf(path, gaussians, legend=legend)
+        write_gltf(path, gaussians, legend=legend, compression=gltf_compression)
     else:
         write_spz(path, gaussians, version=spz_version)
     return fmt
