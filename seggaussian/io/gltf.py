@@ -37,16 +37,21 @@ quaternions ``(w, -x, -y, z)``, SH coefficients times the parity of their basis 
 (``seggaussian.io.spz.frame_signs("LUF")``). The global transform of the node that instantiates the mesh is applied
 on reading when it is a similarity (translation, rotation, positive uniform scale); anything else is refused.
 
-Checked on reading, each a one-line ``SplatFormatError`` naming the file and the field: the container (GLB header,
-chunk lengths, 4-byte alignment; JSON), ``asset.version`` 2.x, ``extensionsRequired`` (only the extension), mode
-``POINTS``, kernel ``ellipse``, colour space, projection ``perspective``, every accessor (type, component type,
-count, in bounds; no sparse accessors), the SH degrees complete and without gaps, scales >= 0 and finite, opacities in
-[0, 1], rotations unit (within ``UNIT_TOLERANCE``). Files with several splat primitives are read as one scene.
+Checked on reading (one-line ``SplatFormatError``s naming the file and field; the container by ``gltf_container``):
+``asset.version`` 2.x, ``extensionsRequired``, mode ``POINTS``, kernel ``ellipse``, colour space, projection
+``perspective``, each accessor's type and component type, SH degrees complete without gaps, scales finite and >= 0,
+opacities in [0, 1], unit rotations (within ``UNIT_TOLERANCE``). Several splat primitives are read as one scene.
 
 Writing: a GLB (``.glb``) or a ``.gltf`` whose one buffer is embedded as a base64 ``data:`` URI; one scene, one node
 (no transform), one mesh, one primitive, float attributes in one buffer view each (4-byte aligned), ``POSITION``
 with its ``min``/``max``; ``KHR_gaussian_splatting`` in ``extensionsUsed`` (not required: a viewer without it draws
 the points in their ``COLOR_0``). ``legend`` (class names and colours) goes in the root ``extras.seggaussian``.
+
+Compression: ``compression="spz"`` writes ``KHR_gaussian_splatting_compression_spz_2`` (a draft by the same authors,
+the only form CesiumJS 1.145 draws as splats): accessors without buffer views, an SPZ version-2 file in one buffer
+view, ``COLOR_0``, ``SCALE``, ``ROTATION`` and the SH degrees above 0 named as in the draft's example, both extensions
+required; our ``_`` attributes stay plain. It is read as well. The blob holds glTF's coordinates as they are
+(``SPZ_BLOB_CORRECTION``).
 """
 
 from __future__ import annotations
@@ -55,13 +60,16 @@ import base64
 import json
 import os
 import re
-import struct
 from pathlib import Path
 from typing import Mapping, NamedTuple
 
 import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
+from seggaussian.frames.similarity import Similarity, transform_gaussians
+from seggaussian.io.gltf_container import (ARRAY_BUFFER, BYTE, FLOAT, GLB_MAGIC, SHORT, UBYTE, USHORT, GltfDocument,
+                                           load_buffers, looks_like_gltf, node_matrices, pack_glb, parse_glb,
+                                           parse_json)
 from seggaussian.io.ply.writer import write_atomic
 from seggaussian.io.splat_common import (
     SplatFormatError,
@@ -77,12 +85,6 @@ __all__ = ["GLB_MAGIC", "EXTENSION", "SPZ_EXTENSION", "COMPRESSIONS", "GLTF_FRAM
            "encode_gltf", "write_gltf", "attribute_name", "extra_name"]
 
 TITLE = "glTF (KHR_gaussian_splatting)"
-GLB_MAGIC = b"glTF"
-GLB_VERSION = 2
-CHUNK_JSON = 0x4E4F534A
-CHUNK_BIN = 0x004E4942
-GLB_HEADER = struct.Struct("<4sII")
-CHUNK_HEADER = struct.Struct("<II")
 EXTENSION = "KHR_gaussian_splatting"
 PREFIX = EXTENSION + ":"
 #: The SPZ compression extension (a draft extending this one; CesiumJS renders splats only from it).
@@ -112,12 +114,6 @@ EXTRAS_KEY = "seggaussian"
 #: Largest integer a float32 holds exactly (integer extras beyond the short ranges are written as floats up to it).
 FLOAT_EXACT_INT = 1 << 24
 
-BYTE, UBYTE, SHORT, USHORT, UINT, FLOAT = 5120, 5121, 5122, 5123, 5125, 5126
-#: ``bufferView.target`` of vertex attributes.
-ARRAY_BUFFER = 34962
-COMPONENT_DTYPES = {BYTE: np.dtype("<i1"), UBYTE: np.dtype("<u1"), SHORT: np.dtype("<i2"), USHORT: np.dtype("<u2"),
-                    UINT: np.dtype("<u4"), FLOAT: np.dtype("<f4")}
-TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 #: Accepted (accessor type, {component type: must be normalized (True), must not be (False), either (None)}).
 ATTRIBUTE_TYPES = {
     "POSITION": ("VEC3", {FLOAT: False}),
@@ -153,239 +149,8 @@ def extra_name(column: str) -> str:
     return "_" + column.upper()
 
 
-def looks_like_gltf(head: bytes) -> bool:
-    """``head`` starts a GLB (``glTF`` magic) or a glTF JSON document (an object naming ``asset``)."""
-    if head.startswith(GLB_MAGIC):
-        return True
-    text = head.lstrip(b"\xef\xbb\xbf \t\r\n")
-    return text.startswith(b"{") and b'"asset"' in head
 
-
-# --- reading -------------------------------------------------------------------------------------------------------
-class _Document:
-    """The JSON of a glTF file and its buffers' bytes, with checked access to accessors."""
-
-    def __init__(self, doc: dict, buffers: list[bytes], where: str):
-        self.doc, self.buffers, self.where = doc, buffers, where
-
-    def fail(self, field: str, problem: str) -> SplatFormatError:
-        return SplatFormatError(f"{self.where}: {TITLE}: {field}: {problem}")
-
-    def array(self, key: str) -> list:
-        value = self.doc.get(key, [])
-        if not isinstance(value, list):
-            raise self.fail(key, f"expected a JSON array, got {type(value).__name__}")
-        return value
-
-    def item(self, key: str, index, field: str) -> dict:
-        items = self.array(key)
-        if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(items):
-            raise self.fail(field, f"index {index!r} is not one of the {len(items)} {key}")
-        value = items[index]
-        if not isinstance(value, dict):
-            raise self.fail(f"{key}[{index}]", "expected a JSON object")
-        return value
-
-    def accessor(self, index, semantic: str, allowed: tuple[str, dict], count: int | None) -> np.ndarray:
-        """The values of accessor ``index`` (``[count, width]`` float64, normalized integers scaled) for ``semantic``."""
-        field = f"attribute {semantic} (accessor {index})"
-        acc = self.item("accessors", index, field)
-        kind, components = allowed
-        ctype, normalized = acc.get("componentType"), bool(acc.get("normalized", False))
-        if acc.get("type") != kind:
-            raise self.fail(field, f"type {acc.get('type')!r}, expected {kind!r}")
-        if ctype not in components:
-            names = ", ".join(COMPONENT_DTYPES[c].name for c in components)
-            raise self.fail(field, f"component type {ctype!r} is not one the extension allows here ({names})")
-        if components[ctype] is not None and components[ctype] != normalized:
-            raise self.fail(field, f"normalized must be {str(components[ctype]).lower()} for component type "
-                                   f"{COMPONENT_DTYPES[ctype].name}")
-        n = acc.get("count")
-        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
-            raise self.fail(field, f"count {n!r} is not a non-negative integer")
-        if count is not None and n != count:
-            raise self.fail(field, f"count {n} differs from POSITION's {count}")
-        if "sparse" in acc:
-            raise self.fail(field, "sparse accessors are not supported")
-        if "bufferView" not in acc:
-            raise self.fail(field, "no bufferView (an all-zero accessor): not a splat attribute")
-        dtype, width = COMPONENT_DTYPES[ctype], TYPE_WIDTHS[kind]
-        view = self.item("bufferViews", acc["bufferView"], f"{field} bufferView")
-        data = self._view_bytes(view, acc["bufferView"])
-        offset = acc.get("byteOffset", 0)
-        element = dtype.itemsize * width
-        stride = view.get("byteStride", element)
-        for name, value in (("byteOffset", offset), ("bufferView.byteStride", stride)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise self.fail(field, f"{name} {value!r} is not a non-negative integer")
-        if stride < element or stride % dtype.itemsize or offset % dtype.itemsize:
-            raise self.fail(field, f"byteStride {stride} / byteOffset {offset} do not fit elements of {element} bytes")
-        needed = offset + (stride * (n - 1) + element if n else 0)
-        if needed > len(data):
-            raise self.fail(field, f"needs {needed} bytes of its bufferView, which has {len(data)}: truncated?")
-        raw = np.ndarray((n, width), dtype=dtype, buffer=data, offset=offset, strides=(stride, dtype.itemsize))
-        values = raw.astype(np.float64)
-        if normalized:
-            limit = float(np.iinfo(dtype).max)
-            values = np.maximum(values / limit, -1.0)
-        return values
-
-    def _view_bytes(self, view: dict, index: int) -> memoryview:
-        field = f"bufferViews[{index}]"
-        buffer = view.get("buffer")
-        if not isinstance(buffer, int) or isinstance(buffer, bool) or not 0 <= buffer < len(self.buffers):
-            raise self.fail(field, f"buffer {buffer!r} is not one of the {len(self.buffers)} buffers")
-        start, length = view.get("byteOffset", 0), view.get("byteLength")
-        for name, value in (("byteOffset", start), ("byteLength", length)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise self.fail(field, f"{name} {value!r} is not a non-negative integer")
-        data = self.buffers[buffer]
-        if start + length > len(data):
-            raise self.fail(field, f"bytes {start}..{start + length} lie beyond buffer {buffer} ({len(data)} bytes): "
-                                   "truncated?")
-        return memoryview(data)[start: start + length]
-
-
-def _parse_glb(data: bytes, where: str) -> tuple[dict, bytes | None]:
-    if len(data) < GLB_HEADER.size + CHUNK_HEADER.size:
-        raise SplatFormatError(f"{where}: {TITLE}: {len(data)} bytes, shorter than a GLB header and its JSON chunk")
-    magic, version, length = GLB_HEADER.unpack_from(data)
-    if version != GLB_VERSION:
-        raise SplatFormatError(f"{where}: {TITLE}: GLB version {version}, expected {GLB_VERSION}")
-    if length != len(data):
-        raise SplatFormatError(f"{where}: {TITLE}: the GLB header says {length} bytes, the file has {len(data)}"
-                               f"{': truncated' if length > len(data) else ''}")
-    chunks, at = [], GLB_HEADER.size
-    while at < length:
-        if at + CHUNK_HEADER.size > length:
-            raise SplatFormatError(f"{where}: {TITLE}: a chunk header at byte {at} runs past the end of the file")
-        size, kind = CHUNK_HEADER.unpack_from(data, at)
-        start = at + CHUNK_HEADER.size
-        if size % 4 or start + size > length:
-            raise SplatFormatError(f"{where}: {TITLE}: chunk {len(chunks)} at byte {at} has length {size}: "
-                                   f"{'not a multiple of 4' if size % 4 else 'past the end of the file'}")
-        chunks.append((kind, data[start: start + size]))
-        at = start + size
-    if not chunks or chunks[0][0] != CHUNK_JSON:
-        raise SplatFormatError(f"{where}: {TITLE}: the first GLB chunk is not JSON")
-    binary = None
-    if len(chunks) > 1 and chunks[1][0] == CHUNK_BIN:
-        binary = chunks[1][1]
-    return _parse_json(chunks[0][1], where), binary
-
-
-def _parse_json(text: bytes, where: str) -> dict:
-    try:
-        doc = json.loads(text.decode("utf-8-sig").rstrip(" \x00"))
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise SplatFormatError(f"{where}: {TITLE}: the JSON does not parse ({' '.join(str(exc).split())})") from None
-    if not isinstance(doc, dict):
-        raise SplatFormatError(f"{where}: {TITLE}: the JSON is a {type(doc).__name__}, expected an object")
-    return doc
-
-
-def _load_buffers(doc: dict, binary: bytes | None, base: Path | None, where: str) -> list[bytes]:
-    buffers = doc.get("buffers", [])
-    if not isinstance(buffers, list):
-        raise SplatFormatError(f"{where}: {TITLE}: buffers: expected a JSON array")
-    out = []
-    for i, buffer in enumerate(buffers):
-        field = f"{where}: {TITLE}: buffers[{i}]"
-        if not isinstance(buffer, dict):
-            raise SplatFormatError(f"{field}: expected a JSON object")
-        length, uri = buffer.get("byteLength"), buffer.get("uri")
-        if not isinstance(length, int) or isinstance(length, bool) or length < 0:
-            raise SplatFormatError(f"{field}: byteLength {length!r} is not a non-negative integer")
-        if uri is None:
-            if i != 0 or binary is None:
-                raise SplatFormatError(f"{field}: no uri, and {'not the first buffer' if i else 'no GLB BIN chunk'}")
-            data = binary
-        elif not isinstance(uri, str):
-            raise SplatFormatError(f"{field}: uri is not a string")
-        elif uri.startswith("data:"):
-            head, _, payload = uri.partition(",")
-            if not head.endswith(";base64"):
-                raise SplatFormatError(f"{field}: a data URI that is not base64")
-            try:
-                data = base64.b64decode(payload, validate=True)
-            except ValueError:
-                raise SplatFormatError(f"{field}: the base64 data URI does not decode") from None
-        else:
-            data = _external_buffer(uri, base, field)
-        if len(data) < length:
-            raise SplatFormatError(f"{field}: {len(data)} bytes, byteLength says {length}: truncated?")
-        out.append(bytes(data[:length]) if len(data) != length else data)
-    return out
-
-
-def _external_buffer(uri: str, base: Path | None, field: str) -> bytes:
-    """A buffer in a file beside the .gltf: a relative path without a scheme, inside the .gltf's folder."""
-    from urllib.parse import unquote
-
-    if base is None or ":" in uri or uri.startswith(("/", "\\")):
-        raise SplatFormatError(f"{field}: uri {uri[:80]!r} is not a file beside the .gltf (only relative paths and "
-                               "data: URIs are read; nothing is fetched)")
-    path = (base / unquote(uri)).resolve()
-    if not path.is_relative_to(base.resolve()):
-        raise SplatFormatError(f"{field}: uri {uri[:80]!r} points outside the .gltf's folder")
-    try:
-        return path.read_bytes()
-    except OSError as exc:
-        raise SplatFormatError(f"{field}: cannot read {path} ({exc.strerror or exc})") from None
-
-
-def _node_matrices(doc: _Document, mesh_index: int) -> list[np.ndarray]:
-    """Global 4x4 matrices of the nodes that instantiate mesh ``mesh_index`` (identity when none does)."""
-    nodes = doc.array("nodes")
-    parent: dict[int, int] = {}
-    for i, node in enumerate(nodes):
-        if not isinstance(node, dict):
-            raise doc.fail(f"nodes[{i}]", "expected a JSON object")
-        for child in node.get("children", []) or []:
-            if not isinstance(child, int) or not 0 <= child < len(nodes) or child in parent:
-                raise doc.fail(f"nodes[{i}].children", f"{child!r} is not a node with one parent")
-            parent[child] = i
-    out = []
-    for i, node in enumerate(nodes):
-        if node.get("mesh") != mesh_index:
-            continue
-        matrix, at, seen = np.eye(4), i, set()
-        while at is not None:
-            if at in seen:
-                raise doc.fail(f"nodes[{at}]", "the node hierarchy has a cycle")
-            seen.add(at)
-            matrix = _local_matrix(doc, nodes[at], at) @ matrix
-            at = parent.get(at)
-        out.append(matrix)
-    return out or [np.eye(4)]
-
-
-def _local_matrix(doc: _Document, node: dict, index: int) -> np.ndarray:
-    def numbers(key, size, default):
-        value = node.get(key, default)
-        try:
-            array = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            array = np.empty(0)
-        if array.shape != (size,) or not np.isfinite(array).all():
-            raise doc.fail(f"nodes[{index}].{key}", f"expected {size} finite numbers")
-        return array
-
-    if "matrix" in node:
-        return numbers("matrix", 16, None).reshape(4, 4).T  # column-major
-    t = numbers("translation", 3, [0, 0, 0])
-    x, y, z, w = numbers("rotation", 4, [0, 0, 0, 1])
-    s = numbers("scale", 3, [1, 1, 1])
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    matrix = np.eye(4)
-    matrix[:3, :3] = rot * s[None, :]
-    matrix[:3, 3] = t
-    return matrix
-
-
-def _splat_primitives(doc: _Document) -> list[tuple[str, dict, int]]:
+def _splat_primitives(doc: GltfDocument) -> list[tuple[str, dict, int]]:
     found = []
     for m, mesh in enumerate(doc.array("meshes")):
         primitives = mesh.get("primitives", []) if isinstance(mesh, dict) else None
@@ -397,7 +162,7 @@ def _splat_primitives(doc: _Document) -> list[tuple[str, dict, int]]:
     return found
 
 
-def _check_primitive(doc: _Document, field: str, primitive: dict) -> dict:
+def _check_primitive(doc: GltfDocument, field: str, primitive: dict) -> dict:
     ext = primitive["extensions"][EXTENSION]
     if not isinstance(ext, dict):
         raise doc.fail(f"{field}.extensions.{EXTENSION}", "expected a JSON object")
@@ -425,7 +190,7 @@ def _check_primitive(doc: _Document, field: str, primitive: dict) -> dict:
     return attributes, spz
 
 
-def _decode_spz_primitive(doc: _Document, field: str, attributes: dict, spz: dict) -> dict[str, np.ndarray]:
+def _decode_spz_primitive(doc: GltfDocument, field: str, attributes: dict, spz: dict) -> dict[str, np.ndarray]:
     """The attribute values (glTF frame) of a primitive compressed by ``SPZ_EXTENSION``: its buffer view holds an
     SPZ file (gzip-wrapped) storing glTF's coordinates as they are (``SPZ_BLOB_CORRECTION``)."""
     where = f"{field}.extensions.{EXTENSION}.extensions.{SPZ_EXTENSION}"
@@ -462,7 +227,7 @@ def flipped(g: Gaussians, frame: str) -> Gaussians:
     return Gaussians(g.means * position_signs, g.quats * quat_signs, g.log_scales, g.opacity_logits, sh, g.extras)
 
 
-def _decode_primitive(doc: _Document, field: str, attributes: dict) -> dict[str, np.ndarray]:
+def _decode_primitive(doc: GltfDocument, field: str, attributes: dict) -> dict[str, np.ndarray]:
     missing = [s for s in (*ATTRIBUTE_TYPES, attribute_name(0, 0)) if s not in attributes]
     if missing:
         raise doc.fail(f"{field}.attributes", f"missing {', '.join(missing)} (required by the extension)")
@@ -496,7 +261,7 @@ def _decode_primitive(doc: _Document, field: str, attributes: dict) -> dict[str,
     return values
 
 
-def _extra_values(doc: _Document, attributes: dict, n: int) -> dict[str, np.ndarray]:
+def _extra_values(doc: GltfDocument, attributes: dict, n: int) -> dict[str, np.ndarray]:
     """The ``_NAME`` attributes (our extras columns) as ``{"_name": [n]}``."""
     out = {}
     for semantic, accessor in attributes.items():
@@ -507,7 +272,7 @@ def _extra_values(doc: _Document, attributes: dict, n: int) -> dict[str, np.ndar
     return out
 
 
-def _check_values(doc: _Document, field: str, values: dict) -> None:
+def _check_values(doc: GltfDocument, field: str, values: dict) -> None:
     scale, opacity, rotation = (values[PREFIX + k] for k in ("SCALE", "OPACITY", "ROTATION"))
     bad = ~(np.isfinite(scale) & (scale >= 0)).all(axis=1)
     if bad.any():
@@ -527,19 +292,14 @@ def _check_values(doc: _Document, field: str, values: dict) -> None:
 
 def _transform(values: dict, matrix: np.ndarray) -> dict:
     """``values`` (glTF frame, local) moved by the node's global ``matrix`` (a similarity without reflection)."""
-    from seggaussian.frames.similarity import Similarity, transform_gaussians
-
     if np.array_equal(matrix, np.eye(4)):
         return values
     sim = Similarity.from_matrix(matrix, source="its global transform")
     if sim.is_reflection:
         raise ValueError("its global transform is a reflection (negative determinant), which the extension leaves "
                          "undefined")
-    moved = transform_gaussians(_gaussians_in_file_frame(values), sim)
-    out = dict(values)
-    out.update(_file_frame_values(moved))
-    out[PREFIX + "OPACITY"] = values[PREFIX + "OPACITY"]
-    return out
+    moved = _file_frame_values(transform_gaussians(_gaussians_in_file_frame(values), sim))
+    return {**values, **moved, PREFIX + "OPACITY": values[PREFIX + "OPACITY"]}
 
 
 def _gaussians_in_file_frame(values: dict) -> Gaussians:
@@ -556,9 +316,9 @@ def decode_gltf(data: bytes, source: str | os.PathLike = "<bytes>", base: Path |
     folder relative buffer URIs are read from (``None``: only embedded buffers)."""
     where = str(source)
     if data.startswith(GLB_MAGIC):
-        doc, binary = _parse_glb(data, where)
+        doc, binary = parse_glb(data, where)
     else:
-        doc, binary = _parse_json(data, where), None
+        doc, binary = parse_json(data, where), None
     asset = doc.get("asset")
     version = asset.get("version") if isinstance(asset, dict) else None
     if not isinstance(version, str) or not re.fullmatch(r"2\.\d+", version):
@@ -569,7 +329,7 @@ def decode_gltf(data: bytes, source: str | os.PathLike = "<bytes>", base: Path |
     if unknown:
         raise SplatFormatError(f"{where}: {TITLE}: extensionsRequired names {', '.join(map(str, unknown))}, "
                                "which this reader does not support")
-    document = _Document(doc, _load_buffers(doc, binary, base, where), where)
+    document = GltfDocument(doc, load_buffers(doc, binary, base, where), where)
     primitives = _splat_primitives(document)
     if not primitives:
         raise SplatFormatError(f"{where}: {TITLE}: no mesh primitive carries the {EXTENSION} extension: a glTF "
@@ -586,7 +346,7 @@ def decode_gltf(data: bytes, source: str | os.PathLike = "<bytes>", base: Path |
         if extras_names is not None and names != extras_names:
             raise document.fail(field, f"its extra attributes {names} differ from the first primitive's {extras_names}")
         extras_names = names
-        for matrix in _node_matrices(document, mesh_index):
+        for matrix in node_matrices(document, mesh_index):
             try:
                 parts.append(_transform(values, matrix))
             except ValueError as exc:
@@ -726,10 +486,7 @@ def encode_gltf(gaussians: Gaussians, *, binary: bool = True, legend: Mapping | 
     text = json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
     if not binary:
         return text
-    text += b" " * (-len(text) % 4)
-    total = GLB_HEADER.size + 2 * CHUNK_HEADER.size + len(text) + len(blob)
-    return b"".join([GLB_HEADER.pack(GLB_MAGIC, GLB_VERSION, total), CHUNK_HEADER.pack(len(text), CHUNK_JSON), text,
-                     CHUNK_HEADER.pack(len(blob), CHUNK_BIN), bytes(blob)])
+    return pack_glb(text, bytes(blob))
 
 
 def write_gltf(path: str | os.PathLike, gaussians: Gaussians, *, binary: bool | None = None,

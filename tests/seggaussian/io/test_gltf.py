@@ -12,11 +12,11 @@ import struct
 import numpy as np
 import pytest
 
-from shared_data import REALDATA, WEB_SPLATS
+from shared_data import WEB_SPLATS
 from seggaussian.core.constants import SH_C0
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import detect_format, read_gaussians, read_gaussians_raw, write_gaussians
-from seggaussian.io.gltf import decode_gltf, encode_gltf, read_gltf, write_gltf
+from seggaussian.io.gltf import decode_gltf, read_gltf, write_gltf
 from seggaussian.io.splat_common import SplatFormatError
 
 EXT = "KHR_gaussian_splatting"
