@@ -71,10 +71,12 @@ class GltfDocument:
         field = f"attribute {semantic} (accessor {index})"
         acc = self.item("accessors", index, field)
         kind, components = allowed
-        ctype, normalized = acc.get("componentType"), bool(acc.get("normalized", False))
+        ctype, normalized = acc.get("componentType"), acc.get("normalized", False)
         if acc.get("type") != kind:
             raise self.fail(field, f"type {acc.get('type')!r}, expected {kind!r}")
-        if ctype not in components:
+        if not isinstance(normalized, bool):
+            raise self.fail(field, f"normalized {normalized!r} is not true or false")
+        if not isinstance(ctype, int) or isinstance(ctype, bool) or ctype not in components:
             names = ", ".join(COMPONENT_DTYPES[c].name for c in components)
             raise self.fail(field, f"component type {ctype!r} is not one the extension allows here ({names})")
         if components[ctype] is not None and components[ctype] != normalized:
@@ -104,7 +106,8 @@ class GltfDocument:
         if needed > len(data):
             raise self.fail(field, f"needs {needed} bytes of its bufferView, which has {len(data)}: truncated?")
         raw = np.ndarray((n, width), dtype=dtype, buffer=data, offset=offset, strides=(stride, dtype.itemsize))
-        values = raw.astype(np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite values are reported by the checks after
+            values = raw.astype(np.float64)
         if normalized:
             limit = float(np.iinfo(dtype).max)
             values = np.maximum(values / limit, -1.0)
@@ -221,7 +224,10 @@ def node_matrices(doc: GltfDocument, mesh_index: int) -> list[np.ndarray]:
     for i, node in enumerate(nodes):
         if not isinstance(node, dict):
             raise doc.fail(f"nodes[{i}]", "expected a JSON object")
-        for child in node.get("children", []) or []:
+        children = node.get("children", [])
+        if not isinstance(children, list):
+            raise doc.fail(f"nodes[{i}].children", f"{children!r} is not a JSON array")
+        for child in children:
             if not isinstance(child, int) or not 0 <= child < len(nodes) or child in parent:
                 raise doc.fail(f"nodes[{i}].children", f"{child!r} is not a node with one parent")
             parent[child] = i
