@@ -1,13 +1,17 @@
 """glTF splats (``KHR_gaussian_splatting``): what our writer stores, read back by a parser written here from the glTF
 2.0 specification and the extension's text (not by our reader), checked against their conventions; our reader on
 files it did not write (quantized attributes, node transforms, external buffers); one-line refusals of files that
-break the extension; round trips; a real splat converted to ``.glb`` and back."""
+break the extension; round trips; a real splat converted to ``.glb`` and back; the ``.glb`` another implementation
+(@playcanvas/splat-transform) writes."""
 
 from __future__ import annotations
 
 import base64
 import json
+import shutil
 import struct
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +23,7 @@ from seggaussian.io.formats import detect_format, read_gaussians, read_gaussians
 from seggaussian.io.gltf import decode_gltf, read_gltf, write_gltf
 from seggaussian.io.splat_common import SplatFormatError
 
+ROOT = Path(__file__).resolve().parents[3]
 EXT = "KHR_gaussian_splatting"
 #: glTF's frame in RDF terms, from the glTF 2.0 specification ("+Y is up; the front of an asset faces +Z, its left
 #: side +X") read as a camera-like scene (RDF: x right, y down, z forward): up is -y, forward +z, so x is negated too
@@ -349,3 +354,39 @@ def test_real_splat_to_glb_and_back_keeps_its_gaussians(tmp_path, name):
         expected, _, _ = read_gaussians(direct)
         np.testing.assert_array_equal(back.means, expected.means)
         np.testing.assert_allclose(back.sh, expected.sh, atol=1e-6)
+
+
+SPLAT_TRANSFORM = ROOT / ".node" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
+
+
+@pytest.mark.skipif(shutil.which("node") is None or not SPLAT_TRANSFORM.is_file(),
+                    reason=f"@playcanvas/splat-transform not installed ({SPLAT_TRANSFORM} missing or no node); run "
+                           "`make setup` with node/npm")
+@pytest.mark.parametrize("degree", [0, 3])
+def test_splat_transform_glb_reads_as_its_ply(tmp_path, degree):
+    """A .glb written by another implementation (@playcanvas/splat-transform 3.7.0's KHR_gaussian_splatting writer,
+    which turns PLY data by 180 degrees about z into glTF's frame, as we do) reads back as the PLY it was made from.
+    It copies a PLY's quaternions as they are: from non-unit ones (as 3DGS trainers save them) it writes a file the
+    extension forbids ("unit quaternions"), which is refused in one line."""
+    g = scene(n=200, degree=degree, labels=False)
+    g = Gaussians(g.means, g.normalized_quats(), g.log_scales, g.opacity_logits, g.sh)
+    glb = tmp_path / "s.glb"
+    for quats in ("unit", "raw"):
+        ply = tmp_path / f"{quats}.ply"
+        write_gaussians(ply, g if quats == "unit" else Gaussians(g.means, g.quats * 3, g.log_scales, g.opacity_logits,
+                                                                  g.sh))
+        result = subprocess.run(["node", str(SPLAT_TRANSFORM), "-q", "-w", str(ply), str(glb)], capture_output=True,
+                                text=True, timeout=120)
+        assert result.returncode == 0 and glb.is_file(), result.stderr[-2000:]
+        if quats == "raw":
+            with pytest.raises(SplatFormatError, match=r"ROTATION: 200 Gaussians have a rotation that is not a unit"):
+                read_gaussians(glb)
+            continue
+        h, _, fmt = read_gaussians(glb)
+        assert fmt == "gltf" and len(h) == len(g) and h.sh_degree == degree
+        np.testing.assert_allclose(h.means, g.means, atol=1e-6)
+        # it turns the rotations by left-multiplying (R -> F R), we conjugate (F R F): the same covariance
+        np.testing.assert_allclose(h.covariances(), g.covariances(), atol=1e-6, rtol=1e-5)
+        np.testing.assert_allclose(h.log_scales, g.log_scales, atol=1e-5)
+        np.testing.assert_allclose(h.opacities(), g.opacities(), atol=1e-6)
+        np.testing.assert_allclose(h.sh, g.sh, atol=1e-5)
