@@ -12,7 +12,8 @@ STAMP := $(VENV)/.installed
 # formats (SPZ: versions 2 and 3, not 4); its peer three.js (>= 0.180) conflicts with GaussianSplats3D's pinned
 # three@0.160.0, so it has its own folder, $(SPARK_DIR)/node_modules.
 # CesiumJS (`cesium`, by the authors of glTF's KHR_gaussian_splatting) draws our .glb files in the same browser
-# (tests/seggaussian/io/test_cesium_viewer.py); its own folder, $(CESIUM_DIR)/node_modules, keeps its dependencies apart.
+# (tests/seggaussian/io/test_cesium_viewer.py); its own folder, $(CESIUM_DIR)/node_modules, keeps its dependencies
+# apart.
 SPLAT_TRANSFORM_VERSION := 3.7.0
 NIANTIC_SPZ_VERSION := 0.2.3
 GS3D_VERSION := 0.4.7

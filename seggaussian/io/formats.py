@@ -124,7 +124,8 @@ def detect_format(path: str | os.PathLike) -> str:
     first = head[:8]
     raise SplatFormatError(
         f"{path}: unknown splat format (starts with {first!r}, {size} bytes): not a PLY file ('ply' header), "
-        f"not SPZ ('NGSP' or gzip), not glTF ('glTF' or a JSON object naming 'asset'), not a mkkellogg .ksplat (version 0.1 header), "
+        f"not SPZ ('NGSP' or gzip), not glTF ('glTF' or a JSON object naming 'asset'), "
+        f"not a mkkellogg .ksplat (version 0.1 header), "
         f"not an antimatter15 .splat (32-byte records"
         f"{'' if size % 32 == 0 else f'; {size} is not a multiple of 32'})"
     )

@@ -81,8 +81,8 @@ from seggaussian.io.splat_common import (
 )
 from seggaussian.io.spz import decode_spz, encode_spz, frame_signs
 
-__all__ = ["GLB_MAGIC", "EXTENSION", "SPZ_EXTENSION", "COMPRESSIONS", "GLTF_FRAME", "GltfSplat", "looks_like_gltf", "decode_gltf", "read_gltf",
-           "encode_gltf", "write_gltf", "attribute_name", "extra_name"]
+__all__ = ["GLB_MAGIC", "EXTENSION", "SPZ_EXTENSION", "COMPRESSIONS", "GLTF_FRAME", "GltfSplat", "looks_like_gltf",
+           "decode_gltf", "read_gltf", "encode_gltf", "write_gltf", "attribute_name", "extra_name", "flipped"]
 
 TITLE = "glTF (KHR_gaussian_splatting)"
 EXTENSION = "KHR_gaussian_splatting"
@@ -95,9 +95,10 @@ SPZ_BLOB_VERSION = 2
 COMPRESSIONS = ("none", "spz")
 #: The SPZ blob stores glTF's coordinates as they are (LUF, not SPZ's own RUB), as CesiumJS reads it (it unpacks the
 #: blob with the coordinate system ``UNSPECIFIED``: no conversion; tests/seggaussian/io/test_cesium_viewer.py renders
-#: our files so: correlation 0.9995 with our rasterizer, 0.47 when the blob is written in RUB). Our SPZ writer stores RUB from RDF and our reader undoes it, so the Gaussians (RDF) are turned by
-#: the flips taking LUF to RUB (``LDB``: x and z negated) before writing the blob and after reading it. (The draft's
-#: text asks for "LUF" in Niantic's pack/unpack options, which would store RUB; the renderer of its authors decides.)
+#: our files so: correlation 0.9995 with our rasterizer, 0.47 when the blob is written in RUB). Our SPZ writer stores
+#: RUB from RDF and our reader undoes it, so the Gaussians (RDF) are turned by the flips taking LUF to RUB (``LDB``:
+#: x and z negated) before writing the blob and after reading it. (The draft's text asks for "LUF" in Niantic's
+#: pack/unpack options, which would store RUB; the renderer of its authors decides.)
 SPZ_BLOB_CORRECTION = "LDB"
 #: The frame glTF stores, as axis letters (``Gaussians`` hold RDF).
 GLTF_FRAME = "LUF"

@@ -67,7 +67,7 @@ class GltfDocument:
         return value
 
     def accessor(self, index, semantic: str, allowed: tuple[str, dict], count: int | None) -> np.ndarray:
-        """The values of accessor ``index`` (``[count, width]`` float64, normalized integers scaled) for ``semantic``."""
+        """Accessor ``index``'s values for ``semantic``: ``[count, width]`` float64, normalized integers scaled."""
         field = f"attribute {semantic} (accessor {index})"
         acc = self.item("accessors", index, field)
         kind, components = allowed

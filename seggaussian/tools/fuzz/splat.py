@@ -200,7 +200,8 @@ def splat_targets(seed: int = 0) -> list[FuzzTarget]:
         write_gaussians(path, scenes["sh0"], "splat")
         seeds["splat"].append(("written:sh0", path.read_bytes()))
         labels = {"semantic": np.arange(30, dtype=np.int32) % 7}
-        for name, suffix, compression in (("glb", ".glb", "none"), ("gltf", ".gltf", "none"), ("glb_spz", ".glb", "spz")):
+        for name, suffix, compression in (("glb", ".glb", "none"), ("gltf", ".gltf", "none"),
+                                          ("glb_spz", ".glb", "spz")):
             for label in ("sh0", "sh3"):
                 path = Path(tmp) / f"{name}_{label}{suffix}"
                 g = scenes[label] if label == "sh0" else scenes[label].with_extras(**labels)

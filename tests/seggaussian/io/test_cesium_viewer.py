@@ -218,4 +218,5 @@ def test_mirrored_glb_fails_the_check(browser, server, tmp_path):
     reference = reference_image(scene, camera, dc_only=False)
     image, _ = render_in_cesium(browser, server, write_tileset(server[1], "mirrored", mirrored_in_x(scene)), camera)
     score = agreement(image, reference)
-    assert score < AGREEMENT_MIN, f"the mirrored scene passes (correlation {score:.4f}); {_save(tmp_path, image, reference)}"
+    assert score < AGREEMENT_MIN, (f"the mirrored scene passes (correlation {score:.4f}); "
+                                   f"{_save(tmp_path, image, reference)}")

@@ -84,7 +84,8 @@ def spec_colour(sh: dict, d: np.ndarray) -> np.ndarray:
          + sh[3, -1] * y * (4 * z * z - x * x - y * y) * -0.4570457994644657
          + sh[3, 0] * z * (2 * z * z - 3 * x * x - 3 * y * y) * 0.3731763325901154
          + sh[3, 1] * x * (4 * z * z - x * x - y * y) * -0.4570457994644657
-         + sh[3, 2] * z * (x * x - y * y) * 1.445305721320277 + sh[3, 3] * x * (x * x - 3 * y * y) * -0.5900435899266435)
+         + sh[3, 2] * z * (x * x - y * y) * 1.445305721320277
+         + sh[3, 3] * x * (x * x - 3 * y * y) * -0.5900435899266435)
     return c + 0.5
 
 
@@ -215,7 +216,8 @@ def test_reads_quantized_attributes_node_transforms_and_json_gltf():
     q16 = np.round(base[f"{EXT}:ROTATION"][0] * 32767)
     op8 = np.round(base[f"{EXT}:OPACITY"][0] * 255)
     sc16 = np.round(base[f"{EXT}:SCALE"][0] * 1000)
-    quantized = dict(base, **{f"{EXT}:ROTATION": (q16, 5122, "VEC4", True), f"{EXT}:OPACITY": (op8, 5121, "SCALAR", True),
+    quantized = dict(base, **{f"{EXT}:ROTATION": (q16, 5122, "VEC4", True),
+                              f"{EXT}:OPACITY": (op8, 5121, "SCALAR", True),
                               f"{EXT}:SCALE": (sc16, 5123, "VEC3", False)})
     q = decode_gltf(handmade(quantized)).gaussians
     np.testing.assert_allclose(q.opacities(), op8[:, 0] / 255, atol=1e-6)

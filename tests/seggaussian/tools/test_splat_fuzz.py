@@ -58,7 +58,8 @@ def _base_files(tmp: Path) -> dict[str, bytes]:
         out[name] = path.read_bytes()
     out["spz3_raw"] = gzip.decompress(out["spz3"])          # a legacy payload without the gzip wrapper
     out["spz1"] = _spz_v1(_gaussians())
-    for name, suffix, compression in (("glb", ".glb", "none"), ("gltf", ".gltf", "none"), ("glb_spz", ".glb", "spz")):
+    for name, suffix, compression in (("glb", ".glb", "none"), ("gltf", ".gltf", "none"),
+                                      ("glb_spz", ".glb", "spz")):
         path = tmp / f"base{suffix}"
         write_gaussians(path, _gaussians(), "gltf", gltf_compression=compression)
         out[name] = path.read_bytes()
