@@ -15,6 +15,7 @@ compressed-PLY chunk bounds, SPZ v1 float16 positions, .ksplat block size, SH ra
 from __future__ import annotations
 
 import gzip
+import json
 import struct
 import zlib
 import tempfile
@@ -24,6 +25,7 @@ import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians, write_gaussians
+from seggaussian.io.gltf_container import GLB_MAGIC, pack_glb
 from seggaussian.io.ply.header import PlyFormatError
 from seggaussian.io.spz import GZIP_MAGIC, encode_spz
 from seggaussian.tools.fuzz.engine import BYTE_MUTATORS, FuzzTarget, Mutator
@@ -118,10 +120,6 @@ _GLTF_VALUES = (0, 1, -1, 3, 4, 5121, 5126, 2**31, 1e300, None, "VEC3", "x", [],
 
 def gltf_json_field(data: bytes, rng: np.random.Generator) -> bytes:
     """One field of a glTF document (GLB or JSON) set to an odd value (a wrong count, type, offset, index...)."""
-    import json
-
-    from seggaussian.io.gltf_container import GLB_MAGIC, pack_glb
-
     binary = data.startswith(GLB_MAGIC)
     try:
         if binary:
