@@ -75,6 +75,7 @@ from seggaussian.io.splat_common import (
     SplatFormatError,
     logit_from_unit,
     read_file_bytes,
+    require_finite,
     rgb_from_dc,
     unit_from_logit,
     unorm_to_byte,
@@ -408,9 +409,7 @@ def encode_gltf(gaussians: Gaussians, *, binary: bool = True, legend: Mapping | 
     if compression not in COMPRESSIONS:
         raise ValueError(f"{TITLE}: unknown compression {compression!r}, expected one of {', '.join(COMPRESSIONS)}")
     g = gaussians
-    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
-        if not np.isfinite(getattr(g, name)).all():
-            raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
+    require_finite(g, TITLE)
     n = len(g)
     stored = flipped(g, GLTF_FRAME)  # RDF -> LUF
     with np.errstate(over="ignore"):

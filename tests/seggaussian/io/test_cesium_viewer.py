@@ -23,11 +23,8 @@ in x, written by the same writer and shown from the same camera, which must fail
 
 from __future__ import annotations
 
-import functools
 import json
-import threading
 import urllib.parse
-from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
@@ -37,8 +34,9 @@ from seggaussian.core.cameras import Camera
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.gltf import GLTF_FRAME, SPZ_EXTENSION, EXTENSION, write_gltf
 from seggaussian.frames.axes import axes_to_rdf
-from test_web_viewer import (CHROMIUM, CHROMIUM_ARGS, HEIGHT, PART_LABELS, WIDTH, _letter_f_scene, agreement,
-                             label_scene, mean_abs_difference, mirrored_in_x, reference_image, rgb_scene, view_camera)
+from test_web_viewer import (CHROMIUM, PART_LABELS, _letter_f_scene, agreement, browser, label_scene,  # noqa: F401
+                             mean_abs_difference, mirrored_in_x, reference_image, rgb_scene, static_server,
+                             view_camera)
 
 ROOT = Path(__file__).resolve().parents[3]
 PAGE = Path(__file__).resolve().with_name("cesium_viewer.html")
@@ -74,51 +72,12 @@ _SKIP_REASON = _skip_reason()
 pytestmark = pytest.mark.skipif(_SKIP_REASON is not None, reason=_SKIP_REASON or "")
 
 
-class _Handler(SimpleHTTPRequestHandler):
-    """Static files: ``/cesium/...`` from Cesium's build, ``/viewer.html`` the page, the rest from ``root``."""
-
-    def __init__(self, *args, root: Path, **kwargs):
-        self.root = root
-        super().__init__(*args, directory=str(root), **kwargs)
-
-    def translate_path(self, path: str) -> str:
-        path = urllib.parse.unquote(urllib.parse.urlsplit(path).path)
-        if path == "/viewer.html":
-            return str(PAGE)
-        base, rest = (CESIUM_BUILD, path[len("/cesium/"):]) if path.startswith("/cesium/") else (self.root, path[1:])
-        target = (base / rest).resolve()
-        return str(target) if target.is_relative_to(base.resolve()) else str(base / "__outside__")
-
-    def log_message(self, *args) -> None:
-        pass
-
-
-_Handler.extensions_map = {**_Handler.extensions_map, ".js": "text/javascript", ".wasm": "application/wasm",
-                           ".glb": "model/gltf-binary", ".json": "application/json"}
-
-
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """(base URL, folder served at the root): a static server on 127.0.0.1 at a free port, in a thread."""
     root = tmp_path_factory.mktemp("cesium_viewer")
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Handler, root=root))
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{httpd.server_address[1]}", root
-    httpd.shutdown()
-    httpd.server_close()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        chromium = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=list(CHROMIUM_ARGS))
-        context = chromium.new_context(viewport={"width": WIDTH, "height": HEIGHT}, device_scale_factor=1)
-        yield context
-        context.close()
-        chromium.close()
+    with static_server(root, PAGE, {"/cesium/": CESIUM_BUILD}) as url:
+        yield url, root
 
 
 def cesium_camera(camera: Camera) -> dict:

@@ -47,6 +47,7 @@ missing skips these tests with the reason.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import threading
@@ -212,18 +213,20 @@ def agreement(a: np.ndarray, b: np.ndarray) -> float:
     return float((x * y).sum() / denom) if denom > 0 else 0.0
 
 
-class _Handler(SimpleHTTPRequestHandler):
-    """Static files: ``/spark/...`` from Spark's node_modules, ``/viewer.html`` the page, the rest from ``root``."""
+class StaticFiles(SimpleHTTPRequestHandler):
+    """Static files: ``/viewer.html`` is ``page``, a path under a prefix of ``mounts`` comes from that folder, the
+    rest from ``root``; nothing outside them is served."""
 
-    def __init__(self, *args, root: Path, **kwargs):
-        self.root = root
+    def __init__(self, *args, root: Path, page: Path, mounts: dict[str, Path], **kwargs):
+        self.root, self.page, self.mounts = root, page, mounts
         super().__init__(*args, directory=str(root), **kwargs)
 
     def translate_path(self, path: str) -> str:
         path = urllib.parse.unquote(urllib.parse.urlsplit(path).path)
         if path == "/viewer.html":
-            return str(PAGE)
-        base, rest = (SPARK_MODULES, path[len("/spark/"):]) if path.startswith("/spark/") else (self.root, path[1:])
+            return str(self.page)
+        base, rest = next(((folder, path[len(prefix):]) for prefix, folder in self.mounts.items()
+                           if path.startswith(prefix)), (self.root, path[1:]))
         target = (base / rest).resolve()
         return str(target) if target.is_relative_to(base.resolve()) else str(base / "__outside__")
 
@@ -231,8 +234,21 @@ class _Handler(SimpleHTTPRequestHandler):
         pass
 
 
-_Handler.extensions_map = {**_Handler.extensions_map, ".js": "text/javascript", ".mjs": "text/javascript",
-                           ".wasm": "application/wasm"}
+StaticFiles.extensions_map = {**StaticFiles.extensions_map, ".js": "text/javascript", ".mjs": "text/javascript",
+                              ".wasm": "application/wasm", ".glb": "model/gltf-binary", ".json": "application/json"}
+
+
+@contextlib.contextmanager
+def static_server(root: Path, page: Path, mounts: dict[str, Path]):
+    """A ``StaticFiles`` server on 127.0.0.1 at a free port, in a thread, for the ``with`` block: yields its URL."""
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(StaticFiles, root=root, page=page, mounts=mounts))
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
 
 
 def _skip_reason() -> str | None:
@@ -255,12 +271,8 @@ pytestmark = pytest.mark.skipif(_SKIP_REASON is not None, reason=_SKIP_REASON or
 def server(tmp_path_factory):
     """(base URL, folder served at the root): a static server on 127.0.0.1 at a free port, in a thread."""
     root = tmp_path_factory.mktemp("web_viewer")
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Handler, root=root))
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{httpd.server_address[1]}", root
-    httpd.shutdown()
-    httpd.server_close()
+    with static_server(root, PAGE, {"/spark/": SPARK_MODULES}) as url:
+        yield url, root
 
 
 @pytest.fixture(scope="module")
