@@ -35,8 +35,8 @@ from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.gltf import GLTF_FRAME, SPZ_EXTENSION, EXTENSION, write_gltf
 from seggaussian.frames.axes import axes_to_rdf
 from test_web_viewer import (CHROMIUM, PART_LABELS, _letter_f_scene, agreement, browser, label_scene,  # noqa: F401
-                             mean_abs_difference, mirrored_in_x, reference_image, rgb_scene, static_server,
-                             view_camera)
+                             mean_abs_difference, mirrored_in_x, page_image, reference_image, rgb_scene,
+                             static_server, view_camera)
 
 ROOT = Path(__file__).resolve().parents[3]
 PAGE = Path(__file__).resolve().with_name("cesium_viewer.html")
@@ -113,26 +113,10 @@ def write_tileset(folder: Path, stem: str, gaussians: Gaussians) -> Path:
 
 def render_in_cesium(browser, server, tileset: Path, camera: Camera) -> tuple[np.ndarray, dict]:
     """Cesium's image (uint8 RGB) of the tileset from ``camera``, and the page's result record."""
-    import cv2
-
     base, root = server
     query = urllib.parse.urlencode({"tileset": f"/{tileset.relative_to(root).as_posix()}",
                                     "camera": json.dumps(cesium_camera(camera))})
-    page = browser.new_page()
-    try:
-        messages: list[str] = []
-        page.on("console", lambda m: messages.append(m.text))
-        page.on("pageerror", lambda e: messages.append(str(e)))
-        page.goto(f"{base}/viewer.html?{query}")
-        page.wait_for_function("window.__result !== null", timeout=PAGE_TIMEOUT_S * 1000)
-        result = page.evaluate("window.__result")
-        if result["status"] != "done":
-            raise AssertionError(f"Cesium page: {result.get('message')} (console: {messages[-5:]})")
-        png = page.screenshot(clip={"x": 0, "y": 0, "width": camera.width, "height": camera.height})
-    finally:
-        page.close()
-    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
-    return np.ascontiguousarray(image), result
+    return page_image(browser, f"{base}/viewer.html?{query}", camera.width, camera.height, PAGE_TIMEOUT_S)
 
 
 def _save(folder: Path, image: np.ndarray, reference: np.ndarray) -> str:

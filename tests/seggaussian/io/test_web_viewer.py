@@ -293,8 +293,6 @@ class ViewerError(RuntimeError):
 
 def render_in_viewer(browser, server, path: Path, file_type: str, camera: Camera) -> tuple[np.ndarray, dict]:
     """Spark's image (uint8 RGB) of the splat file ``path`` from ``camera``, and the page's result record."""
-    import cv2
-
     base, root = server
     name = path.relative_to(root).as_posix()
     query = urllib.parse.urlencode({
@@ -303,17 +301,26 @@ def render_in_viewer(browser, server, path: Path, file_type: str, camera: Camera
                               "width": camera.width, "height": camera.height}),
         "preblur": COV2D_DILATION, "stddev": RADIUS_SIGMAS, "minalpha": ALPHA_MIN,
     })
+    return page_image(browser, f"{base}/viewer.html?{query}", camera.width, camera.height)
+
+
+def page_image(browser, url: str, width: int, height: int, timeout_s: float = PAGE_TIMEOUT_S
+               ) -> tuple[np.ndarray, dict]:
+    """Open ``url``, wait (at most ``timeout_s``) for its ``window.__result``, screenshot the top-left ``width`` x
+    ``height`` pixels -> (uint8 RGB image, the result record); ``ViewerError`` when the page reports an error."""
+    import cv2
+
     page = browser.new_page()
     try:
         messages: list[str] = []
         page.on("console", lambda m: messages.append(m.text))
         page.on("pageerror", lambda e: messages.append(str(e)))
-        page.goto(f"{base}/viewer.html?{query}")
-        page.wait_for_function("window.__result !== null", timeout=PAGE_TIMEOUT_S * 1000)
+        page.goto(url)
+        page.wait_for_function("window.__result !== null", timeout=timeout_s * 1000)
         result = page.evaluate("window.__result")
         if result["status"] != "done":
             raise ViewerError(f"{result.get('message')} (console: {messages[-5:]})")
-        png = page.screenshot(clip={"x": 0, "y": 0, "width": camera.width, "height": camera.height})
+        png = page.screenshot(clip={"x": 0, "y": 0, "width": width, "height": height})
     finally:
         page.close()
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
