@@ -34,8 +34,8 @@ from seggaussian.core.cameras import Camera
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.gltf import GLTF_FRAME, SPZ_EXTENSION, EXTENSION, write_gltf
 from seggaussian.frames.axes import axes_to_rdf
-from test_web_viewer import (CHROMIUM, PART_LABELS, _letter_f_scene, agreement, browser, label_scene,  # noqa: F401
-                             mean_abs_difference, mirrored_in_x, page_image, reference_image, rgb_scene,
+from test_web_viewer import (PART_LABELS, _letter_f_scene, agreement, browser, browser_skip_reason,  # noqa: F401
+                             label_scene, mean_abs_difference, mirrored_in_x, page_image, reference_image, rgb_scene,
                              static_server, view_camera)
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -56,19 +56,7 @@ AGREEMENT_MIN = 0.99
 COLOUR_MAD_MAX = 1.0
 
 
-def _skip_reason() -> str | None:
-    if not CHROMIUM.is_file():
-        return f"{CHROMIUM} missing: `make setup` installs Debian's chromium (apt-get)"
-    try:
-        import playwright.sync_api  # noqa: F401
-    except ImportError:
-        return "the playwright Python package is missing: `make setup` installs the test extra"
-    if not (CESIUM_BUILD / "Cesium.js").is_file():
-        return f"CesiumJS not installed ({CESIUM_BUILD / 'Cesium.js'} missing): run `make setup` with node/npm"
-    return None
-
-
-_SKIP_REASON = _skip_reason()
+_SKIP_REASON = browser_skip_reason("CesiumJS", (CESIUM_BUILD / "Cesium.js",))
 pytestmark = pytest.mark.skipif(_SKIP_REASON is not None, reason=_SKIP_REASON or "")
 
 

@@ -251,19 +251,21 @@ def static_server(root: Path, page: Path, mounts: dict[str, Path]):
         httpd.server_close()
 
 
-def _skip_reason() -> str | None:
+def browser_skip_reason(viewer: str, files: tuple[Path, ...]) -> str | None:
+    """Why a browser test of ``viewer`` (whose ``files`` must exist) cannot run here, or None."""
     if not CHROMIUM.is_file():
         return f"{CHROMIUM} missing: `make setup` installs Debian's chromium (apt-get)"
     try:
         import playwright.sync_api  # noqa: F401
     except ImportError:
         return "the playwright Python package is missing: `make setup` installs the test extra"
-    if not (SPARK_MODULE.is_file() and THREE_MODULE.is_file()):
-        return f"Spark not installed ({SPARK_MODULE} or {THREE_MODULE} missing): run `make setup` with node/npm"
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        return f"{viewer} not installed ({', '.join(missing)} missing): run `make setup` with node/npm"
     return None
 
 
-_SKIP_REASON = _skip_reason()
+_SKIP_REASON = browser_skip_reason("Spark", (SPARK_MODULE, THREE_MODULE))
 pytestmark = pytest.mark.skipif(_SKIP_REASON is not None, reason=_SKIP_REASON or "")
 
 
