@@ -151,7 +151,6 @@ def extra_name(column: str) -> str:
     return "_" + column.upper()
 
 
-
 def _splat_primitives(doc: GltfDocument) -> list[tuple[str, dict, int]]:
     found = []
     for m, mesh in enumerate(doc.array("meshes")):
@@ -164,7 +163,8 @@ def _splat_primitives(doc: GltfDocument) -> list[tuple[str, dict, int]]:
     return found
 
 
-def _check_primitive(doc: GltfDocument, field: str, primitive: dict) -> dict:
+def _check_primitive(doc: GltfDocument, field: str, primitive: dict) -> tuple[dict, dict | None]:
+    """The primitive's attributes and its SPZ compression object (None without), once its extension is checked."""
     ext = primitive["extensions"][EXTENSION]
     if not isinstance(ext, dict):
         raise doc.fail(f"{field}.extensions.{EXTENSION}", "expected a JSON object")
@@ -197,7 +197,7 @@ def _decode_spz_primitive(doc: GltfDocument, field: str, attributes: dict, spz: 
     SPZ file (gzip-wrapped) storing glTF's coordinates as they are (``SPZ_BLOB_CORRECTION``)."""
     where = f"{field}.extensions.{EXTENSION}.extensions.{SPZ_EXTENSION}"
     view = spz.get("bufferView")
-    blob = bytes(doc._view_bytes(doc.item("bufferViews", view, f"{where}.bufferView"), view))
+    blob = bytes(doc.view_bytes(doc.item("bufferViews", view, f"{where}.bufferView"), view))
     g = flipped(decode_spz(blob, f"{doc.where}: {where}"), SPZ_BLOB_CORRECTION)
     values = _file_frame_values(flipped(g, GLTF_FRAME))
     for semantic in ("POSITION", PREFIX + "SCALE", PREFIX + "ROTATION"):
@@ -361,7 +361,8 @@ def decode_gltf(data: bytes, source: str | os.PathLike = "<bytes>", base: Path |
     extras = {}
     for key in extras_names or []:
         column = merged[key]
-        integral = np.isfinite(column).all() and np.array_equal(column, np.round(column))
+        integral = (np.isfinite(column).all() and np.array_equal(column, np.round(column))
+                    and np.abs(column).max(initial=0) < 2 ** 31)
         extras[key[1:]] = column.astype(np.int32) if integral else column.astype(np.float32)
     gaussians = g.with_extras(**extras)
     legend = doc.get("extras", {}).get(EXTRAS_KEY, {}) if isinstance(doc.get("extras"), dict) else {}

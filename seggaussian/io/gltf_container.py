@@ -93,7 +93,7 @@ class GltfDocument:
             raise self.fail(field, "no bufferView (an all-zero accessor): not a splat attribute")
         dtype, width = COMPONENT_DTYPES[ctype], TYPE_WIDTHS[kind]
         view = self.item("bufferViews", acc["bufferView"], f"{field} bufferView")
-        data = self._view_bytes(view, acc["bufferView"])
+        data = self.view_bytes(view, acc["bufferView"])
         offset = acc.get("byteOffset", 0)
         element = dtype.itemsize * width
         stride = view.get("byteStride", element)
@@ -113,7 +113,8 @@ class GltfDocument:
             values = np.maximum(values / limit, -1.0)
         return values
 
-    def _view_bytes(self, view: dict, index: int) -> memoryview:
+    def view_bytes(self, view: dict, index: int) -> memoryview:
+        """The bytes of buffer view ``index`` (``view``), checked to lie inside its buffer."""
         field = f"bufferViews[{index}]"
         buffer = view.get("buffer")
         if not isinstance(buffer, int) or isinstance(buffer, bool) or not 0 <= buffer < len(self.buffers):
