@@ -11,18 +11,24 @@ STAMP := $(VENV)/.installed
 # Spark (@sparkjsdev/spark), the one of PlayCanvas's engine, Spark and GaussianSplats3D that reads all five of our
 # formats (SPZ: versions 2 and 3, not 4); its peer three.js (>= 0.180) conflicts with GaussianSplats3D's pinned
 # three@0.160.0, so it has its own folder, $(SPARK_DIR)/node_modules.
+# CesiumJS (`cesium`, by the authors of glTF's KHR_gaussian_splatting) draws our .glb files in the same browser
+# (tests/seggaussian/io/test_cesium_viewer.py); its own folder, $(CESIUM_DIR)/node_modules, keeps its dependencies
+# apart.
 SPLAT_TRANSFORM_VERSION := 3.7.0
 NIANTIC_SPZ_VERSION := 0.2.3
 GS3D_VERSION := 0.4.7
 THREE_VERSION := 0.160.0
 SPARK_VERSION := 2.2.0
 SPARK_THREE_VERSION := 0.180.0
+CESIUM_VERSION := 1.145.0
 NODE_PACKAGES := @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) @adobe/spz@$(NIANTIC_SPZ_VERSION) \
   @mkkellogg/gaussian-splats-3d@$(GS3D_VERSION) three@$(THREE_VERSION)
 SPARK_PACKAGES := @sparkjsdev/spark@$(SPARK_VERSION) three@$(SPARK_THREE_VERSION)
+CESIUM_PACKAGES := cesium@$(CESIUM_VERSION)
 NODE_DIR := .node
 SPARK_DIR := $(NODE_DIR)/spark
-NODE_STAMP := $(NODE_DIR)/.installed-$(SPLAT_TRANSFORM_VERSION)-spz$(NIANTIC_SPZ_VERSION)-gs3d$(GS3D_VERSION)-spark$(SPARK_VERSION)
+CESIUM_DIR := $(NODE_DIR)/cesium
+NODE_STAMP := $(NODE_DIR)/.installed-$(SPLAT_TRANSFORM_VERSION)-spz$(NIANTIC_SPZ_VERSION)-gs3d$(GS3D_VERSION)-spark$(SPARK_VERSION)-cesium$(CESIUM_VERSION)
 # The headless browser of the web viewer test: Debian's chromium (driven by the `playwright` Python package of the
 # test extra through executable_path; `playwright install` is never run).
 CHROMIUM := /usr/bin/chromium
@@ -50,6 +56,8 @@ $(NODE_STAMP):
 	  npm install --silent --no-audit --no-fund --prefix $(NODE_DIR) $(NODE_PACKAGES) \
 	    && echo "installing $(SPARK_PACKAGES) into $(SPARK_DIR)/" \
 	    && npm install --silent --no-audit --no-fund --prefix $(SPARK_DIR) $(SPARK_PACKAGES) \
+	    && echo "installing $(CESIUM_PACKAGES) into $(CESIUM_DIR)/" \
+	    && npm install --silent --no-audit --no-fund --prefix $(CESIUM_DIR) $(CESIUM_PACKAGES) \
 	    && touch $(NODE_STAMP) \
 	    || echo "npm install failed: the splat reference comparison and web viewer tests will be skipped"; \
 	else \

@@ -21,9 +21,10 @@ from ovgaussian.predict.config import PredictConfig
 @click.option("--vocab", required=True, help='Comma-separated class names, e.g. "chair, table, sofa".')
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="Labelled scene to write: PLY (int property 'semantic' = index into --vocab, class colours), "
-                   "or .compressed.ply / .splat / .spz / .ksplat (class colours only; see --format).")
+                   ".glb / .gltf (KHR_gaussian_splatting; labels as the _SEMANTIC attribute, the vocabulary in the "
+                   "file's extras), or .compressed.ply / .splat / .spz / .ksplat (class colours only; see --format).")
 @config_option(PredictConfig, "output_format", "--format", "output_format",
-               type=click.Choice(["ply", "compressed_ply", "splat", "spz", "ksplat"]), default=None)
+               type=click.Choice(["ply", "compressed_ply", "splat", "spz", "ksplat", "gltf"]), default=None)
 @config_option(PredictConfig, "spz_version", "--spz-version", type=click.Choice(["2", "3", "4"]), default="3",
                show_default=True)
 @config_option(PredictConfig, "color_by", "--color-by", "color_by", type=click.Choice(["semantic", "none"]),

@@ -1,4 +1,4 @@
-"""``seggaussian import SCENE --out DIR``: any splat file (PLY, compressed PLY, .splat, SPZ) -> validated
+"""``seggaussian import SCENE --out DIR``: any splat file (PLY, compressed PLY, .splat, SPZ, .ksplat, glTF) -> validated
 standard 3DGS PLY plus a JSON report."""
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from cli._output import finish, guarded, json_option
 @guarded
 def command(scene: Path, out_dir: Path, on_invalid: str, transform: str | None, from_frame: str | None,
             as_json: bool) -> None:
-    """Read a splat file (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat; detected by content), validate it, write a
-    standard 3DGS PLY and a JSON report into OUT."""
+    """Read a splat file (3DGS PLY, compressed PLY, .splat, SPZ, .ksplat or glTF; detected by content), validate it,
+    write a standard 3DGS PLY and a JSON report into OUT."""
     from seggaussian.frames.frame_config import FrameConfig
     from seggaussian.io.importing import ImportConfig, import_ply
     from seggaussian.io.splat_common import FORMAT_TITLES

@@ -59,7 +59,7 @@ def _format_ply(info: dict) -> str:
 @json_option
 @guarded
 def command(path: Path, verify: bool, as_json: bool) -> None:
-    """Summarize a splat file (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat, detected by content: format,
+    """Summarize a splat file (3DGS PLY, compressed PLY, .splat, SPZ, .ksplat or glTF, detected by content: format,
     count, SH degree, bounds, scale/opacity/colour statistics, validation) or a dataset folder (exit 1 when a shard is
     missing, truncated or, with --verify, corrupted)."""
     if path.is_dir():

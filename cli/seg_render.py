@@ -32,7 +32,7 @@ from cli._output import finish, guarded, json_option
 @guarded
 def command(ply, out, camera_json, look_at, width, height, azimuth, elevation, fov, sh_degree, background, backend,
             transform, from_frame, as_json) -> None:
-    """Render one view of a splat file (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat) to a PNG."""
+    """Render one view of a splat file (3DGS PLY, compressed PLY, .splat, SPZ, .ksplat or glTF) to a PNG."""
     from seggaussian.frames.frame_config import FrameConfig
     from seggaussian.render.quicklook import QuicklookConfig, render_ply_view
 

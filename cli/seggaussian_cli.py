@@ -10,6 +10,7 @@ from seggaussian import __version__
 COMMANDS = {
     "synth": "cli.seg_synth:command",
     "import": "cli.seg_import:command",
+    "convert": "cli.seg_convert:command",
     "align": "cli.seg_align:command",
     "inspect": "cli.seg_inspect:command",
     "render": "cli.seg_render:command",

@@ -48,9 +48,9 @@ class PredictConfig:
     color_by: Literal["semantic", "none"] = "semantic"
     """``semantic``: paint each Gaussian in the fixed palette colour of its class (seggaussian.labels.palette) and
     write a legend (JSON + PNG) beside the output; ``none``: keep the scene's colours, add only the labels."""
-    output_format: Optional[Literal["ply", "compressed_ply", "splat", "spz", "ksplat"]] = None
-    """Format of the output file; None takes it from the name (.compressed.ply, .splat, .spz, .ksplat, else PLY).
-    Only PLY keeps the ``semantic`` property; the other formats carry the class colours alone."""
+    output_format: Optional[Literal["ply", "compressed_ply", "splat", "spz", "ksplat", "gltf"]] = None
+    """Format of the output file; None takes it from the name (.compressed.ply, .splat, .spz, .ksplat, .glb/.gltf,
+    else PLY). PLY and glTF keep the ``semantic`` labels; the other formats carry the class colours alone."""
     spz_version: Literal[2, 3, 4] = 3
     """SPZ version written when the output is SPZ (3: the newest the web viewers read; 4 writes zstd streams)."""
     min_alpha: float = DEFAULT_MIN_ALPHA

@@ -386,8 +386,11 @@ def run_predict(scene_path: Path, out: Path, config: PredictConfig, *, cameras_p
     result = label_gaussians(predictor, gaussians, config, cameras, class_offsets=offsets)
     # the vocabulary goes into the header so the file explains its own labels
     comments = tuple(f"ovgaussian semantic {i} = {name}" for i, name in enumerate(result.vocabulary))
+    # and a glTF file's extras: the names and colours of the ids of its _SEMANTIC attribute
+    legend = {"semantic": {"names": list(result.vocabulary),
+                           "rgb": class_colours(len(result.vocabulary)).tolist()}}
     write_gaussians(out, result.gaussians, out_format, spz_version=config.spz_version,
-                    ply_comments=comments)
+                    ply_comments=comments, legend=legend)
     legend_files: tuple = ()
     if config.color_by == "semantic":
         legend_files = write_legend(out, build_legend(result.labels, "semantic", result.vocabulary))

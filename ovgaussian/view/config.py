@@ -23,7 +23,7 @@ class ViewConfig:
     """One run of the viewer (or one ``--export``)."""
 
     scene: Optional[Path] = None
-    """Splat file to view (3DGS PLY, compressed PLY, .splat, SPZ or .ksplat); optional with --dataset/--scene."""
+    """Splat file to view (3DGS PLY, compressed PLY, .splat, SPZ, .ksplat or glTF); optional with --dataset/--scene."""
     run: Optional[Path] = None
     """Run folder of ``ovgaussian train``: enables the predicted-labels and query modes (none: RGB and ground truth only)."""
     checkpoint: Optional[Path] = None

@@ -42,7 +42,7 @@ from seggaussian.core.constants import SH_C0
 from seggaussian.core.gaussians import Gaussians, sh_degree_from_coeffs
 from seggaussian.io.ply.header import PlyElement, PlyHeader, read_ply_header
 from seggaussian.io.ply.writer import write_atomic
-from seggaussian.io.splat_common import SplatFormatError, dc_from_rgb, logit_from_unit, unit_from_logit
+from seggaussian.io.splat_common import SplatFormatError, dc_from_rgb, logit_from_unit, require_finite, unit_from_logit
 
 __all__ = ["CHUNK_SIZE", "is_compressed_ply_header", "read_compressed_ply", "encode_compressed_ply",
            "write_compressed_ply", "morton_order"]
@@ -290,9 +290,7 @@ def encode_compressed_ply(gaussians: Gaussians) -> tuple[bytes, list[np.ndarray]
     non-finite input is refused."""
     g = gaussians
     n = len(g)
-    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
-        if not np.isfinite(getattr(g, name)).all():
-            raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
+    require_finite(g, TITLE)
     g = g.subset(morton_order(g.means))
     num_chunks = -(-n // CHUNK_SIZE)
     chunk = np.zeros(num_chunks, dtype=[(name, "<f4") for name in CHUNK_BOUNDS + CHUNK_COLOURS])

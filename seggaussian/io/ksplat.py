@@ -69,6 +69,7 @@ from seggaussian.io.splat_common import (
     dc_from_rgb,
     logit_from_unit,
     read_file_bytes,
+    require_finite,
     rgb_from_dc,
     unit_from_logit,
     unorm_to_byte,
@@ -285,9 +286,7 @@ def encode_ksplat(gaussians: Gaussians, compression_level: int = 1,
     if compression_level not in KSPLAT_LEVELS:
         raise ValueError(f"ksplat compression level {compression_level} is not valid (choose one of {KSPLAT_LEVELS})")
     g = gaussians
-    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
-        if not np.isfinite(getattr(g, name)).all():
-            raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
+    require_finite(g, TITLE)
     n = len(g)
     degree = min(g.sh_degree, max_sh_degree, 3)
     level = compression_level

@@ -25,6 +25,7 @@ __all__ = [
     "dc_from_rgb",
     "rgb_from_dc",
     "unorm_to_byte",
+    "require_finite",
 ]
 
 #: Human names of the formats, used in every error message.
@@ -34,6 +35,7 @@ FORMAT_TITLES = {
     "splat": "antimatter15 .splat",
     "spz": "Niantic SPZ",
     "ksplat": "mkkellogg .ksplat",
+    "gltf": "glTF (KHR_gaussian_splatting)",
 }
 
 #: An 8-bit opacity a/255 is clamped to [eps, 1 - eps] before the logit, so a stored 0 or 255 becomes a
@@ -82,3 +84,11 @@ def unorm_to_byte(values: np.ndarray) -> np.ndarray:
     """``[...]`` values in [0, 1] -> uint8 ``round(v * 255)``, clamped; NaN -> 0."""
     v = np.nan_to_num(np.asarray(values, dtype=np.float64), nan=0.0)
     return np.clip(np.round(v * 255.0), 0, 255).astype(np.uint8)
+
+
+def require_finite(gaussians, title: str) -> None:
+    """``ValueError`` (one line, naming the format and the field) when a splat attribute of ``gaussians`` holds
+    NaN/Inf: every writer refuses them rather than storing them."""
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        if not np.isfinite(getattr(gaussians, name)).all():
+            raise ValueError(f"{title}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")

@@ -68,7 +68,8 @@ from seggaussian.util.atomic import write_bytes_atomic
 from seggaussian.frames.axes import axes_to_rdf
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io import spz_kernels
-from seggaussian.io.splat_common import SplatFormatError, logit_from_unit, read_file_bytes, unit_from_logit
+from seggaussian.io.splat_common import (SplatFormatError, logit_from_unit, read_file_bytes, require_finite,
+                                         unit_from_logit)
 
 __all__ = ["SPZ_MAGIC", "SPZ_VERSIONS", "SPZ_FRAME", "read_spz", "decode_spz", "encode_spz", "write_spz",
            "spz_payload_head", "frame_signs"]
@@ -451,9 +452,7 @@ def encode_spz(gaussians: Gaussians, version: int = DEFAULT_WRITE_VERSION) -> by
         raise ValueError(f"SPZ version {version} cannot be written (choose one of {WRITE_VERSIONS})")
     g = gaussians
     n = len(g)
-    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
-        if not np.isfinite(getattr(g, name)).all():
-            raise ValueError(f"{TITLE}: Gaussians.{name} holds NaN/Inf; validate (or repair) before writing")
+    require_finite(g, TITLE)
     position_signs, quat_signs, sh_signs = (s.astype(np.float64) for s in frame_signs(SPZ_FRAME))  # RDF -> RUB
     limit = (1 << 23) - 1
     fixed = np.round(g.means.astype(np.float64) * position_signs * (1 << WRITE_FRACTIONAL_BITS))

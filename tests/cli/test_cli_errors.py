@@ -71,6 +71,7 @@ def _cases(i, where):
         "synth": (seg_main, ["synth", "--out", str(where), "--scenes", "1", "--replica-scenes", "0",
                              "--width", "32", "--views", "2"]),
         "import": (seg_main, ["import", str(i["ply"]), "--out", str(where)]),
+        "convert": (seg_main, ["convert", str(i["ply"]), str(where / "c.glb")]),
         "render": (seg_main, ["render", str(i["ply"]), "--out", str(where / "x.png"), "--width", "16",
                               "--height", "16"]),
         "fit": (seg_main, ["fit", "--root", str(i["raw"]), "--scene", i["scene_id"], "--out", str(where / "f.ply"),
@@ -90,6 +91,7 @@ def _cases(i, where):
 def _missing_input_cases(i, missing: Path, out: Path):
     return {
         "import": (seg_main, ["import", str(missing), "--out", str(out)]),
+        "convert": (seg_main, ["convert", str(missing), str(out / "c.glb")]),
         "inspect": (seg_main, ["inspect", str(missing)]),
         "render": (seg_main, ["render", str(missing), "--out", str(out / "x.png")]),
         "fit": (seg_main, ["fit", "--root", str(missing), "--scene", "s", "--out", str(out / "f.ply")]),
@@ -119,7 +121,7 @@ def _one_line_error(cli, argv, path_part: str):
     return errors[0]
 
 
-COMMANDS_WITH_OUTPUT = ["synth", "import", "render", "fit", "build", "export-ply", "bench", "train", "ov-bench",
+COMMANDS_WITH_OUTPUT = ["synth", "import", "convert", "render", "fit", "build", "export-ply", "bench", "train", "ov-bench",
                         "predict"]
 
 
@@ -141,7 +143,7 @@ def test_read_only_output(inputs, name, tmp_path, monkeypatch):
         ro.path.chmod(0o755)
 
 
-@pytest.mark.parametrize("name", ["import", "inspect", "render", "fit", "build", "split", "export-ply", "bench",
+@pytest.mark.parametrize("name", ["import", "convert", "inspect", "render", "fit", "build", "split", "export-ply", "bench",
                                   "train", "ov-bench", "predict"])
 def test_missing_input(inputs, name, tmp_path):
     missing = tmp_path / "does-not-exist"

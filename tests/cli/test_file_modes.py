@@ -58,6 +58,10 @@ def test_modes_synth_import_render_fit_export_bench(inputs, tmp_path, umask_022)
     out = tmp_path / "import"
     _run(seg_main, ["import", str(inputs["ply"]), "--out", str(out)])
     _assert_umask_modes(out, min_files=2)
+    out = tmp_path / "convert"
+    _run(seg_main, ["convert", str(inputs["ply"]), str(out / "c.glb")])
+    _run(seg_main, ["convert", str(inputs["ply"]), str(out / "c.gltf"), "--gltf-compression", "spz"])
+    _assert_umask_modes(out, min_files=2)
     out = tmp_path / "render"
     _run(seg_main, ["render", str(inputs["ply"]), "--out", str(out / "v.png"), "--width", "16", "--height", "16"])
     _assert_umask_modes(out)

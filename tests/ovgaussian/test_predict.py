@@ -168,6 +168,49 @@ def test_refuses_to_overwrite_input(run_dir, tmp_path):
         run_predict(p, p, PredictConfig(run=run_dir, vocabulary=("a",)))
 
 
+class _NearestAxisPredictor:
+    """Scores a Gaussian's classes by its position's coordinates (class i: coordinate i), no model."""
+
+    checkpoint = None
+    trained_names = ()
+
+    def encode_gaussians(self, gaussians):
+        return gaussians.means.astype(np.float32)
+
+    def score_names(self, vectors, names):
+        return vectors[:, : len(names)]
+
+
+def test_predict_writes_labelled_gltf(tmp_path):
+    """A .glb scene in, a .glb out: the labels as the _SEMANTIC attribute (the counts of the summary), the
+    vocabulary and its colours in the file's extras, the class colours as its DC colour."""
+    from ovgaussian.predict.config import PredictConfig
+    from ovgaussian.predict.query import run_predict
+    from seggaussian.core.gaussians import Gaussians
+    from seggaussian.io.formats import write_gaussians
+    from seggaussian.io.gltf import read_gltf
+
+    rng = np.random.default_rng(4)
+    n = 300
+    scene = Gaussians.from_arrays(rng.normal(size=(n, 3)), rng.normal(size=(n, 4)), rng.uniform(-4, -2, (n, 3)),
+                                  rng.normal(size=n), rng.normal(0, 0.3, (n, 4, 3)))
+    glb = tmp_path / "scene.glb"
+    write_gaussians(glb, scene)
+    out = tmp_path / "labelled.glb"
+    config = PredictConfig(run=tmp_path, vocabulary=("wall", "floor", "chair"), colour_mode="f_dc")
+    report = run_predict(glb, out, config, predictor=_NearestAxisPredictor())
+    summary = report.summary
+    assert summary["scene_format"] == "gltf" and summary["out_format"] == "gltf"
+    labelled = read_gltf(out)
+    labels = labelled.gaussians.extras["semantic"]
+    names = labelled.legend["semantic"]["names"]
+    np.testing.assert_array_equal(labels, np.argmax(scene.means, axis=1))
+    assert names == ["wall", "floor", "chair"] and summary["counts"] == {
+        name: int((labels == i).sum()) for i, name in enumerate(names)}
+    colours = np.asarray(labelled.legend["semantic"]["rgb"], np.float64)[labels]
+    assert np.abs(labelled.gaussians.dc_colors() * 255 - colours).max() < 0.01
+
+
 def test_predict_reads_and_writes_other_formats_with_legend(run_dir, tmp_path):
     from cli.ov_predict import command
     from seggaussian.io.formats import read_gaussians, write_gaussians

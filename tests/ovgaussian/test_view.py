@@ -329,21 +329,22 @@ def test_cli_export_with_a_run_and_a_dataset(tmp_path):
     assert result.output.strip().splitlines()[-1].startswith("view: 160 Gaussians (instance) exported to")
 
 
-def test_cli_reads_a_splat_file_with_a_transform(tmp_path):
+@pytest.mark.parametrize(("suffix", "fmt"), [(".ply", "ply"), (".glb", "gltf")])
+def test_cli_reads_a_splat_file_with_a_transform(tmp_path, suffix, fmt):
     pytest.importorskip("viser")
-    from seggaussian.io.ply.writer import write_gaussians_ply
+    from seggaussian.io.formats import write_gaussians
 
     from cli.ovgaussian_cli import main
 
     g = synthetic_room(spacing=0.5)
-    ply = tmp_path / "room.ply"
-    write_gaussians_ply(ply, g)
+    scene = tmp_path / f"room{suffix}"
+    write_gaussians(scene, g)
     out = tmp_path / "room.viser"
-    result = CliRunner().invoke(main, ["view", str(ply), "--transform", "frame:RUB", "--export", str(out), "--json"])
+    result = CliRunner().invoke(main, ["view", str(scene), "--transform", "frame:RUB", "--export", str(out), "--json"])
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
     assert payload["num_gaussians"] == len(g) and payload["modes"] == ["rgb"]
-    assert payload["details"]["frame"]["transform"] is not None and payload["details"]["format"] == "ply"
+    assert payload["details"]["frame"]["transform"] is not None and payload["details"]["format"] == fmt
 
 
 @pytest.mark.parametrize("case", ["missing scene", "missing dataset", "no scene given", "scene id without dataset",

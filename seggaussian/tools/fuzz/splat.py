@@ -1,19 +1,21 @@
 """Fuzz targets of the non-PLY splat formats for the shared harness in ``seggaussian.tools.fuzz.engine``.
 
 One ``FuzzTarget`` per format (``.splat``, compressed PLY, SPZ v1-v4 gzip-wrapped and raw, ``.ksplat`` at
-compression levels 0-2), all read through
+compression levels 0-2, glTF as GLB, as JSON and with SPZ compression), all read through
 ``seggaussian.io.formats.read_gaussians`` (content detection + decode + validation, what every command runs).
 Seeds are written by our writers (SPZ v1 is assembled from a v2 payload: no writer emits it). Mutators: the
 harness's byte mutators for every format, its PLY header mutators for compressed PLY, plus format-aware ones:
 SPZ header fields (count, version, SH degree, fraction bits, stream count, TOC offset) and byte flips inside
 the gzip payload (re-wrapped, so they pass the CRC), and NaN / Inf written into float fields (.splat records,
 compressed-PLY chunk bounds, SPZ v1 float16 positions, .ksplat block size, SH range and record floats), and
-.ksplat header fields (section count, splat counts, compression level, buckets, SH degree).
+.ksplat header fields (section count, splat counts, compression level, buckets, SH degree), glTF JSON fields
+(accessor counts, types, offsets, indices; buffer view ranges; node matrices and children).
 """
 
 from __future__ import annotations
 
 import gzip
+import json
 import struct
 import zlib
 import tempfile
@@ -23,6 +25,7 @@ import numpy as np
 
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.io.formats import read_gaussians, write_gaussians
+from seggaussian.io.gltf_container import GLB_MAGIC, pack_glb
 from seggaussian.io.ply.header import PlyFormatError
 from seggaussian.io.spz import GZIP_MAGIC, encode_spz
 from seggaussian.tools.fuzz.engine import BYTE_MUTATORS, FuzzTarget, Mutator
@@ -30,7 +33,8 @@ from seggaussian.tools.fuzz.ply import PLY_MUTATORS
 
 __all__ = ["splat_targets", "SPLAT_TARGET_NAMES"]
 
-SPLAT_TARGET_NAMES = ("splat", "compressed_ply", "spz1", "spz2", "spz3", "spz3_raw", "spz4", "ksplat")
+SPLAT_TARGET_NAMES = ("splat", "compressed_ply", "spz1", "spz2", "spz3", "spz3_raw", "spz4", "ksplat", "glb", "gltf",
+                      "glb_spz")
 _BAD_FLOATS = (np.nan, np.inf, -np.inf)
 
 
@@ -105,6 +109,35 @@ def _f16_nan(data: bytes, rng: np.random.Generator) -> bytes:
     return bytes(out)
 
 
+#: glTF JSON fields set to odd values by ``gltf_json_field``: (array, field).
+_GLTF_FIELDS = (("accessors", "count"), ("accessors", "componentType"), ("accessors", "type"),
+                ("accessors", "byteOffset"), ("accessors", "bufferView"), ("accessors", "normalized"),
+                ("bufferViews", "byteLength"), ("bufferViews", "byteOffset"), ("bufferViews", "byteStride"),
+                ("bufferViews", "buffer"), ("buffers", "byteLength"), ("meshes", "primitives"), ("nodes", "mesh"),
+                ("nodes", "matrix"), ("nodes", "children"))
+_GLTF_VALUES = (0, 1, -1, 3, 4, 5121, 5126, 2**31, 1e300, None, "VEC3", "x", [], {}, [1, 2], True)
+
+
+def gltf_json_field(data: bytes, rng: np.random.Generator) -> bytes:
+    """One field of a glTF document (GLB or JSON) set to an odd value (a wrong count, type, offset, index...)."""
+    binary = data.startswith(GLB_MAGIC)
+    try:
+        if binary:
+            size = struct.unpack_from("<I", data, 12)[0]
+            doc, blob = json.loads(data[20: 20 + size]), data[28 + size:]
+        else:
+            doc = json.loads(data)
+    except (ValueError, struct.error):
+        return data
+    key, field = _GLTF_FIELDS[int(rng.integers(len(_GLTF_FIELDS)))]
+    items = doc.get(key) if isinstance(doc, dict) else None
+    if not isinstance(items, list) or not items or not isinstance(items[0], dict):
+        return data
+    items[int(rng.integers(len(items)))][field] = _GLTF_VALUES[int(rng.integers(len(_GLTF_VALUES)))]
+    text = json.dumps(doc).encode()
+    return pack_glb(text, blob) if binary else text
+
+
 #: (offset, size) of the .ksplat header fields mutated: main header counts and level, section header fields.
 _KSPLAT_FIELDS = ((0, 1), (1, 1), (4, 4), (8, 4), (12, 4), (16, 4), (20, 2)) + tuple(
     (4096 + offset, size) for offset, size in ((0, 4), (4, 4), (8, 4), (12, 4), (20, 2), (24, 4), (32, 4), (36, 4),
@@ -164,11 +197,21 @@ def splat_targets(seed: int = 0) -> list[FuzzTarget]:
         path = Path(tmp) / "seed.splat"
         write_gaussians(path, scenes["sh0"], "splat")
         seeds["splat"].append(("written:sh0", path.read_bytes()))
+        labels = {"semantic": np.arange(30, dtype=np.int32) % 7}
+        for name, suffix, compression in (("glb", ".glb", "none"), ("gltf", ".gltf", "none"),
+                                          ("glb_spz", ".glb", "spz")):
+            for label in ("sh0", "sh3"):
+                path = Path(tmp) / f"{name}_{label}{suffix}"
+                g = scenes[label] if label == "sh0" else scenes[label].with_extras(**labels)
+                write_gaussians(path, g, "gltf", gltf_compression=compression)
+                seeds[name].append((f"written:{label}", path.read_bytes()))
     extra: dict[str, tuple[tuple[str, Mutator], ...]] = {
         "splat": (("splat_nan", _splat_nan),),
         "compressed_ply": PLY_MUTATORS + (("chunk_nan", _chunk_nan),),
         "spz1": SPZ_MUTATORS + (("spz1_f16_nan", _f16_nan),),
         "ksplat": (("ksplat_header_field", _ksplat_header_field), ("ksplat_nan", _ksplat_nan)),
+        **{name: (("gltf_json_field", gltf_json_field),) for name in ("glb", "gltf")},
+        "glb_spz": (("gltf_json_field", gltf_json_field),),
     }
 
     def read(path: Path) -> Gaussians:

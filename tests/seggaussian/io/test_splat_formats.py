@@ -372,8 +372,10 @@ def test_output_format_from_name_and_stem():
     assert format_for_output("x.KSPLAT") == "ksplat"
     with pytest.raises(ValueError, match="unknown splat format"):
         format_for_output("x.ply", "sog")
-    assert [scene_stem(p) for p in ("r.compressed.ply", "r.ply", "r.spz", "r.splat", "r.ksplat")] == ["r"] * 5
-    assert set(FORMATS) == {"ply", "compressed_ply", "splat", "spz", "ksplat"}
+    assert [format_for_output(f"x{s}") for s in (".glb", ".GLTF")] == ["gltf", "gltf"]
+    assert [scene_stem(p) for p in ("r.compressed.ply", "r.ply", "r.spz", "r.splat", "r.ksplat", "r.glb",
+                                    "r.gltf")] == ["r"] * 7
+    assert set(FORMATS) == {"ply", "compressed_ply", "splat", "spz", "ksplat", "gltf"}
 
 
 # ---------------------------------------------------------------------------------------------

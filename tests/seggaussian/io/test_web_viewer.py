@@ -47,6 +47,7 @@ missing skips these tests with the reason.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import threading
@@ -212,18 +213,20 @@ def agreement(a: np.ndarray, b: np.ndarray) -> float:
     return float((x * y).sum() / denom) if denom > 0 else 0.0
 
 
-class _Handler(SimpleHTTPRequestHandler):
-    """Static files: ``/spark/...`` from Spark's node_modules, ``/viewer.html`` the page, the rest from ``root``."""
+class StaticFiles(SimpleHTTPRequestHandler):
+    """Static files: ``/viewer.html`` is ``page``, a path under a prefix of ``mounts`` comes from that folder, the
+    rest from ``root``; nothing outside them is served."""
 
-    def __init__(self, *args, root: Path, **kwargs):
-        self.root = root
+    def __init__(self, *args, root: Path, page: Path, mounts: dict[str, Path], **kwargs):
+        self.root, self.page, self.mounts = root, page, mounts
         super().__init__(*args, directory=str(root), **kwargs)
 
     def translate_path(self, path: str) -> str:
         path = urllib.parse.unquote(urllib.parse.urlsplit(path).path)
         if path == "/viewer.html":
-            return str(PAGE)
-        base, rest = (SPARK_MODULES, path[len("/spark/"):]) if path.startswith("/spark/") else (self.root, path[1:])
+            return str(self.page)
+        base, rest = next(((folder, path[len(prefix):]) for prefix, folder in self.mounts.items()
+                           if path.startswith(prefix)), (self.root, path[1:]))
         target = (base / rest).resolve()
         return str(target) if target.is_relative_to(base.resolve()) else str(base / "__outside__")
 
@@ -231,23 +234,38 @@ class _Handler(SimpleHTTPRequestHandler):
         pass
 
 
-_Handler.extensions_map = {**_Handler.extensions_map, ".js": "text/javascript", ".mjs": "text/javascript",
-                           ".wasm": "application/wasm"}
+StaticFiles.extensions_map = {**StaticFiles.extensions_map, ".js": "text/javascript", ".mjs": "text/javascript",
+                              ".wasm": "application/wasm", ".glb": "model/gltf-binary", ".json": "application/json"}
 
 
-def _skip_reason() -> str | None:
+@contextlib.contextmanager
+def static_server(root: Path, page: Path, mounts: dict[str, Path]):
+    """A ``StaticFiles`` server on 127.0.0.1 at a free port, in a thread, for the ``with`` block: yields its URL."""
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(StaticFiles, root=root, page=page, mounts=mounts))
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+def browser_skip_reason(viewer: str, files: tuple[Path, ...]) -> str | None:
+    """Why a browser test of ``viewer`` (whose ``files`` must exist) cannot run here, or None."""
     if not CHROMIUM.is_file():
         return f"{CHROMIUM} missing: `make setup` installs Debian's chromium (apt-get)"
     try:
         import playwright.sync_api  # noqa: F401
     except ImportError:
         return "the playwright Python package is missing: `make setup` installs the test extra"
-    if not (SPARK_MODULE.is_file() and THREE_MODULE.is_file()):
-        return f"Spark not installed ({SPARK_MODULE} or {THREE_MODULE} missing): run `make setup` with node/npm"
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        return f"{viewer} not installed ({', '.join(missing)} missing): run `make setup` with node/npm"
     return None
 
 
-_SKIP_REASON = _skip_reason()
+_SKIP_REASON = browser_skip_reason("Spark", (SPARK_MODULE, THREE_MODULE))
 pytestmark = pytest.mark.skipif(_SKIP_REASON is not None, reason=_SKIP_REASON or "")
 
 
@@ -255,12 +273,8 @@ pytestmark = pytest.mark.skipif(_SKIP_REASON is not None, reason=_SKIP_REASON or
 def server(tmp_path_factory):
     """(base URL, folder served at the root): a static server on 127.0.0.1 at a free port, in a thread."""
     root = tmp_path_factory.mktemp("web_viewer")
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Handler, root=root))
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{httpd.server_address[1]}", root
-    httpd.shutdown()
-    httpd.server_close()
+    with static_server(root, PAGE, {"/spark/": SPARK_MODULES}) as url:
+        yield url, root
 
 
 @pytest.fixture(scope="module")
@@ -281,8 +295,6 @@ class ViewerError(RuntimeError):
 
 def render_in_viewer(browser, server, path: Path, file_type: str, camera: Camera) -> tuple[np.ndarray, dict]:
     """Spark's image (uint8 RGB) of the splat file ``path`` from ``camera``, and the page's result record."""
-    import cv2
-
     base, root = server
     name = path.relative_to(root).as_posix()
     query = urllib.parse.urlencode({
@@ -291,17 +303,26 @@ def render_in_viewer(browser, server, path: Path, file_type: str, camera: Camera
                               "width": camera.width, "height": camera.height}),
         "preblur": COV2D_DILATION, "stddev": RADIUS_SIGMAS, "minalpha": ALPHA_MIN,
     })
+    return page_image(browser, f"{base}/viewer.html?{query}", camera.width, camera.height)
+
+
+def page_image(browser, url: str, width: int, height: int, timeout_s: float = PAGE_TIMEOUT_S
+               ) -> tuple[np.ndarray, dict]:
+    """Open ``url``, wait (at most ``timeout_s``) for its ``window.__result``, screenshot the top-left ``width`` x
+    ``height`` pixels -> (uint8 RGB image, the result record); ``ViewerError`` when the page reports an error."""
+    import cv2
+
     page = browser.new_page()
     try:
         messages: list[str] = []
         page.on("console", lambda m: messages.append(m.text))
         page.on("pageerror", lambda e: messages.append(str(e)))
-        page.goto(f"{base}/viewer.html?{query}")
-        page.wait_for_function("window.__result !== null", timeout=PAGE_TIMEOUT_S * 1000)
+        page.goto(url)
+        page.wait_for_function("window.__result !== null", timeout=timeout_s * 1000)
         result = page.evaluate("window.__result")
         if result["status"] != "done":
             raise ViewerError(f"{result.get('message')} (console: {messages[-5:]})")
-        png = page.screenshot(clip={"x": 0, "y": 0, "width": camera.width, "height": camera.height})
+        png = page.screenshot(clip={"x": 0, "y": 0, "width": width, "height": height})
     finally:
         page.close()
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]

@@ -58,6 +58,11 @@ def _base_files(tmp: Path) -> dict[str, bytes]:
         out[name] = path.read_bytes()
     out["spz3_raw"] = gzip.decompress(out["spz3"])          # a legacy payload without the gzip wrapper
     out["spz1"] = _spz_v1(_gaussians())
+    for name, suffix, compression in (("glb", ".glb", "none"), ("gltf", ".gltf", "none"),
+                                      ("glb_spz", ".glb", "spz")):
+        path = tmp / f"base{suffix}"
+        write_gaussians(path, _gaussians(), "gltf", gltf_compression=compression)
+        out[name] = path.read_bytes()
     return out
 
 
@@ -109,6 +114,10 @@ def _mutate(name: str, base: bytes, rng: np.random.Generator) -> bytes:
             size = 4 if field in (4, 8, 16) else 1
             value = int(rng.choice([0, 1, 2, 5, 39, 41, 255, 2**20, 2**31 - 1])) % (256 ** size)
             data[field: field + size] = value.to_bytes(size, "little")
+        elif name.startswith(("glb", "gltf")):        # accessor counts, types, offsets, indices in the JSON
+            from seggaussian.tools.fuzz.splat import gltf_json_field
+
+            data = bytearray(gltf_json_field(bytes(data), rng))
         elif name.startswith("ksplat"):               # main and section header counts, level, buckets, degree
             field, size = [(4, 4), (8, 4), (12, 4), (16, 4), (20, 2), (4096, 4), (4100, 4), (4108, 4), (4128, 4),
                            (4132, 4), (4136, 2)][int(rng.integers(11))]
@@ -142,7 +151,7 @@ def _classify(path: Path) -> str:
 
 
 @pytest.mark.parametrize("name", ["splat", "compressed_ply", "spz1", "spz2", "spz3", "spz3_raw", "spz4", "ply",
-                                  "ksplat0", "ksplat1", "ksplat2"])
+                                  "ksplat0", "ksplat1", "ksplat2", "glb", "gltf", "glb_spz"])
 def test_fuzz_gives_clear_errors_only(name, tmp_path):
     base = _base_files(tmp_path)[name]
     rng = np.random.default_rng(sum(map(ord, name)))  # seeded per format
@@ -170,7 +179,7 @@ def test_fuzz_gives_clear_errors_only(name, tmp_path):
 HARNESS_MUTANTS = 400
 
 
-@pytest.mark.parametrize("index", range(8))
+@pytest.mark.parametrize("index", range(11))
 def test_splat_formats_in_the_shared_fuzz_harness(index, tmp_path):
     from seggaussian.tools.fuzz import engine as fuzz
     from seggaussian.tools.fuzz.splat import splat_targets
