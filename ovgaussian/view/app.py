@@ -136,8 +136,10 @@ class QueryViewer:
         has_field = "query" in state.modes
         self.query_input = gui.add_text("Query", queries, visible=has_field,
                                         hint="Comma-separated phrases; each Gaussian goes to the most relevant one")
-        self.threshold_input = gui.add_slider("Threshold", 0.0, 1.0, THRESHOLD_STEP, float(threshold),
-                                              visible=has_field, hint="LERF relevancy below which Gaussians are greyed")
+        self.threshold_input = gui.add_slider(
+            "Threshold", 0.0, 1.0, THRESHOLD_STEP, float(threshold), visible=has_field,
+            hint=f"Calibrated relevancy (the query's probability against the vocabulary and the negatives) below which "
+                 f"Gaussians are greyed; the default {DEFAULT_THRESHOLD:g} suits every phrase")
         self.status = gui.add_markdown("")
         with gui.add_folder("Legend"):
             self.legend = gui.add_html("")

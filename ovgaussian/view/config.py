@@ -39,9 +39,11 @@ class ViewConfig:
     mode: Optional[Literal["rgb", "semantic", "instance", "predicted", "query"]] = None
     """Colour mode to start with; None: query when --query is given, else rgb."""
     threshold: float = DEFAULT_THRESHOLD
-    """Relevancy threshold of the query mode: Gaussians below it are greyed (LERF relevancy, in (0, 1))."""
+    """Relevancy threshold of the query mode: Gaussians below it are greyed. The relevancy is calibrated (the query's
+    probability against the vocabulary and the negatives), so the default suits every phrase; the slider overrides."""
     negatives: tuple[str, ...] = CANONICAL_NEGATIVES
-    """Canonical negative phrases of the relevancy (LERF's: object, things, stuff, texture)."""
+    """Canonical negative phrases, competitors of every query beside the vocabulary (LERF's: object, things, stuff,
+    texture)."""
     host: str = DEFAULT_HOST
     """Address to bind: 127.0.0.1 (this machine only) by default; 0.0.0.0 opens the viewer to the network."""
     port: int = DEFAULT_PORT

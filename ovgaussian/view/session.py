@@ -18,6 +18,7 @@ from ovgaussian.predict.query import load_model_predictor
 from ovgaussian.view.app import QueryViewer
 from ovgaussian.view.config import ViewConfig
 from ovgaussian.view.field import QueryField
+from ovgaussian.view.relevancy import DEFAULT_TEMPERATURE
 from ovgaussian.view.scene import load_view_scene
 from ovgaussian.view.state import ViewerState
 from seggaussian.core.constants import read_class_names
@@ -33,6 +34,19 @@ def run_vocabulary(run: Path) -> tuple[str, ...]:
     ids = vocabulary.get("class_ids") or ()
     all_names = read_class_names()
     return tuple(all_names[int(i)] for i in ids if 0 <= int(i) < len(all_names))
+
+
+def run_temperature(run: Path | None) -> float:
+    """The softmax temperature a run was trained at (``config.json``: ``train.loss.temperature``), the scale of its
+    scores; ``DEFAULT_TEMPERATURE`` when there is no run or it records none."""
+    if run is None:
+        return DEFAULT_TEMPERATURE
+    value = read_json(Path(run) / CONFIG_NAME).get("train", {}).get("loss", {}).get("temperature")
+    if value is None:
+        return DEFAULT_TEMPERATURE
+    if not float(value) > 0:
+        raise ValueError(f"{Path(run) / CONFIG_NAME}: train.loss.temperature must be > 0, got {value}")
+    return float(value)
 
 
 def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], None] | None = None) -> ViewerState:
@@ -54,8 +68,8 @@ def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], No
     start = time.perf_counter()
     vectors = predictor.encode_gaussians(scene.gaussians)
     field = QueryField.from_predictor(predictor, vectors)
-    state = ViewerState(scene, field, vocabulary, config.negatives)
-    field.scores(state.negatives)  # the text encoder's first load, and the negatives' columns, before any query
+    state = ViewerState(scene, field, vocabulary, config.negatives, run_temperature(config.run))
+    field.scores(state.competitors)  # the text encoder's first load, and the competitors' columns, before any query
     say(f"view: language field of {len(field):,} Gaussians ready in {time.perf_counter() - start:.1f} s")
     return state
 
@@ -79,6 +93,7 @@ def _summary(config: ViewConfig, state: ViewerState, viewer) -> dict:
         "threshold": float(viewer.threshold_input.value),
         "vocabulary": list(state.vocabulary),
         "negatives": list(state.negatives) if state.field is not None else [],
+        "temperature": state.temperature if state.field is not None else None,
         "status": None if viewer.last is None else viewer.last.status,
     }
 
