@@ -32,6 +32,9 @@ class ViewConfig:
     """Dataset folder of ``seggaussian build`` holding the scene's ground-truth semantic and instance labels."""
     scene_id: Optional[str] = None
     """Scene id in --dataset (its Gaussians are shown when no SCENE file is given; else they must match SCENE's)."""
+    cameras: Optional[Path] = None
+    """JSON cameras file (``ovgaussian predict --cameras``'s format, in the scene's frame): the viewer opens at one
+    and draws them all as clickable frustums. None: a dataset scene's view cameras; a bare splat opens at its centre."""
     vocabulary: tuple[str, ...] = ()
     """Class names of the predicted-labels mode (comma-separated); empty: the run's training vocabulary."""
     queries: str = ""

@@ -52,7 +52,8 @@ def run_temperature(run: Path | None) -> float:
 def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], None] | None = None) -> ViewerState:
     """The scene of ``config`` and, with a run (or a ready ``predictor``), its language field and vocabulary."""
     say = progress or (lambda _message: None)
-    scene = load_view_scene(config.scene, config.dataset, config.scene_id, config.frame, config.on_invalid)
+    scene = load_view_scene(config.scene, config.dataset, config.scene_id, config.frame, config.on_invalid,
+                            config.cameras)
     say(f"view: {len(scene.gaussians):,} Gaussians from {scene.source}")
     if predictor is None and config.run is None:
         if config.vocabulary or config.queries:
