@@ -188,10 +188,16 @@ def browser_viewer():
     from ovgaussian.view.field import QueryField
     from ovgaussian.view.state import ViewerState
 
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
+    from seggaussian.shards import ViewCamera
+
     room = synthetic_room()
     oracle = TextOracle(ROOM_CLASSES)
-    state = ViewerState(room_scene(room), QueryField.from_predictor(oracle, oracle.encode_gaussians(room)),
-                        ROOM_CLASSES)
+    focal = 0.5 * VIEWPORT[1] / np.tan(0.5 * np.radians(CAMERA_FOV_DEG))
+    test_camera = Camera(intrinsics(focal, focal, 0.5 * VIEWPORT[0], 0.5 * VIEWPORT[1]),
+                         look_at(CAMERA_EYE, CAMERA_TARGET), VIEWPORT[0], VIEWPORT[1])
+    scene = room_scene(room)._replace(cameras=(ViewCamera("test", "file", test_camera),))  # the page opens there
+    state = ViewerState(scene, QueryField.from_predictor(oracle, oracle.encode_gaussians(room)), ROOM_CLASSES)
     viewer = QueryViewer(state, port=0, mode="rgb", threshold=QUERY_THRESHOLD)
     playwright = sync_api.sync_playwright().start()
     browser = playwright.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS)
