@@ -17,6 +17,10 @@ labels. Four masks per query:
 
 Oracle thresholds are searched over the 401 quantiles of each query's scores in the room. Means are over queries,
 separately for the classes of the run's vocabulary and the others (names the run never saw in training).
+
+A default must also leave a room alone when the queried thing is not there: every name of the run's vocabulary
+that no Gaussian of the room carries is queried too, and the share of the room's Gaussians each default highlights
+is reported (the best threshold has no meaning there).
 """
 
 from __future__ import annotations
@@ -79,6 +83,13 @@ def measure(run: Path, data: Path, splits, min_gaussians: int, progress) -> list
                              "LERF 0.5": iou(lerf >= 0.5, truth), "LERF best": best_iou(lerf, truth),
                              "calibrated": iou(calibrated >= DEFAULT_THRESHOLD, truth),
                              "calibrated best": best_iou(calibrated, truth)})
+            present = {names[i] for i in ids.tolist() if i < len(names)}
+            for query in (name for name in vocabulary if name not in present):
+                lerf = relevancy(field.scores((query,))[:, 0], negatives)
+                calibrated = state.relevancies((query,))[:, 0]
+                rows.append({"run": str(run), "split": split, "scene": scene_id, "query": query, "gaussians": 0,
+                             "absent": True, "LERF 0.5": float(np.mean(lerf >= 0.5)),
+                             "calibrated": float(np.mean(calibrated >= DEFAULT_THRESHOLD))})
             progress(f"{run.name} {split} {scene_id}: {sum(r['scene'] == scene_id for r in rows)} queries")
     return rows
 
@@ -88,12 +99,23 @@ def summary(rows: list[dict]) -> list[tuple]:
     out = []
     for run in dict.fromkeys(r["run"] for r in rows):
         for group, flag in (("in vocabulary", True), ("not in vocabulary", False)):
-            sel = [r for r in rows if r["run"] == run and r["in_vocabulary"] == flag]
+            sel = [r for r in rows if r["run"] == run and not r.get("absent") and r["in_vocabulary"] == flag]
             if not sel:
                 continue
             means = [float(np.mean([r[m] for r in sel])) for m in METHODS]
             out.append((run, group, len(sel), *means, means[1] - means[2]))
     return out
+
+
+def absent_table(rows: list[dict]) -> str:
+    """Per run: queries of names absent from their room, and the mean share of the room each default highlights."""
+    lines = ["| run | absent queries | LERF 0.5 highlights | calibrated highlights |", "|---|---|---|---|"]
+    for run in dict.fromkeys(r["run"] for r in rows):
+        sel = [r for r in rows if r["run"] == run and r.get("absent")]
+        if sel:
+            lines.append(f"| {Path(run).name} | {len(sel)} | {100 * np.mean([r['LERF 0.5'] for r in sel]):.1f} % | "
+                         f"{100 * np.mean([r['calibrated'] for r in sel]):.2f} % |")
+    return "\n".join(lines)
 
 
 def table(rows: list[dict]) -> str:
@@ -108,7 +130,7 @@ def per_query_table(rows: list[dict]) -> str:
     lines = ["| run | split | room | query | Gaussians | " + " | ".join(METHODS) + " |",
              "|---|---|---|---|---|" + "---|" * len(METHODS)]
     for r in rows:
-        if r["in_vocabulary"]:
+        if not r.get("absent") and r["in_vocabulary"]:
             lines.append(f"| {Path(r['run']).name} | {r['split']} | {r['scene']} | {r['query']} | {r['gaussians']:,} | "
                          + " | ".join(f"{r[m]:.3f}" for m in METHODS) + " |")
     return "\n".join(lines)
@@ -135,7 +157,7 @@ def main() -> int:
         print(f"relevancy: no class with >= {args.min_gaussians} Gaussians in {args.data} ({', '.join(splits)})",
               file=sys.stderr)
         return 1
-    text = table(rows)
+    text = table(rows) + "\n\n" + absent_table(rows)
     print(text)
     if args.out is not None:
         from ovgaussian.view.relevancy import DEFAULT_THRESHOLD
@@ -150,7 +172,7 @@ def main() -> int:
         with atomic_path(args.out, suffix=".md") as tmp:
             tmp.write_text(doc)
     gaps = [s[-1] for s in summary(rows) if s[1] == "in vocabulary"]
-    print(f"relevancy: {len(rows)} queries; in-vocabulary gap of the calibrated default to the per-query best "
+    print(f"relevancy: {len(rows)} queries ({sum(bool(r.get('absent')) for r in rows)} of absent names); in-vocabulary gap of the calibrated default to the per-query best "
           f"(LERF): {', '.join(f'{g:.3f}' for g in gaps)}")
     return 0
 
