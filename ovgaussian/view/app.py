@@ -37,9 +37,10 @@ LEGEND_ROWS = 24
 #: Scene node of the camera frustums (one child per camera).
 CAMERAS_NODE = "/cameras"
 #: Frustum depth as a share of the scene's robust radius.
-FRUSTUM_SCALE = 0.04
-#: Frustum line thickness as a share of its depth.
-FRUSTUM_THICKNESS = 0.06
+FRUSTUM_SCALE = 0.025
+#: Frustum line thickness (screen pixels: thin whatever the distance, so the neighbours of the current camera do not
+#: cover the view).
+FRUSTUM_THICKNESS_PX = 2.0
 #: Frustum colour (uint8 RGB): orange, unlike the pick marker and the highlight ramp's ends.
 FRUSTUM_RGB = (255, 140, 0)
 #: Frustums drawn at most (evenly spaced in the camera list beyond); every camera stays in the dropdown.
@@ -119,6 +120,7 @@ class QueryViewer:
         self.last_pick: dict | None = None
         self.last_camera: int | None = None  # the scene camera a client was last moved to
         self.start_camera: int | None = None  # the scene camera the viewer opens at
+        self._at_camera: int | None = None  # the camera whose frustum is hidden
         self._marker = None  # the scene node marking the clicked Gaussian
         self._apply_lock = threading.Lock()
         self._request_lock = threading.Lock()
@@ -149,6 +151,9 @@ class QueryViewer:
                                              visible=bool(names), hint="Go to one of the scene's cameras (or click "
                                                                        "its frustum)")
         self.camera_input.on_update(self._on_camera_choice)
+        self.show_cameras = gui.add_checkbox("Show cameras", True, visible=bool(names),
+                                             hint="Draw the scene's cameras as frustums")
+        self.show_cameras.on_update(lambda _event: self._hide_frustum(self._at_camera))
         self.mode_input = gui.add_dropdown("Mode", tuple(MODE_TITLES[m] for m in state.modes),
                                            initial_value=MODE_TITLES[mode])
         has_field = "query" in state.modes
@@ -221,17 +226,20 @@ class QueryViewer:
                 f"{CAMERAS_NODE}/{int(i):05d}", fov=vertical_fov(view.camera),
                 aspect=view.camera.width / view.camera.height, scale=FRUSTUM_SCALE * radius, color=FRUSTUM_RGB,
                 wxyz=tuple(float(v) for v in frustum_wxyz(view.camera)),
-                position=tuple(float(v) for v in view.camera.center), thickness=FRUSTUM_THICKNESS * FRUSTUM_SCALE * radius,
-                variant="filled")
+                position=tuple(float(v) for v in view.camera.center), thickness=FRUSTUM_THICKNESS_PX,
+                thickness_units="screen", variant="filled")
             handle.on_click(lambda event, index=int(i): self.go_to_camera(index, event.client))
             self.frustums[int(i)] = handle
         self._hide_frustum(self.start_camera)
 
     def _hide_frustum(self, index: int | None) -> None:
-        """Hide the frustum of the camera the view is at (seen from its apex, a filled frustum covers the view), and
-        show the one hidden before."""
+        """Hide the frustum of the camera the view is at (seen from its apex it would cross the view), show the
+        others (none when "Show cameras" is off)."""
+        self._at_camera = index
+        show = getattr(self, "show_cameras", None)
+        shown = show is None or bool(show.value)
         for i, handle in self.frustums.items():
-            handle.visible = i != index
+            handle.visible = shown and i != index
 
     def go_to_camera(self, index: int, client=None) -> ViewerPose:
         """Move ``client``'s view (every connected client when None) to scene camera ``index``; its pose."""

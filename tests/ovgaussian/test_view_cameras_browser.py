@@ -19,7 +19,7 @@ from test_view import synthetic_room
 from test_view_browser import CHROMIUM, CHROMIUM_ARGS, _hide_overlays, _screenshot, _settle, _wait
 
 #: Viewport (CSS pixels, device scale 1 and ?fixedDpr=1): the cameras' aspect, 4:3.
-VIEWPORT = (480, 360)
+VIEWPORT = (320, 240)
 #: The cameras' image size and focal length (pixels): 4:3, a vertical field of view of about 62 degrees.
 IMAGE = (160, 120, 100.0)
 #: Share of the central region (the middle half of each side) that must show splats, not background.
@@ -192,8 +192,8 @@ def test_fresh_page_opens_inside_the_room_at_a_scene_camera(room_viewer):
     _wait(lambda: np.allclose(client.camera.position, start.center, atol=1e-4), "the page's initial camera")
     _settle(client)
     _assert_at(client, start)  # the pose the browser reports is the dataset camera's
-    for handle in viewer.frustums.values():  # measure the splats alone
-        handle.visible = False
+    viewer.show_cameras.value = False  # "Show cameras" off: measure the splats alone
+    assert viewer.frustums and not any(handle.visible for handle in viewer.frustums.values())
     _hide_overlays(page)
     image = _stable_screenshot(page)
     assert image.shape[:2] == (VIEWPORT[1], VIEWPORT[0])
@@ -208,9 +208,8 @@ def test_fresh_page_opens_inside_the_room_at_a_scene_camera(room_viewer):
     print(f"filled {filled:.3f}, correlation with the rasterizer {right:.3f}, with the flipped camera {wrong:.3f}")
     assert filled >= MIN_FILLED
     assert right >= MIN_CORRELATION and right >= wrong + FLIP_MARGIN
-    for handle in viewer.frustums.values():
-        handle.visible = True
-    viewer._hide_frustum(viewer.start_camera)
+    viewer.show_cameras.value = True
+    assert [i for i, handle in viewer.frustums.items() if not handle.visible] == [viewer.start_camera]
 
 
 def test_click_on_a_frustum_moves_the_camera_there(room_viewer):
