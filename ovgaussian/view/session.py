@@ -96,6 +96,8 @@ def _summary(config: ViewConfig, state: ViewerState, viewer) -> dict:
         "negatives": list(state.negatives) if state.field is not None else [],
         "temperature": state.temperature if state.field is not None else None,
         "status": None if viewer.last is None else viewer.last.status,
+        "cameras": len(state.scene.cameras),
+        "start_camera": None if viewer.start_camera is None else state.scene.cameras[viewer.start_camera].name,
     }
 
 

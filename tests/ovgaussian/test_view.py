@@ -321,7 +321,16 @@ def test_cli_export_with_a_run_and_a_dataset(tmp_path):
     assert payload["vocabulary"] == [NAMES[i] for i in (0, 1, 2)]  # the run's class_ids, top-100 names
     assert payload["negatives"] == list(CANONICAL_NEGATIVES)
     assert out.stat().st_size == payload["export_bytes"] and payload["summary"].startswith("view: 160 Gaussians")
+    assert payload["cameras"] == 3 and payload["start_camera"] in {f"frame{i:06d}.jpg" for i in range(3)}
+    assert payload["details"]["cameras_from"] == "dataset views"
     assert_self_contained(out.read_text())
+    # a cameras file that cannot be read: one line naming it, non-zero exit
+    bad = tmp_path / "cams.json"
+    bad.write_text("{")
+    result = CliRunner().invoke(main, ["view", "--dataset", str(dataset), "--scene", "va0", "--cameras", str(bad),
+                                       "--export", str(tmp_path / "x.html")])
+    assert result.exit_code != 0 and "cams.json: cannot read the cameras file" in result.output
+    assert "Traceback" not in result.output
     # text mode: the one-line summary last; no run: ground truth only
     result = CliRunner().invoke(main, ["view", "--dataset", str(dataset), "--scene", "va0", "--mode", "instance",
                                        "--export", str(tmp_path / "i.viser")])
