@@ -546,3 +546,18 @@ def test_cameras_file_and_dataset_cameras_reach_the_scene(tmp_path, room):
     bad.write_text(json.dumps({"cameras": [{"name": "a", "width": 64, "height": 48}]}))
     with pytest.raises(ValueError, match=r"bad.json: cameras\[0\]: missing field 'K'"):
         load_view_scene(path, cameras=bad)
+
+
+def test_the_viewer_opens_at_the_camera_that_sees_the_most(room):
+    from ovgaussian.view.cameras import opening_camera, visible_counts
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
+    from seggaussian.shards import ViewCamera
+
+    K = intrinsics(50, 50, 32, 24)
+    views = [ViewCamera("away", "train", Camera(K, look_at([0.0, 0.0, 1.0], [0.0, -5.0, 1.0]), 64, 48)),
+             ViewCamera("room", "train", Camera(K, look_at([0.0, -3.5, 2.0], [0.0, 0.5, 0.3]), 64, 48)),
+             ViewCamera("down", "train", Camera(K, look_at([1.5, 1.5, 0.4], [1.6, 1.6, 0.0]), 64, 48))]
+    counts = visible_counts(views, room.means)
+    assert counts[1] == counts.max() and counts[1] > 2 * max(counts[0], counts[2])
+    assert opening_camera(views, room.means) == 1
+    assert opening_camera(views, room.means, sample=500) == 1  # counted on every k-th Gaussian: the same choice
