@@ -21,8 +21,9 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from ovgaussian.predict.query import read_cameras
 from seggaussian.core.cameras import Camera, intrinsics, invert_rigid
-from seggaussian.core.rotations import rotmats_to_quats
+from seggaussian.core.rotations import quats_to_rotmats, rotmats_to_quats
 from seggaussian.shards import ViewCamera
 
 #: The world's up axis (the scene frame is z up).
@@ -66,8 +67,6 @@ def frustum_wxyz(camera: Camera) -> np.ndarray:
 def browser_camera(position, wxyz, fov: float, width: int, height: int) -> Camera:
     """The ``Camera`` a browser canvas of ``width`` x ``height`` shows for a viser camera (position, OpenCV
     camera-to-world ``wxyz``, vertical ``fov``): square pixels, principal point at the canvas centre."""
-    from seggaussian.core.rotations import quats_to_rotmats
-
     focal = 0.5 * height / np.tan(0.5 * float(fov))
     c2w = np.eye(4)
     c2w[:3, :3] = quats_to_rotmats(np.asarray(wxyz, np.float64)[None])[0]
@@ -123,6 +122,4 @@ def centre_pose(means: np.ndarray, look_distance: float = LOOK_DISTANCE,
 
 def file_cameras(path: Path) -> list[ViewCamera]:
     """The cameras of a JSON file in ``ovgaussian predict --cameras``'s format (``predict.query.read_cameras``)."""
-    from ovgaussian.predict.query import read_cameras
-
     return [ViewCamera(name, "file", camera) for name, camera in read_cameras(Path(path))]
