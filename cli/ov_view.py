@@ -18,6 +18,7 @@ from ovgaussian.view.relevancy import DEFAULT_THRESHOLD
 @config_option(ViewConfig, "checkpoint", "--checkpoint", type=click.Path(path_type=Path, file_okay=False), default=None)
 @config_option(ViewConfig, "dataset", "--dataset", type=click.Path(path_type=Path, file_okay=False), default=None)
 @config_option(ViewConfig, "scene_id", "--scene", "scene_id", default=None, metavar="ID")
+@config_option(ViewConfig, "cameras", "--cameras", type=click.Path(path_type=Path, dir_okay=False), default=None)
 @config_option(ViewConfig, "vocabulary", "--vocab", "vocab", default=None)
 @config_option(ViewConfig, "queries", "--query", "query", default="")
 @config_option(ViewConfig, "mode", "--mode", type=click.Choice(MODES), default=None)
@@ -32,7 +33,7 @@ from ovgaussian.view.relevancy import DEFAULT_THRESHOLD
 @transform_options
 @json_option
 @guarded
-def command(scene, run, checkpoint, dataset, scene_id, vocab, query, mode, threshold, host, port, export, on_invalid,
+def command(scene, run, checkpoint, dataset, scene_id, cameras, vocab, query, mode, threshold, host, port, export, on_invalid,
             device, transform, from_frame, as_json):
     """Query SCENE (any splat format) with free text in the browser: RGB, ground-truth, predicted-label and
     query modes, click a Gaussian to inspect it. Serves until Ctrl-C; --export writes a file and exits."""
@@ -41,7 +42,7 @@ def command(scene, run, checkpoint, dataset, scene_id, vocab, query, mode, thres
     from seggaussian.frames.frame_config import FrameConfig
 
     config = ViewConfig(scene=scene, run=run, checkpoint=checkpoint, dataset=dataset, scene_id=scene_id,
-                        vocabulary=parse_vocabulary(vocab) if vocab else (), queries=query, mode=mode,
+                        cameras=cameras, vocabulary=parse_vocabulary(vocab) if vocab else (), queries=query, mode=mode,
                         threshold=threshold, host=host, port=port, export=export,
                         frame=FrameConfig(transform, from_frame), on_invalid=on_invalid, device=device)
 

@@ -2,7 +2,9 @@
 
 One concept per module:
 
-- ``relevancy``: LERF relevancy against canonical negatives, query parsing, highlight colours (pure numpy);
+- ``relevancy``: the calibrated relevancy (against the vocabulary and canonical negatives), LERF's, query parsing,
+  highlight colours (pure numpy);
+- ``cameras``: the scene's cameras as viewer poses, the camera the viewer opens at, the pose inside a bare splat;
 - ``field``: the run's per-Gaussian language vectors, decoded once, with per-text score columns cached;
 - ``scene``: the scene shown (splat file and/or dataset scene with ground truth), splat arrays, click picking;
 - ``state``: colours and legend of every mode, query answers, what a clicked Gaussian is (no browser);
@@ -10,4 +12,4 @@ One concept per module:
 - ``config`` and ``session``: ``ViewConfig`` and ``run_view``, the command as one library call.
 """
 
-__all__ = ["app", "config", "field", "relevancy", "scene", "session", "state"]
+__all__ = ["app", "cameras", "config", "field", "relevancy", "scene", "session", "state"]

@@ -16,6 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ovgaussian.view.cameras import (ViewerPose, camera_pose, centre_pose, frustum_wxyz, opening_camera,
+                                     vertical_fov)
 from ovgaussian.view.relevancy import DEFAULT_THRESHOLD, parse_queries
 from ovgaussian.view.state import MODE_TITLES, Colouring, ViewerState
 from seggaussian.util.atomic import atomic_path
@@ -32,10 +34,17 @@ PICK_MARKER_RGB = (0, 200, 255)
 THRESHOLD_STEP = 0.005
 #: Legend rows shown (the most frequent labels).
 LEGEND_ROWS = 24
-#: Initial camera: distance from the scene centre as a multiple of the scene's robust radius.
-CAMERA_DISTANCE = 2.2
-#: Initial camera: height above the centre as a multiple of the scene's robust radius (z up).
-CAMERA_HEIGHT = 1.2
+#: Scene node of the camera frustums (one child per camera).
+CAMERAS_NODE = "/cameras"
+#: Frustum depth as a share of the scene's robust radius.
+FRUSTUM_SCALE = 0.025
+#: Frustum line thickness (screen pixels: thin whatever the distance, so the neighbours of the current camera do not
+#: cover the view).
+FRUSTUM_THICKNESS_PX = 2.0
+#: Frustum colour (uint8 RGB): orange, unlike the pick marker and the highlight ramp's ends.
+FRUSTUM_RGB = (255, 140, 0)
+#: Frustums drawn at most (evenly spaced in the camera list beyond); every camera stays in the dropdown.
+MAX_FRUSTUMS = 300
 #: Percentile of the distances to the centre taken as the scene's robust radius (floaters ignored).
 RADIUS_PERCENTILE = 90
 #: The inspect panel before any click.
@@ -109,6 +118,10 @@ class QueryViewer:
         self.last: Colouring | None = None
         self.last_seconds: dict = {}
         self.last_pick: dict | None = None
+        self.last_camera: int | None = None  # the scene camera a client was last moved to
+        self.start_camera: int | None = None  # the scene camera the viewer opens at
+        self._at_camera: int | None = None  # the camera whose frustum is hidden
+        self.start_pose: ViewerPose | None = None  # the pose the page opens at
         self._marker = None  # the scene node marking the clicked Gaussian
         self._apply_lock = threading.Lock()
         self._request_lock = threading.Lock()
@@ -130,14 +143,27 @@ class QueryViewer:
         arrays = state.arrays
         self.splats = server.scene.add_gaussian_splats(SPLATS_NODE, arrays.centers, arrays.covariances, arrays.rgb,
                                                        arrays.opacities)
+        self._add_frustums()
         gui = server.gui
+        cameras = state.scene.cameras
+        names = tuple(f"{i}: {view.name}" for i, view in enumerate(cameras))
+        self.camera_input = gui.add_dropdown("Camera", names or ("(none)",),
+                                             initial_value=names[self.start_camera] if names else "(none)",
+                                             visible=bool(names), hint="Go to one of the scene's cameras (or click "
+                                                                       "its frustum)")
+        self.camera_input.on_update(self._on_camera_choice)
+        self.show_cameras = gui.add_checkbox("Show cameras", True, visible=bool(names),
+                                             hint="Draw the scene's cameras as frustums")
+        self.show_cameras.on_update(lambda _event: self._hide_frustum(self._at_camera))
         self.mode_input = gui.add_dropdown("Mode", tuple(MODE_TITLES[m] for m in state.modes),
                                            initial_value=MODE_TITLES[mode])
         has_field = "query" in state.modes
         self.query_input = gui.add_text("Query", queries, visible=has_field,
                                         hint="Comma-separated phrases; each Gaussian goes to the most relevant one")
-        self.threshold_input = gui.add_slider("Threshold", 0.0, 1.0, THRESHOLD_STEP, float(threshold),
-                                              visible=has_field, hint="LERF relevancy below which Gaussians are greyed")
+        self.threshold_input = gui.add_slider(
+            "Threshold", 0.0, 1.0, THRESHOLD_STEP, float(threshold), visible=has_field,
+            hint=f"Calibrated relevancy (the query's probability against the vocabulary and the negatives) below which "
+                 f"Gaussians are greyed; the default {DEFAULT_THRESHOLD:g} suits every phrase")
         self.status = gui.add_markdown("")
         with gui.add_folder("Legend"):
             self.legend = gui.add_html("")
@@ -165,14 +191,79 @@ class QueryViewer:
 
     # --- updates -----------------------------------------------------------------------------------------
     def _set_initial_camera(self) -> None:
+        """Open at the scene camera that sees the most Gaussians, or without cameras inside the splat at its centre
+        (``cameras.centre_pose``)."""
+        cameras = self.state.scene.cameras
         means = self.state.arrays.centers
-        if len(means) == 0:
-            return
-        centre = np.median(means, axis=0).astype(np.float64)
-        radius = float(np.percentile(np.linalg.norm(means - centre, axis=1), RADIUS_PERCENTILE)) or 1.0
+        if cameras:
+            self.start_camera = opening_camera(cameras, means)
+            pose = camera_pose(cameras[self.start_camera].camera)
+        else:
+            self.start_camera = None
+            pose = centre_pose(means)
+        self.start_pose = pose
         camera = self.server.initial_camera
-        camera.look_at = tuple(centre)
-        camera.position = tuple(centre + np.array([0.0, -CAMERA_DISTANCE * radius, CAMERA_HEIGHT * radius]))
+        camera.fov = float(pose.fov)
+        camera.up = tuple(float(v) for v in pose.up)
+        camera.position = tuple(float(v) for v in pose.position)
+        camera.look_at = tuple(float(v) for v in pose.look_at)
+
+    def _add_frustums(self) -> None:
+        """Draw the scene's cameras as filled frustums (at most ``MAX_FRUSTUMS``); a click on one moves that client
+        there."""
+        cameras = self.state.scene.cameras
+        self.frustums = {}
+        if not cameras:
+            return
+        means = self.state.arrays.centers
+        radius = 1.0
+        if len(means):
+            centre = np.median(means, axis=0)
+            radius = float(np.percentile(np.linalg.norm(means - centre, axis=1), RADIUS_PERCENTILE)) or 1.0
+        shown = np.unique(np.linspace(0, len(cameras) - 1, min(len(cameras), MAX_FRUSTUMS)).round().astype(int))
+        for i in shown:
+            view = cameras[int(i)]
+            handle = self.server.scene.add_camera_frustum(
+                f"{CAMERAS_NODE}/{int(i):05d}", fov=vertical_fov(view.camera),
+                aspect=view.camera.width / view.camera.height, scale=FRUSTUM_SCALE * radius, color=FRUSTUM_RGB,
+                wxyz=tuple(float(v) for v in frustum_wxyz(view.camera)),
+                position=tuple(float(v) for v in view.camera.center), thickness=FRUSTUM_THICKNESS_PX,
+                thickness_units="screen", variant="filled")
+            handle.on_click(lambda event, index=int(i): self.go_to_camera(index, event.client))
+            self.frustums[int(i)] = handle
+        self._hide_frustum(self.start_camera)
+
+    def _hide_frustum(self, index: int | None) -> None:
+        """Hide the frustum of the camera the view is at (seen from its apex it would cross the view), show the
+        others (none when "Show cameras" is off)."""
+        self._at_camera = index
+        show = getattr(self, "show_cameras", None)
+        shown = show is None or bool(show.value)
+        for i, handle in self.frustums.items():
+            handle.visible = shown and i != index
+
+    def go_to_camera(self, index: int, client=None) -> ViewerPose:
+        """Move ``client``'s view (every connected client when None) to scene camera ``index``; its pose."""
+        cameras = self.state.scene.cameras
+        if not 0 <= int(index) < len(cameras):
+            raise IndexError(f"{self.state.scene.source}: no camera {index} (the scene has {len(cameras)})")
+        pose = camera_pose(cameras[int(index)].camera)
+        clients = [client] if client is not None else list(self.server.get_clients().values())
+        for each in clients:
+            with each.atomic():
+                each.camera.fov = float(pose.fov)
+                each.camera.up_direction = tuple(float(v) for v in pose.up)
+                each.camera.position = tuple(float(v) for v in pose.position)
+                each.camera.look_at = tuple(float(v) for v in pose.look_at)
+        self.last_camera = int(index)
+        self._hide_frustum(int(index))
+        return pose
+
+    def _on_camera_choice(self, event) -> None:
+        if self._quiet or not self.state.scene.cameras:
+            return
+        index = int(str(self.camera_input.value).split(":", 1)[0])
+        self.go_to_camera(index, getattr(event, "client", None))
 
     def _on_gui(self, _event) -> None:
         if not self._quiet:

@@ -32,6 +32,9 @@ class ViewConfig:
     """Dataset folder of ``seggaussian build`` holding the scene's ground-truth semantic and instance labels."""
     scene_id: Optional[str] = None
     """Scene id in --dataset (its Gaussians are shown when no SCENE file is given; else they must match SCENE's)."""
+    cameras: Optional[Path] = None
+    """JSON cameras file (``ovgaussian predict --cameras``'s format, in the scene's frame): the viewer opens at one
+    and draws them all as clickable frustums. None: a dataset scene's view cameras; a bare splat opens at its centre."""
     vocabulary: tuple[str, ...] = ()
     """Class names of the predicted-labels mode (comma-separated); empty: the run's training vocabulary."""
     queries: str = ""
@@ -39,9 +42,11 @@ class ViewConfig:
     mode: Optional[Literal["rgb", "semantic", "instance", "predicted", "query"]] = None
     """Colour mode to start with; None: query when --query is given, else rgb."""
     threshold: float = DEFAULT_THRESHOLD
-    """Relevancy threshold of the query mode: Gaussians below it are greyed (LERF relevancy, in (0, 1))."""
+    """Relevancy threshold of the query mode: Gaussians below it are greyed. The relevancy is calibrated (the query's
+    probability against the vocabulary and the negatives), so the default suits every phrase; the slider overrides."""
     negatives: tuple[str, ...] = CANONICAL_NEGATIVES
-    """Canonical negative phrases of the relevancy (LERF's: object, things, stuff, texture)."""
+    """Canonical negative phrases, competitors of every query beside the vocabulary (LERF's: object, things, stuff,
+    texture)."""
     host: str = DEFAULT_HOST
     """Address to bind: 127.0.0.1 (this machine only) by default; 0.0.0.0 opens the viewer to the network."""
     port: int = DEFAULT_PORT

@@ -14,6 +14,18 @@ the closest negative".
 
 Several queries (``"chair, table"``) are compared by their relevancies: each Gaussian goes to the query of
 highest relevancy, and is highlighted when that relevancy reaches the threshold (:func:`query_hits`).
+
+The LERF relevancy needs a threshold per query: its pairwise softmax is taken on raw cosines, so every phrase sits
+near 0.5 at its own offset, and 0.5 takes most of a room for every phrase. The viewer scores a query with its
+**calibrated relevancy** instead (:func:`calibrated_relevancy`): the probability of the query in a softmax, at the
+run's training temperature ``T`` (its logits were cosine / T), against the competitors: the run's vocabulary (the
+query itself and its repeats left out) and the canonical negatives,
+
+    calibrated = exp(s_q / T) / (exp(s_q / T) + sum_c exp(s_c / T)).
+
+One threshold then means the same for every phrase: at 0.5 the query is more likely than all its competitors
+together. It is unchanged when the same constant is added to every score, never lowered by a higher query score,
+and a competitor far below the query everywhere changes nothing (its term vanishes).
 """
 
 from __future__ import annotations
@@ -24,9 +36,14 @@ import numpy as np
 
 #: LERF's canonical negative phrases (Kerr et al. 2023, section 3.4).
 CANONICAL_NEGATIVES = ("object", "things", "stuff", "texture")
-#: Default highlight threshold on the relevancy: the point where the query wins its pairwise softmax against
-#: the closest negative (LERF's relevancy maps are shown from 0.5 up).
+#: Default highlight threshold on the calibrated relevancy: the query more likely than all its competitors together
+#: (measured against the per-query best threshold: benchmarks/relevancy_threshold.py, results/relevancy.md).
 DEFAULT_THRESHOLD = 0.5
+#: Softmax temperature of the calibrated relevancy when the run records none: ``ovgaussian train``'s default loss
+#: temperature (``LossConfig.temperature``), the scale the scores were trained at.
+DEFAULT_TEMPERATURE = 0.07
+#: Gaussians scored at once by :func:`calibrated_relevancy` (bounds its ``[rows, C]`` temporaries).
+CALIBRATION_CHUNK_ROWS = 262144
 
 #: Colour of the least relevant highlighted Gaussian (relevancy at the threshold), RGB in [0, 1]: yellow.
 HIGHLIGHT_LOW_RGB = (1.0, 0.85, 0.0)
@@ -87,6 +104,77 @@ def relevancy_reference(query_scores: np.ndarray, negative_scores: np.ndarray) -
     for n in range(q.shape[0]):
         for j in range(q.shape[1]):
             out[n, j] = min(np.exp(q[n, j]) / (np.exp(neg[n, i]) + np.exp(q[n, j])) for i in range(neg.shape[1]))
+    return out[:, 0] if squeeze else out
+
+
+def competitor_mask(queries: Sequence[str], competitors: Sequence[str]) -> np.ndarray:
+    """``[Q, C]`` bool: competitor ``c`` counts against query ``q`` unless it is the same phrase (case and repeated
+    whitespace ignored), so a query in the vocabulary is not its own competitor."""
+    def key(text: str) -> str:
+        return " ".join(text.split()).lower()
+
+    return np.array([[key(c) != key(q) for c in competitors] for q in queries], dtype=bool).reshape(
+        len(queries), len(competitors))
+
+
+def calibrated_relevancy(query_scores: np.ndarray, competitor_scores: np.ndarray, mask: np.ndarray | None = None,
+                         temperature: float = DEFAULT_TEMPERATURE,
+                         chunk_rows: int = CALIBRATION_CHUNK_ROWS) -> np.ndarray:
+    """The probability of each query against its competitors, softmax of ``scores / temperature``.
+
+    Args:
+        query_scores: ``[N]`` or ``[N, Q]`` scores of the queries.
+        competitor_scores: ``[N, C]`` scores of the competitors (vocabulary and canonical negatives).
+        mask: ``[Q, C]`` bool, the competitors each query is compared with (:func:`competitor_mask`); None: all.
+        temperature: softmax temperature (> 0).
+
+    Returns:
+        float32, the shape of ``query_scores``, in (0, 1].
+    """
+    q = np.asarray(query_scores, dtype=np.float32)
+    squeeze = q.ndim == 1
+    q = q[:, None] if squeeze else q
+    comp = np.asarray(competitor_scores, dtype=np.float32)
+    if comp.ndim != 2 or comp.shape[0] != q.shape[0]:
+        raise ValueError(f"calibrated relevancy: competitor scores must be [N, C] with N = {q.shape[0]}, "
+                         f"got {comp.shape}")
+    if not temperature > 0:
+        raise ValueError(f"calibrated relevancy: temperature must be > 0, got {temperature}")
+    mask = np.ones((q.shape[1], comp.shape[1]), bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != (q.shape[1], comp.shape[1]):
+        raise ValueError(f"calibrated relevancy: mask must be [Q, C] = {(q.shape[1], comp.shape[1])}, got {mask.shape}")
+    inv = np.float32(1.0 / temperature)
+    out = np.empty(q.shape, np.float32)
+    for j in range(q.shape[1]):
+        rivals = comp[:, mask[j]]
+        for start in range(0, q.shape[0], chunk_rows):
+            sq = q[start:start + chunk_rows, j]
+            if rivals.shape[1] == 0:
+                out[start:start + chunk_rows, j] = 1.0
+                continue
+            # 1 / (1 + sum_c exp((s_c - s_q) / T)), its largest exponent subtracted: no overflow
+            diff = (rivals[start:start + chunk_rows] - sq[:, None]) * inv  # [rows, C]
+            top = np.maximum(diff.max(axis=1), 0.0)
+            total = np.exp(-top) + np.exp(diff - top[:, None]).sum(axis=1)
+            out[start:start + chunk_rows, j] = np.exp(-top) / total
+    return out[:, 0] if squeeze else out
+
+
+def calibrated_relevancy_reference(query_scores: np.ndarray, competitor_scores: np.ndarray,
+                                   mask: np.ndarray | None = None,
+                                   temperature: float = DEFAULT_TEMPERATURE) -> np.ndarray:
+    """The softmax as written, one Gaussian and query at a time, in float64 (tests only)."""
+    q = np.asarray(query_scores, dtype=np.float64)
+    squeeze = q.ndim == 1
+    q = q[:, None] if squeeze else q
+    comp = np.asarray(competitor_scores, dtype=np.float64)
+    mask = np.ones((q.shape[1], comp.shape[1]), bool) if mask is None else np.asarray(mask, bool)
+    out = np.empty(q.shape)
+    for n in range(q.shape[0]):
+        for j in range(q.shape[1]):
+            logits = [q[n, j] / temperature] + [comp[n, c] / temperature for c in range(comp.shape[1]) if mask[j, c]]
+            top = max(logits)
+            out[n, j] = np.exp(logits[0] - top) / sum(np.exp(v - top) for v in logits)
     return out[:, 0] if squeeze else out
 
 

@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ovgaussian.view.cameras import file_cameras
 from seggaussian import shards
 from seggaussian.frames.frame_config import FrameConfig, frame_record, to_scene_frame
 from seggaussian.core.gaussians import Gaussians
@@ -30,6 +31,8 @@ class ViewScene(NamedTuple):
         semantic: ``[N]`` ground-truth top-100 class ids (``IGNORE_LABEL`` unlabelled), or None.
         instance: ``[N]`` ground-truth instance ids, or None.
         details: JSON-ready facts (format, validation, frame transform, dataset scene).
+        cameras: the scene's cameras (``shards.ViewCamera``: name, role, OpenCV ``Camera``), in the scene's frame:
+            a cameras file's, else the dataset scene's views'; empty without either.
     """
 
     gaussians: Gaussians
@@ -37,12 +40,16 @@ class ViewScene(NamedTuple):
     semantic: np.ndarray | None = None
     instance: np.ndarray | None = None
     details: dict | None = None
+    cameras: tuple = ()
 
 
 def load_view_scene(scene: Path | None = None, dataset: Path | None = None, scene_id: str | None = None,
-                    frame: FrameConfig = FrameConfig(), on_invalid: str = "error") -> ViewScene:
-    """A splat file (``scene``, moved by ``frame``), a dataset scene (``dataset`` + ``scene_id``: its Gaussians and
-    labels), or both: the file's Gaussians with the dataset scene's labels (same count and order required)."""
+                    frame: FrameConfig = FrameConfig(), on_invalid: str = "error",
+                    cameras: Path | None = None) -> ViewScene:
+    """A splat file (``scene``, moved by ``frame``), a dataset scene (``dataset`` + ``scene_id``: its Gaussians,
+    labels and view cameras), or both: the file's Gaussians with the dataset scene's labels (same count and order
+    required). ``cameras``: a cameras file (``ovgaussian predict --cameras``'s format), in the scene's frame,
+    replacing the dataset's."""
     if scene is None and dataset is None:
         raise ValueError("view: give a SCENE file, or --dataset DATASET --scene ID")
     if (dataset is None) != (scene_id is None):
@@ -50,6 +57,7 @@ def load_view_scene(scene: Path | None = None, dataset: Path | None = None, scen
         raise ValueError(f"{where}: --dataset and --scene go together (the dataset folder and a scene id in it)")
     details: dict = {}
     gaussians = semantic = instance = None
+    views: list = file_cameras(cameras) if cameras is not None else []
     if scene is not None:
         scene = Path(scene)
         gaussians, report, fmt = read_gaussians(scene, on_invalid=on_invalid)
@@ -69,11 +77,15 @@ def load_view_scene(scene: Path | None = None, dataset: Path | None = None, scen
         elif len(record.gaussians) != len(gaussians):
             raise ValueError(f"{scene}: {len(gaussians)} Gaussians, but dataset scene {scene_id} of {dataset} has "
                              f"{len(record.gaussians)}: its labels cannot be matched to this file")
+        if cameras is None:
+            views = shards.read_scene_cameras(dataset, split, scene_id)
         extras = record.gaussians.extras
         semantic = np.asarray(extras["semantic"]).astype(np.int64) if "semantic" in extras else None
         instance = np.asarray(extras["instance"]).astype(np.int64) if "instance" in extras else None
     source = str(scene) if scene is not None else f"{dataset}:{scene_id}"
-    return ViewScene(gaussians, source, semantic, instance, details)
+    details.update(cameras=len(views), cameras_from=str(cameras) if cameras is not None else
+                   ("dataset views" if views else None))
+    return ViewScene(gaussians, source, semantic, instance, details, tuple(views))
 
 
 class SplatArrays(NamedTuple):

@@ -18,6 +18,7 @@ from ovgaussian.predict.query import load_model_predictor
 from ovgaussian.view.app import QueryViewer
 from ovgaussian.view.config import ViewConfig
 from ovgaussian.view.field import QueryField
+from ovgaussian.view.relevancy import DEFAULT_TEMPERATURE
 from ovgaussian.view.scene import load_view_scene
 from ovgaussian.view.state import ViewerState
 from seggaussian.core.constants import read_class_names
@@ -35,10 +36,24 @@ def run_vocabulary(run: Path) -> tuple[str, ...]:
     return tuple(all_names[int(i)] for i in ids if 0 <= int(i) < len(all_names))
 
 
+def run_temperature(run: Path | None) -> float:
+    """The softmax temperature a run was trained at (``config.json``: ``train.loss.temperature``), the scale of its
+    scores; ``DEFAULT_TEMPERATURE`` when there is no run or it records none."""
+    if run is None:
+        return DEFAULT_TEMPERATURE
+    value = read_json(Path(run) / CONFIG_NAME).get("train", {}).get("loss", {}).get("temperature")
+    if value is None:
+        return DEFAULT_TEMPERATURE
+    if not float(value) > 0:
+        raise ValueError(f"{Path(run) / CONFIG_NAME}: train.loss.temperature must be > 0, got {value}")
+    return float(value)
+
+
 def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], None] | None = None) -> ViewerState:
     """The scene of ``config`` and, with a run (or a ready ``predictor``), its language field and vocabulary."""
     say = progress or (lambda _message: None)
-    scene = load_view_scene(config.scene, config.dataset, config.scene_id, config.frame, config.on_invalid)
+    scene = load_view_scene(config.scene, config.dataset, config.scene_id, config.frame, config.on_invalid,
+                            config.cameras)
     say(f"view: {len(scene.gaussians):,} Gaussians from {scene.source}")
     if predictor is None and config.run is None:
         if config.vocabulary or config.queries:
@@ -54,8 +69,8 @@ def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], No
     start = time.perf_counter()
     vectors = predictor.encode_gaussians(scene.gaussians)
     field = QueryField.from_predictor(predictor, vectors)
-    state = ViewerState(scene, field, vocabulary, config.negatives)
-    field.scores(state.negatives)  # the text encoder's first load, and the negatives' columns, before any query
+    state = ViewerState(scene, field, vocabulary, config.negatives, run_temperature(config.run))
+    field.scores(state.competitors)  # the text encoder's first load, and the competitors' columns, before any query
     say(f"view: language field of {len(field):,} Gaussians ready in {time.perf_counter() - start:.1f} s")
     return state
 
@@ -79,7 +94,10 @@ def _summary(config: ViewConfig, state: ViewerState, viewer) -> dict:
         "threshold": float(viewer.threshold_input.value),
         "vocabulary": list(state.vocabulary),
         "negatives": list(state.negatives) if state.field is not None else [],
+        "temperature": state.temperature if state.field is not None else None,
         "status": None if viewer.last is None else viewer.last.status,
+        "cameras": len(state.scene.cameras),
+        "start_camera": None if viewer.start_camera is None else state.scene.cameras[viewer.start_camera].name,
     }
 
 

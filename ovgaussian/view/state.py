@@ -11,8 +11,9 @@ import numpy as np
 
 from ovgaussian.view.config import MODES
 from ovgaussian.view.field import QueryField
-from ovgaussian.view.relevancy import (CANONICAL_NEGATIVES, DEFAULT_THRESHOLD, QueryHits, dimmed_colours,
-                                       query_colours, query_hits, relevancy, top_k)
+from ovgaussian.view.relevancy import (CANONICAL_NEGATIVES, DEFAULT_TEMPERATURE, DEFAULT_THRESHOLD, QueryHits,
+                                       calibrated_relevancy, competitor_mask, dimmed_colours, query_colours,
+                                       query_hits, top_k)
 from ovgaussian.view.scene import ViewScene, pick_gaussian, splat_arrays
 from seggaussian.core.constants import IGNORE_LABEL, read_class_names
 from seggaussian.labels.palette import label_colours, palette
@@ -60,10 +61,11 @@ class ViewerState:
         field: the run's language field of these Gaussians (None: only RGB and ground-truth modes).
         vocabulary: class names of the predicted-labels mode.
         negatives: the canonical negatives of the relevancy.
+        temperature: softmax temperature of the calibrated relevancy (the run's training temperature).
     """
 
     def __init__(self, scene: ViewScene, field: QueryField | None = None, vocabulary: Sequence[str] = (),
-                 negatives: Sequence[str] = CANONICAL_NEGATIVES) -> None:
+                 negatives: Sequence[str] = CANONICAL_NEGATIVES, temperature: float = DEFAULT_TEMPERATURE) -> None:
         if field is not None and len(field) != len(scene.gaussians):
             raise ValueError(f"{scene.source}: {len(scene.gaussians)} Gaussians but {len(field)} language vectors")
         if field is not None and not vocabulary:
@@ -74,12 +76,16 @@ class ViewerState:
         self.field = field
         self.vocabulary = tuple(vocabulary)
         self.negatives = tuple(negatives)
+        self.temperature = float(temperature)
+        if not self.temperature > 0:
+            raise ValueError(f"{scene.source}: the relevancy temperature must be > 0, got {temperature}")
+        # the competitors of every query: the vocabulary, then the negatives (repeats dropped)
+        self.competitors = tuple(dict.fromkeys(self.vocabulary + self.negatives))
         self.arrays = splat_arrays(scene.gaussians)
         self.radii = scene.gaussians.scales().max(axis=1) if len(scene.gaussians) else np.zeros(0, np.float32)
         self.dimmed = dimmed_colours(self.arrays.rgb)
         self.class_names = read_class_names()
         self._lock = threading.Lock()
-        self._negative_max: np.ndarray | None = None
         self._relevancy: dict[tuple[str, ...], np.ndarray] = {}
 
     # --- modes -------------------------------------------------------------------------------------
@@ -131,16 +137,16 @@ class ViewerState:
 
     # --- queries ---------------------------------------------------------------------------------------
     def relevancies(self, queries: Sequence[str]) -> np.ndarray:
-        """``[N, Q]`` LERF relevancy of every Gaussian to each query (cached per query list)."""
+        """``[N, Q]`` calibrated relevancy of every Gaussian to each query against the vocabulary and the negatives
+        (``relevancy.calibrated_relevancy``; cached per query list)."""
         queries = tuple(queries)
         if self.field is None:
             raise ValueError(f"{self.scene.source}: queries need a run (--run)")
         with self._lock:
             if queries in self._relevancy:
                 return self._relevancy[queries]
-            if self._negative_max is None:
-                self._negative_max = self.field.scores(self.negatives).max(axis=1, keepdims=True)
-            out = relevancy(self.field.scores(queries), self._negative_max)
+            out = calibrated_relevancy(self.field.scores(queries), self.field.scores(self.competitors),
+                                       competitor_mask(queries, self.competitors), self.temperature)
             self._relevancy = {queries: out}  # the last answer only: 4 bytes x N x Q
             return out
 
@@ -159,7 +165,7 @@ class ViewerState:
         total = int(np.count_nonzero(hits.hit))
         best = float(hits.value.max()) if len(hits.value) else float("nan")
         status = (f"query {', '.join(repr(q) for q in queries)}: {total:,} of {len(hits.hit):,} Gaussians at "
-                  f"relevancy >= {threshold:.3f} (max {best:.3f})")
+                  f"relevancy >= {threshold:.3f} (calibrated default {DEFAULT_THRESHOLD:.3f}; max {best:.3f})")
         return Colouring("query", rgb, legend, status, hits, time.perf_counter() - start)
 
     # --- clicks ----------------------------------------------------------------------------------------

@@ -23,17 +23,19 @@ from seggaussian.shards.files import read_footer, read_fragment, sha256_file, wr
 from seggaussian.shards.images import decode_label_map, decode_rgb, encode_label_map, encode_rgb, image_format
 from seggaussian.shards.inspection import inspect_dataset
 from seggaussian.shards.layout import CARD_NAME, MANIFEST_NAME, SPLITS, SPLITS_NAME, ShardError
-from seggaussian.shards.read import find_split, iter_scenes, list_scenes, read_manifest, read_scene, verify_file
-from seggaussian.shards.records import SceneRecord, ViewRecord, ViewRow
+from seggaussian.shards.read import (find_split, iter_scenes, list_scenes, read_manifest, read_scene, read_scene_cameras,
+                                     verify_file)
+from seggaussian.shards.records import SceneRecord, ViewCamera, ViewRecord, ViewRow
 from seggaussian.shards.schema import GAUSSIANS_TABLE, SCHEMA_VERSION, VIEWS_TABLE
-from seggaussian.shards.tables import gaussians_table, table_to_gaussians, table_to_views, views_table
+from seggaussian.shards.tables import gaussians_table, table_to_cameras, table_to_gaussians, table_to_views, views_table
 from seggaussian.shards.writer import FileInfo, write_dataset
 
 __all__ = [
     "CARD_NAME", "GAUSSIANS_TABLE", "MANIFEST_NAME", "SCHEMA_VERSION", "SPLITS", "SPLITS_NAME", "VIEWS_TABLE",
-    "FileInfo", "SceneRecord", "ShardError", "ViewRecord", "ViewRow",
+    "FileInfo", "SceneRecord", "ShardError", "ViewCamera", "ViewRecord", "ViewRow",
     "dataset_card", "decode_label_map", "decode_rgb", "encode_label_map", "encode_rgb", "find_split",
     "gaussians_table", "image_format", "inspect_dataset", "iter_scenes", "list_scenes", "read_footer",
-    "read_fragment", "read_manifest", "read_scene", "sha256_file", "table_to_gaussians", "table_to_views",
+    "read_fragment", "read_manifest", "read_scene", "read_scene_cameras", "sha256_file", "table_to_cameras",
+    "table_to_gaussians", "table_to_views",
     "verify_file", "views_table", "write_dataset", "write_parquet_atomic",
 ]

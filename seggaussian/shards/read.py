@@ -15,9 +15,9 @@ import pyarrow.parquet as pq
 
 from seggaussian.shards.files import sha256_file
 from seggaussian.shards.layout import MANIFEST_NAME, SPLITS, ShardError
-from seggaussian.shards.records import SceneRecord
+from seggaussian.shards.records import SceneRecord, ViewCamera
 from seggaussian.shards.schema import GAUSSIANS_TABLE, SCHEMAS, VIEWS_TABLE
-from seggaussian.shards.tables import table_to_gaussians, table_to_views
+from seggaussian.shards.tables import table_to_cameras, table_to_gaussians, table_to_views
 
 
 def read_manifest(dataset: Path) -> dict:
@@ -92,15 +92,16 @@ def verify_file(dataset: Path, rel: str, *, sha256: bool = False, scene_id: str 
 
 
 def _read_scene_table(dataset: Path, table_name: str, rel: str, scene_id: str, *, verify: bool = False,
-                      manifest: dict | None = None) -> pa.Table:
+                      manifest: dict | None = None, columns: list[str] | None = None) -> pa.Table:
     path = Path(dataset) / rel
     verify_file(dataset, rel, sha256=verify, scene_id=scene_id, manifest=manifest)
     try:
         pf = pq.ParquetFile(path)
         groups = _scene_row_groups(pf, scene_id, path)
         if not groups:
-            return SCHEMAS[table_name].empty_table()
-        return pf.read_row_groups(groups)
+            empty = SCHEMAS[table_name].empty_table()
+            return empty if columns is None else empty.select(columns)
+        return pf.read_row_groups(groups, columns=columns)
     except (OSError, pa.ArrowException, ValueError) as exc:
         if isinstance(exc, ShardError):
             raise
@@ -150,6 +151,28 @@ def read_scene(dataset: Path, split: str, scene_id: str, *, views: bool = True, 
             raise
         raise ShardError(f"{dataset / rel}: scene {scene_id}: {exc}") from None
     return SceneRecord(scene_id, info.get("source", "unknown"), g, v)
+
+
+#: Columns of the views table that make a camera (no image is read or decoded).
+_CAMERA_COLUMNS = ["view_name", "role", "K", "viewmat", "width", "height"]
+
+
+def read_scene_cameras(dataset: Path, split: str, scene_id: str) -> list[ViewCamera]:
+    """The cameras of one scene's views (stored order), without reading their images; the shard file is checked
+    against the manifest (size) first."""
+    dataset = Path(dataset)
+    manifest = read_manifest(dataset)
+    info = manifest.get("scenes", {}).get(scene_id)
+    if info is None or info.get("split") != split:
+        raise ShardError(f"{dataset / MANIFEST_NAME}: no scene {scene_id!r} in split {split!r}")
+    rel = info["files"][VIEWS_TABLE]
+    table = _read_scene_table(dataset, VIEWS_TABLE, rel, scene_id, manifest=manifest, columns=_CAMERA_COLUMNS)
+    try:
+        return table_to_cameras(table)  # Camera refuses a NaN or Inf K / viewmat
+    except (ValueError, pa.ArrowException) as exc:
+        if isinstance(exc, ShardError):
+            raise
+        raise ShardError(f"{dataset / rel}: scene {scene_id}: {exc}") from None
 
 
 def iter_scenes(dataset: Path, split: str, *, views: bool = True, verify: bool = False) -> Iterator[SceneRecord]:

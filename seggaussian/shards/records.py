@@ -32,6 +32,15 @@ class ViewRecord(NamedTuple):
     instance: np.ndarray
 
 
+class ViewCamera(NamedTuple):
+    """The camera of one stored view, without its images: name, role (``train`` or ``novel``) and camera
+    (intrinsics, world-to-camera pose in OpenCV axes, size)."""
+
+    name: str
+    role: str
+    camera: Camera
+
+
 class SceneRecord(NamedTuple):
     """One scene as stored: Gaussians with ``extras`` semantic, instance, multilabel, transfer_distance."""
 

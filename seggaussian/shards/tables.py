@@ -13,7 +13,7 @@ from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.shards.images import decode_label_map, decode_rgb, image_format
 from seggaussian.shards.layout import ShardError
-from seggaussian.shards.records import ViewRecord, ViewRow
+from seggaussian.shards.records import ViewCamera, ViewRecord, ViewRow
 from seggaussian.shards.schema import GAUSSIANS_SCHEMA, VIEWS_SCHEMA
 
 
@@ -107,6 +107,15 @@ def table_to_gaussians(table: pa.Table) -> Gaussians:
             "transfer_distance": np.asarray(table.column("transfer_distance").to_numpy(), np.float32),
         },
     )
+
+
+def table_to_cameras(table: pa.Table) -> list[ViewCamera]:
+    """``views`` rows of one scene (the camera columns suffice) -> their cameras (stored order)."""
+    cols = table.select(["view_name", "role", "K", "viewmat", "width", "height"]).to_pydict()
+    return [ViewCamera(cols["view_name"][i], cols["role"][i],
+                       Camera(np.array(cols["K"][i]).reshape(3, 3), np.array(cols["viewmat"][i]).reshape(4, 4),
+                              cols["width"][i], cols["height"][i]))
+            for i in range(table.num_rows)]
 
 
 def table_to_views(table: pa.Table) -> list[ViewRecord]:

@@ -193,7 +193,7 @@ def test_field_scores_equal_the_predictors_scores(tmp_path):
 
 def test_oracle_queries_find_their_class(oracle_state, room):
     """With a perfect language field, each class's query is most relevant exactly on that class; the measured
-    relevancies place the threshold used by the browser test."""
+    calibrated relevancies (own class 0.966-0.983, others at most 0.009) place the browser test's threshold."""
     truth = room.extras["semantic"]
     for name in ROOM_CLASSES:
         r = oracle_state.relevancies((name,))[:, 0]
@@ -321,7 +321,16 @@ def test_cli_export_with_a_run_and_a_dataset(tmp_path):
     assert payload["vocabulary"] == [NAMES[i] for i in (0, 1, 2)]  # the run's class_ids, top-100 names
     assert payload["negatives"] == list(CANONICAL_NEGATIVES)
     assert out.stat().st_size == payload["export_bytes"] and payload["summary"].startswith("view: 160 Gaussians")
+    assert payload["cameras"] == 3 and payload["start_camera"] in {f"frame{i:06d}.jpg" for i in range(3)}
+    assert payload["details"]["cameras_from"] == "dataset views"
     assert_self_contained(out.read_text())
+    # a cameras file that cannot be read: one line naming it, non-zero exit
+    bad = tmp_path / "cams.json"
+    bad.write_text("{")
+    result = CliRunner().invoke(main, ["view", "--dataset", str(dataset), "--scene", "va0", "--cameras", str(bad),
+                                       "--export", str(tmp_path / "x.html")])
+    assert result.exit_code != 0 and "cams.json: cannot read the cameras file" in result.output
+    assert "Traceback" not in result.output
     # text mode: the one-line summary last; no run: ground truth only
     result = CliRunner().invoke(main, ["view", "--dataset", str(dataset), "--scene", "va0", "--mode", "instance",
                                        "--export", str(tmp_path / "i.viser")])
@@ -444,3 +453,112 @@ def test_cli_serves_prints_the_url_and_stops_on_ctrl_c(tmp_path):
     assert proc.returncode == 0, err
     last = out.strip().splitlines()[-1]
     assert last.startswith(f"view: served {len(synthetic_room(spacing=0.5))} Gaussians at {url}"), out
+
+
+# --- calibrated relevancy and the cameras ------------------------------------------------------------------------
+def test_calibrated_relevancy_matches_the_softmax_and_keeps_its_promises():
+    from ovgaussian.view.relevancy import calibrated_relevancy, calibrated_relevancy_reference, competitor_mask
+
+    rng = np.random.default_rng(1)
+    q = rng.uniform(-1, 1, size=(50, 2)).astype(np.float32)
+    comp = rng.uniform(-1, 1, size=(50, 5)).astype(np.float32)
+    mask = competitor_mask(("chair", "Wooden  table"), ("wall", "wooden table", "chair", "object", "stuff"))
+    np.testing.assert_array_equal(mask, [[1, 1, 0, 1, 1], [1, 0, 1, 1, 1]])  # a query is not its own competitor
+    for t in (0.07, 0.5):
+        got = calibrated_relevancy(q, comp, mask, t, chunk_rows=7)
+        np.testing.assert_allclose(got, calibrated_relevancy_reference(q, comp, mask, t), atol=1e-5)
+    got = calibrated_relevancy(q, comp, mask, 0.07)
+    # the same constant added to every score changes nothing
+    np.testing.assert_allclose(calibrated_relevancy(q + 0.3, comp + 0.3, mask, 0.07), got, atol=1e-5)
+    # a competitor below the query everywhere by a margin changes nothing; the query itself in the vocabulary neither
+    low = np.minimum(q.min(axis=1), comp.min(axis=1))[:, None] - 2.0
+    np.testing.assert_allclose(calibrated_relevancy(q, np.concatenate([comp, low], 1),
+                                                    np.concatenate([mask, [[True], [True]]], 1), 0.07), got, atol=1e-6)
+    # a higher query score never lowers it; at 0.5 or above the query beats every competitor
+    assert np.all(calibrated_relevancy(q + 0.05, comp, mask, 0.07) >= got - 1e-7)
+    for j in range(2):
+        wins = q[:, j] > comp[:, mask[j]].max(axis=1)
+        assert np.all(wins[got[:, j] >= 0.5])
+    # no overflow at extreme scores; no competitor: certain
+    extreme = calibrated_relevancy(np.array([500.0, -500.0]), np.array([[-500.0], [500.0]]), temperature=0.01)
+    np.testing.assert_allclose(extreme, [1.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(calibrated_relevancy(q[:, 0], comp[:, :0]), 1.0)
+    with pytest.raises(ValueError, match="temperature"):
+        calibrated_relevancy(q, comp, mask, 0.0)
+
+
+def test_one_default_threshold_separates_every_class_of_the_oracle_room(oracle_state, room):
+    """With the perfect field, the calibrated relevancy at the default threshold finds exactly each class, where the
+    LERF relevancy at 0.5 takes other classes too (its offset differs per phrase)."""
+    from ovgaussian.view.relevancy import DEFAULT_THRESHOLD, relevancy
+
+    truth = room.extras["semantic"]
+    negatives = oracle_state.field.scores(oracle_state.negatives)
+    lerf_wrong = 0
+    for name in ROOM_CLASSES:
+        hit = oracle_state.relevancies((name,))[:, 0] >= DEFAULT_THRESHOLD
+        np.testing.assert_array_equal(hit, truth == NAMES.index(name))
+        lerf = relevancy(oracle_state.field.scores((name,))[:, 0], negatives) >= 0.5
+        lerf_wrong += int(np.count_nonzero(lerf != (truth == NAMES.index(name))))
+    assert lerf_wrong > 0
+
+
+def test_cameras_poses_and_the_centre_pose():
+    from ovgaussian.view.cameras import browser_camera, camera_pose, centre_pose, file_cameras, frustum_wxyz
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
+
+    camera = Camera(intrinsics(100.0, 100.0, 80.0, 60.0), look_at([1.0, 2.0, 1.5], [0.0, 0.0, 1.0]), 160, 120)
+    pose = camera_pose(camera, look_distance=2.0)
+    np.testing.assert_allclose(pose.position, [1.0, 2.0, 1.5])
+    forward = np.array([-1.0, -2.0, -0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
+    np.testing.assert_allclose(pose.look_at, pose.position + 2.0 * forward, atol=1e-9)
+    assert pose.up[2] > 0 and abs(pose.up @ forward) < 1e-9  # OpenCV -y: up in the world, across the view
+    assert pose.fov == pytest.approx(2 * np.arctan(60.0 / 100.0))
+    # the browser's camera of that pose (centred principal point) is the camera again
+    again = browser_camera(pose.position, frustum_wxyz(camera), pose.fov, 160, 120)
+    np.testing.assert_allclose(again.viewmat, camera.viewmat, atol=1e-9)
+    np.testing.assert_allclose(again.K, camera.K, atol=1e-9)
+    # a bare splat: at its median, level, along the longer horizontal axis, towards the side that reaches further
+    rng = np.random.default_rng(0)
+    means = np.stack([rng.uniform(-1, 1, 4000), rng.uniform(-4, 3, 4000) + 0.5, rng.uniform(0, 2.5, 4000)], 1)
+    means[:, 1] = np.where(means[:, 1] > 0.5, 0.5 + 2.0 * (means[:, 1] - 0.5), means[:, 1])  # reaches further in +y
+    centre = centre_pose(means)
+    np.testing.assert_allclose(centre.position, np.median(means, axis=0))
+    direction = (centre.look_at - centre.position) / np.linalg.norm(centre.look_at - centre.position)
+    assert direction[1] > 0.99 and abs(direction[2]) < 1e-12
+    np.testing.assert_allclose(centre.up, [0.0, 0.0, 1.0])
+
+
+def test_cameras_file_and_dataset_cameras_reach_the_scene(tmp_path, room):
+    from ovgaussian.view.scene import load_view_scene
+    from seggaussian.core.cameras import intrinsics, look_at
+    from seggaussian.io.ply.writer import write_gaussians_ply
+
+    path = tmp_path / "room.ply"
+    write_gaussians_ply(path, room)
+    viewmat = look_at([0.0, -1.5, 1.5], [0.0, 1.0, 0.5])
+    cameras = tmp_path / "cameras.json"
+    cameras.write_text(json.dumps({"cameras": [{"name": "a", "width": 64, "height": 48,
+                                                "K": intrinsics(50, 50, 32, 24).tolist(), "viewmat": viewmat.tolist()}]}))
+    scene = load_view_scene(path, cameras=cameras)
+    assert [c.name for c in scene.cameras] == ["a"] and scene.details["cameras"] == 1
+    np.testing.assert_allclose(scene.cameras[0].camera.viewmat, viewmat)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"cameras": [{"name": "a", "width": 64, "height": 48}]}))
+    with pytest.raises(ValueError, match=r"bad.json: cameras\[0\]: missing field 'K'"):
+        load_view_scene(path, cameras=bad)
+
+
+def test_the_viewer_opens_at_the_camera_that_sees_the_most(room):
+    from ovgaussian.view.cameras import opening_camera, visible_counts
+    from seggaussian.core.cameras import Camera, intrinsics, look_at
+    from seggaussian.shards import ViewCamera
+
+    K = intrinsics(50, 50, 32, 24)
+    views = [ViewCamera("away", "train", Camera(K, look_at([0.0, 0.0, 1.0], [0.0, -5.0, 1.0]), 64, 48)),
+             ViewCamera("room", "train", Camera(K, look_at([0.0, -3.5, 2.0], [0.0, 0.5, 0.3]), 64, 48)),
+             ViewCamera("down", "train", Camera(K, look_at([1.5, 1.5, 0.4], [1.6, 1.6, 0.0]), 64, 48))]
+    counts = visible_counts(views, room.means)
+    assert counts[1] == counts.max() and counts[1] > 2 * max(counts[0], counts[2])
+    assert opening_camera(views, room.means) == 1
+    assert opening_camera(views, room.means, sample=500) == 1  # counted on every k-th Gaussian: the same choice
