@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 from seggaussian.util.atomic import ensure_writable_dir, sweep_temps
+from seggaussian.util.cpu_clock import CpuClock
 from seggaussian.pipeline.config import BuildConfig
 from seggaussian.pipeline.discover import discover, synthesize_default
 from seggaussian.pipeline.executors import run_tasks
@@ -52,7 +53,9 @@ def build_dataset(config: BuildConfig) -> BuildReport:
     if config.source == "ply" and config.ply_dir is None:
         raise ValueError("build: --source ply needs --ply-dir (trained PLYs)")
     swept = sweep_temps(out, recursive=True)  # leftovers of a killed earlier build
-    tasks, failures = discover(config)
+    clock = CpuClock()
+    with clock.measure("discover"):
+        tasks, failures = discover(config)
     if not tasks and not failures:
         raise ValueError(f"{config.root}: no scenes found in the raw tree (an empty source root is an error)")
     bars = _progress_bars(len(tasks), config.progress)
@@ -72,10 +75,11 @@ def build_dataset(config: BuildConfig) -> BuildReport:
             if bar is not None:
                 bar.close()
     outcomes.sort(key=lambda o: o.scene_id)
-    kept = write_build_record(cache_root, config, outcomes)
-    split_counts, files, nbytes, assembled = assemble(out, config)
+    with clock.measure("assemble"):
+        kept = write_build_record(cache_root, config, outcomes)
+        split_counts, files, nbytes, assembled = assemble(out, config)
     return BuildReport(out, outcomes, split_counts, files, nbytes, assembled, synthesized,
-                       time.perf_counter() - start, tuple(kept), swept)
+                       time.perf_counter() - start, tuple(kept), swept, clock.rounded())
 
 
 def _progress_bars(total: int, enabled: bool) -> dict:

@@ -41,6 +41,10 @@ class SceneOutcome(NamedTuple):
         fragments: {table: cached per-scene Parquet path}.
         keys: {stage: key}.
         seconds: wall time.
+        cpu_seconds: CPU seconds (every thread of the process that built the scene) of what ran: ``read`` (the raw
+            scene), ``gaussians``, ``transfer`` (less the two below), ``occlusion`` (the label points and Gaussians
+            the views never see), ``views`` (rendering, encoding), ``shards`` (writing the scene's Parquet tables).
+            Kept out of ``info``: the manifest holds only what the inputs determine.
     """
 
     scene_id: str
@@ -53,6 +57,7 @@ class SceneOutcome(NamedTuple):
     fragments: dict
     keys: dict
     seconds: float
+    cpu_seconds: dict = {}
 
 
 class BuildReport(NamedTuple):
@@ -70,6 +75,9 @@ class BuildReport(NamedTuple):
     kept: tuple = ()
     #: Temporaries of killed earlier runs removed from the dataset folder at the start.
     swept: int = 0
+    #: CPU seconds of the build process outside the scenes: ``discover`` (raw tree, fingerprints), ``assemble``
+    #: (build record, split-named shards, manifest); each scene's own are in its outcome's ``cpu_seconds``.
+    cpu_seconds: dict = {}
 
     @property
     def counts(self) -> dict:

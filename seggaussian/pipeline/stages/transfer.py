@@ -27,17 +27,19 @@ from seggaussian.shards.tables import gaussians_table
 from seggaussian.pipeline.stages.gaussians import save_npz
 from seggaussian.labels.transfer import HiddenSurfaceHits, densify_labelled_mesh, distance_gate, transfer_labels
 from seggaussian.labels.scoring import label_accuracy, surface_labels
+from seggaussian.util.cpu_clock import CpuClock, measured
 
 #: Files the stage writes into the scene's cache folder.
 OUTPUTS = ("gaussians.parquet", "labels.npz")
 
 
 def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, config: BuildConfig,
-                 refuse_misplaced: bool = False) -> tuple[Gaussians, dict]:
+                 refuse_misplaced: bool = False, clock: CpuClock | None = None) -> tuple[Gaussians, dict]:
     """Labels of the Gaussians (transfer + per-scene statistics, placement and accuracy).
 
     ``refuse_misplaced``: raise ``PlacementError`` when the Gaussians do not sit on the mesh (imported splats;
-    fitted and oracle Gaussians are made in the scene's frame, so theirs is only measured and reported)."""
+    fitted and oracle Gaussians are made in the scene's frame, so theirs is only measured and reported).
+    ``clock``: the occlusion tests' CPU seconds are counted there as ``occlusion``."""
     points, semantic, instance = scene.points, scene.semantic, scene.instance
     multilabel = scene.multilabel
     extra = 0
@@ -51,8 +53,9 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         points = np.concatenate([points, samples])
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
-    occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
-    on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer)
+    with measured(clock, "occlusion"):
+        occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
+        on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer)
     result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer,
                              hidden=occluded, on_surface=on_surface)
     # the placement is judged at the spacing-derived gate, whatever gate the user chose for the labels
