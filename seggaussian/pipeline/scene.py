@@ -1,7 +1,7 @@
 """One scene through the build's stage chain, each stage served from the cache when its key is unchanged.
 
     gaussians  stages.gaussians_{oracle,fit,import}  -> gaussians.npz
-    transfer   stages.transfer                       -> gaussians.parquet, labels.npz
+    transfer   stages.transfer                       -> gaussians.parquet
     views      stages.views                          -> views.parquet
 
 Outputs live in ``DATASET/.build/scenes/<scene>/`` with a record ``<stage>.json`` per stage

@@ -291,6 +291,9 @@ def test_code_change_reruns_the_stage(built, raw, tmp_path, monkeypatch):
                         lambda entry: real(entry) + ("x" if entry == views_stage.__name__ else ""))
     report = build_mod.build_dataset(_config(raw, out))
     assert {o.stages_run for o in report.outcomes} == {("views",)}
+    # the views stage alone read the labels back from the transfer's table: the same views, the same shards
+    assert _public_files(out) == _public_files(ds)
+    assert not list((out / ".build").rglob("labels.npz"))  # the cache keeps one copy of the labels
 
 
 def test_process_pool_and_missing_ray(built, raw, tmp_path):
