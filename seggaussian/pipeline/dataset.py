@@ -28,13 +28,12 @@ import time
 from pathlib import Path
 
 from seggaussian.util.atomic import ensure_writable_dir, sweep_temps
-from seggaussian.util.cpu_clock import CpuClock
 from seggaussian.pipeline.config import BuildConfig
 from seggaussian.pipeline.discover import discover, synthesize_default
 from seggaussian.pipeline.executors import run_tasks
 from seggaussian.pipeline.assembly import CACHE_DIR, assemble, write_build_record
 from seggaussian.pipeline.scene import STAGES
-from seggaussian.pipeline.records import BuildReport, SceneOutcome
+from seggaussian.pipeline.records import BuildReport, CpuClock, SceneOutcome
 
 
 def build_dataset(config: BuildConfig) -> BuildReport:

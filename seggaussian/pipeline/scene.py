@@ -20,11 +20,10 @@ import numpy as np
 
 from seggaussian.pipeline import cache as build_cache
 from seggaussian.pipeline.config import BuildConfig
-from seggaussian.pipeline.records import SceneOutcome, SceneTask, failed_outcome
+from seggaussian.pipeline.records import CpuClock, SceneOutcome, SceneTask, failed_outcome
 from seggaussian.core.constants import read_class_names
 from seggaussian.fit.optimize import needs_fit
 from seggaussian.sources.layout import reader
-from seggaussian.util.cpu_clock import CpuClock
 from seggaussian.pipeline.stages import gaussians as gaussians_stage
 from seggaussian.pipeline.stages import gaussians_fit, gaussians_import, gaussians_oracle
 from seggaussian.pipeline.stages import transfer as transfer_stage

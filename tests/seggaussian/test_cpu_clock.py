@@ -1,10 +1,10 @@
-"""seggaussian.util.cpu_clock: nested parts are counted once, in their own name."""
+"""seggaussian.pipeline.records.CpuClock: nested parts are counted once, in their own name."""
 
 from __future__ import annotations
 
 import time
 
-from seggaussian.util.cpu_clock import CpuClock, measured
+from seggaussian.pipeline.records import CpuClock
 
 
 def _spin(seconds: float) -> None:
@@ -20,12 +20,10 @@ def test_nested_parts_are_left_out_of_the_enclosing_part_and_the_parts_add_up():
         _spin(0.03)
         with clock.measure("inner"):
             _spin(0.05)
-        with measured(clock, "inner"):  # a second visit adds to the first
+        with clock.measure("inner"):  # a second visit adds to the first
             _spin(0.02)
     total = time.process_time() - start
     assert clock.seconds["inner"] >= 0.07
     assert 0.03 <= clock.seconds["outer"] < 0.07  # its own spin only, not the inner parts'
     assert abs(sum(clock.seconds.values()) - total) < 0.01
     assert set(clock.rounded()) == {"outer", "inner"}
-    with measured(None, "nothing"):  # no clock: nothing measured, nothing raised
-        pass

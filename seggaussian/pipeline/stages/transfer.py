@@ -8,6 +8,7 @@ against the oracle truth (or the surface labels) and writes the per-scene ``gaus
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -27,7 +28,6 @@ from seggaussian.shards.files import write_parquet_atomic
 from seggaussian.shards.tables import gaussians_table
 from seggaussian.labels.transfer import HiddenSurfaceHits, densify_labelled_mesh, distance_gate, transfer_labels
 from seggaussian.labels.scoring import label_accuracy, surface_labels
-from seggaussian.util.cpu_clock import CpuClock, measured
 
 #: Files the stage writes into the scene's cache folder (the views stage reads the labels back from its columns).
 OUTPUTS = ("gaussians.parquet",)
@@ -36,12 +36,13 @@ FORMER_LABELS = "labels.npz"
 
 
 def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, config: BuildConfig,
-                 refuse_misplaced: bool = False, clock: CpuClock | None = None) -> tuple[Gaussians, dict]:
+                 refuse_misplaced: bool = False, clock=None) -> tuple[Gaussians, dict]:
     """Labels of the Gaussians (transfer + per-scene statistics, placement and accuracy).
 
     ``refuse_misplaced``: raise ``PlacementError`` when the Gaussians do not sit on the mesh (imported splats;
     fitted and oracle Gaussians are made in the scene's frame, so theirs is only measured and reported).
-    ``clock``: the occlusion tests' CPU seconds are counted there as ``occlusion``."""
+    ``clock``: a ``seggaussian.pipeline.records.CpuClock`` (not imported: that module is in no stage's code digest);
+    the occlusion tests' CPU seconds are counted there as ``occlusion``."""
     points, semantic, instance = scene.points, scene.semantic, scene.instance
     multilabel = scene.multilabel
     extra = 0
@@ -55,7 +56,7 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         points = np.concatenate([points, samples])
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
-    with measured(clock, "occlusion"):
+    with clock.measure("occlusion") if clock is not None else nullcontext():
         occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
         on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer)
     result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer,
