@@ -25,7 +25,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(OptimConfig, "schedule", "--schedule", type=click.Choice(["cosine", "poly", "constant"]),
                default=OptimConfig.schedule, show_default=True)
 @config_option(TrainConfig, "seed", "--seed", type=int, default=TrainConfig.seed, show_default=True)
-@config_option(TrainConfig, "resume", "--resume", is_flag=True)
+@config_option(TrainConfig, "resume", "--resume", type=click.Choice(["always", "auto"]), is_flag=False,
+               flag_value="always", default=None, metavar="[auto]")
 @click.option("--no-adapter", is_flag=True, help="Ablation: train without the voxel-to-point adapter.")
 @config_option(LossConfig, "no_3dt_align", "--no-3dt-align", is_flag=True)
 @config_option(LossConfig, "no_vs_align", "--no-vs-align", is_flag=True)
@@ -88,7 +89,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
     """
 
     config = TrainConfig(
-        out=out, epochs=epochs, batch_scenes=batch_scenes, seed=seed, device=device, resume=resume,
+        out=out, epochs=epochs, batch_scenes=batch_scenes, seed=seed, device=device,
+        resume="auto" if resume == "auto" else resume is not None,
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
         voxel_size=voxel_size, use_coordinates=use_coordinates, input_encoding=input_encoding,
         pool_weighting=pool_weighting, devoxelize=devoxelize, grid_anchor=grid_anchor, voxel_geometry=voxel_geometry,

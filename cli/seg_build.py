@@ -92,8 +92,10 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
         "seconds": report.seconds,
         "kept_last_good": list(report.kept),
         "swept_temps": report.swept,
+        "cpu_seconds": report.cpu_seconds,
         "scenes": [{"scene": o.scene_id, "source": o.domain, "status": o.status, "stages_run": list(o.stages_run),
-                    "reason": o.reason, "seconds": o.seconds, **o.info} for o in report.outcomes],
+                    "reason": o.reason, "seconds": o.seconds, "cpu_seconds": o.cpu_seconds, **o.info}
+                   for o in report.outcomes],
     }
     for scene_id in report.kept:
         click.echo(f"warning: scene {scene_id} failed to build; the shards keep its last good copy", err=True)

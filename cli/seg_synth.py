@@ -21,6 +21,8 @@ from cli._output import finish, guarded, json_option
 @click.option("--layout", type=click.Choice(["scannetpp", "replica", "both"]), default="both", show_default=True)
 @click.option("--width", type=click.IntRange(min=16), default=320, show_default=True,
               help="Image width (ScanNet++ height = 3/4 width; Replica keeps the NICE-SLAM 1200x680 aspect).")
+@click.option("--height", type=click.IntRange(min=16), default=None,
+              help="ScanNet++ image height (default: 3/4 of --width; 876 x 584 is ScanNet++'s undistorted DSLR size).")
 @click.option("--views", type=click.IntRange(min=1), default=32, show_default=True, help="Views per scene.")
 @click.option("--max-edge", type=click.FloatRange(min=0.005), default=0.05, show_default=True, help="Longest mesh edge (metres).")
 @click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
@@ -28,11 +30,11 @@ from cli._output import finish, guarded, json_option
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(out, scenes, replica_scenes, seed, layout, width, views, max_edge, jobs, progress, as_json) -> None:
+def command(out, scenes, replica_scenes, seed, layout, width, height, views, max_edge, jobs, progress, as_json) -> None:
     """Write synthetic furnished rooms (mesh, labels, cameras, RGB and ground-truth label images)."""
     from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
-    config = SynthConfig(width=width, num_views=views, max_edge=max_edge)
+    config = SynthConfig(width=width, height=height, num_views=views, max_edge=max_edge)
     if layout == "both":
         layouts = [("scannetpp", out / "scannetpp", scenes),
                    ("replica", out / "replica", replica_scenes if replica_scenes is not None else max(1, math.ceil(scenes / 3)))]
@@ -49,4 +51,4 @@ def command(out, scenes, replica_scenes, seed, layout, width, views, max_edge, j
     parts = ", ".join(f"{len(v)} {k}" for k, v in written.items())
     summary = f"synth: wrote {total} scene{'' if total == 1 else 's'} ({parts}) to {out} in {seconds:.1f} s (seed {seed})"
     finish(summary, {"out": str(out), "seed": seed, "scenes": written, "seconds": round(seconds, 3),
-                     "width": width, "views": views, "max_edge": max_edge}, as_json)
+                     "width": width, "height": height, "views": views, "max_edge": max_edge}, as_json)

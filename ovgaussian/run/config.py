@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, Union
 
 
 @dataclass(frozen=True)
@@ -151,8 +151,10 @@ class TrainConfig:
     """Seed of every random choice (scene order, views, augmentation, pixel sampling, initialization)."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Device of the model and the losses."""
-    resume: bool = False
-    """Continue from the run folder's latest checkpoint (the same curve as an uninterrupted run)."""
+    resume: Union[bool, Literal["auto"]] = False
+    """Continue from the run folder's latest checkpoint (the same curve as an uninterrupted run); ``auto``: continue
+    when the folder holds a checkpoint, else start a new run (what a command restarted by ``torchrun --max-restarts``
+    needs: the same command line starts the run and resumes it)."""
     stop_after_epochs: Optional[int] = None
     """Stop after this many epochs (as if interrupted; the schedule still spans ``epochs``); resume later."""
     threads: Optional[int] = None

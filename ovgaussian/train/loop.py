@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -170,7 +171,12 @@ def scan_split(config: TrainConfig, source, vocabulary: Vocabulary, notes: list[
 def saved_run(config: TrainConfig, run_dir: Path, scan: ScanResult) -> dict | None:
     """The config.json of the run to resume (checked against ``config`` and the data), or None for a new run.
 
+    ``config.resume == "auto"`` resumes when the folder holds a checkpoint and starts a new run otherwise (a run
+    killed in its first epoch starts again). Every rank decides from the checkpoints alone: rank 0 writes the first
+    one only after a step all ranks took part in, and a restarted run's ranks see the same folder.
     CheckpointError when there is nothing to resume, or when a new run would overwrite a trained one."""
+    if config.resume == "auto":
+        config = replace(config, resume=latest_checkpoint(run_dir) is not None)
     if config.resume:
         if not (run_dir / CONFIG_NAME).is_file():
             raise CheckpointError(f"{run_dir / CONFIG_NAME}: missing; nothing to resume")

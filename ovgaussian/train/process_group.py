@@ -11,7 +11,9 @@ communicated.
 
 from __future__ import annotations
 
+import datetime
 import os
+import socket
 import types
 from typing import NamedTuple, Sequence
 
@@ -21,6 +23,10 @@ import torch.distributed.nn.functional as dist_fn
 
 from ovgaussian.sparse import SparseBatchNorm
 from ovgaussian.sparse.voxelize import SparseVoxels
+
+
+#: How long a process waits for the others at the store (torch's default for a process group).
+STORE_TIMEOUT = datetime.timedelta(minutes=30)
 
 
 class ProcessGroup(NamedTuple):
@@ -36,13 +42,45 @@ def torchrun_world_size() -> int:
 
 
 def init_process_group(device: str) -> ProcessGroup:
-    """Join the torchrun processes (env ``WORLD_SIZE`` > 1): gloo on CPU, NCCL on CUDA."""
+    """Join the torchrun processes (env ``WORLD_SIZE`` > 1): gloo on CPU, NCCL on CUDA, through the store of
+    ``worker_store`` (or, where torchrun's launcher hosts it, torchrun's env:// rendezvous)."""
     world_size = torchrun_world_size()
     if world_size <= 1:
         return ProcessGroup(0, 1)
     if not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if device == "cuda" else "gloo")
+        backend = "nccl" if device == "cuda" else "gloo"
+        store = worker_store(int(os.environ["RANK"]), world_size)
+        if store is None:
+            dist.init_process_group(backend=backend)
+        else:
+            dist.init_process_group(backend=backend, store=store, rank=int(os.environ["RANK"]), world_size=world_size)
     return ProcessGroup(dist.get_rank(), dist.get_world_size())
+
+
+def worker_store(rank: int, world_size: int) -> dist.TCPStore | None:
+    """The store the processes meet in when rank 0 hosts it (torchrun with ``TORCH_DISABLE_SHARE_RDZV_TCP_STORE=1``:
+    a new store per launch, at ``MASTER_ADDR:MASTER_PORT``): rank 0 listens on ``MASTER_ADDR`` only, where torch's
+    own store would listen on every interface. None where torchrun's launcher hosts the store
+    (``TORCHELASTIC_USE_AGENT_STORE``, torchrun's default) or outside torchrun: env:// then."""
+    if os.environ.get("TORCHELASTIC_USE_AGENT_STORE", "True") == "True" or "MASTER_ADDR" not in os.environ:
+        return None
+    address, port = os.environ["MASTER_ADDR"], int(os.environ["MASTER_PORT"])
+    if rank != 0:
+        return dist.TCPStore(address, port, world_size, is_master=False, timeout=STORE_TIMEOUT)
+    listener = socket.create_server((address, port), family=_address_family(address), backlog=max(128, world_size))
+    try:
+        store = dist.TCPStore(address, port, world_size, is_master=True, timeout=STORE_TIMEOUT,
+                              master_listen_fd=listener.fileno())
+    except BaseException:
+        listener.close()
+        raise
+    listener.detach()  # the store owns the listening socket now
+    return store
+
+
+def _address_family(address: str) -> socket.AddressFamily:
+    """The family of ``address`` (a name resolves to its first address)."""
+    return socket.getaddrinfo(address, None, type=socket.SOCK_STREAM)[0][0]
 
 
 def _synchronized_batch_norm_forward(module, x):

@@ -38,6 +38,8 @@ from seggaussian.sources.raycast import RAY_PARALLEL_EPS, MeshRaycaster
 DEFAULT_OCCLUSION_TOLERANCE = 0.01
 #: Points nearer a camera centre than this (metres) count as behind it (outside its image).
 NEAR_PLANE = 1e-3
+#: Metres added to a cube's bounding sphere in ``PointCells``' view test: room for rounding, never for a point.
+CELL_MARGIN = 1e-3
 #: Default of ``TransferConfig.on_surface_tolerance`` (metres): a Gaussian this near a surface lies on it. Below
 #: the 6 mm that a window Gaussian fitted 14 mm behind its glass keeps from the wall 2 cm behind (that Gaussian
 #: belongs to the window), and far above float32 positions' error at room scale (about 1e-6 m per metre).
@@ -54,6 +56,44 @@ def points_in_image(points: np.ndarray, camera: Camera) -> np.ndarray:  # [P, 3]
     front = z > NEAR_PLANE
     uv = np.where(front[:, None], uv, -1.0)  # behind the camera: outside, whatever the division gave
     return front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+
+
+class PointCells:
+    """Points bucketed in cubes of ``cell_size`` metres, for a quick conservative view test: a camera's
+    ``maybe_in_image`` cubes hold every point ``points_in_image`` accepts (and others), so the exact projection runs
+    only on their points, not on every point for every camera.
+
+    A cube may hold a point in the image only if its bounding sphere (radius ``cell_size * sqrt(3) / 2``, plus
+    ``CELL_MARGIN``) reaches the positive side of each of the five planes ``points_in_image`` tests in camera
+    coordinates: z > ``NEAR_PLANE``, K[0].p >= 0, (width e_z - K[0]).p > 0, K[1].p >= 0, (height e_z - K[1]).p > 0
+    (u = K[0].p / z, v = K[1].p / z). The margin is far above the rounding of either test (1e-12 m at room scale).
+    """
+
+    def __init__(self, points: np.ndarray, cell_size: float = 0.25):
+        points = np.asarray(points, np.float64)
+        self.cell_size = float(cell_size)
+        if not len(points):
+            self.cell_of_point, self.centres = np.zeros(0, np.int64), np.zeros((0, 3))
+            return
+        low = points.min(axis=0)
+        ijk = np.floor((points - low) / self.cell_size).astype(np.int64)
+        span = ijk.max(axis=0) + 1
+        keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+        unique, self.cell_of_point = np.unique(keys, return_inverse=True)
+        cells = np.stack([unique // (span[1] * span[2]), (unique // span[2]) % span[1], unique % span[2]], axis=1)
+        self.centres = low + (cells + 0.5) * self.cell_size
+        self.radius = self.cell_size * np.sqrt(3.0) / 2.0 + CELL_MARGIN
+
+    def maybe_in_image(self, camera: Camera) -> np.ndarray:  # [C] bool
+        """Cubes that may hold a point ``points_in_image(.., camera)`` accepts."""
+        rotation, translation = camera.viewmat[:3, :3], camera.viewmat[:3, 3]
+        k0, k1, ez = camera.K[0], camera.K[1], np.array([0.0, 0.0, 1.0])
+        normals = np.stack([ez, k0, camera.width * ez - k0, k1, camera.height * ez - k1])  # camera coordinates
+        offsets = np.array([-NEAR_PLANE, 0.0, 0.0, 0.0, 0.0])
+        world = normals @ rotation  # n . (R x + t) = (R^T n) . x + n . t
+        signed = self.centres @ world.T + (normals @ translation + offsets)
+        reach = self.radius * np.linalg.norm(world, axis=1)
+        return (signed >= -reach).all(axis=1)
 
 
 def _checked_points(points: np.ndarray, name: str) -> np.ndarray:
@@ -92,10 +132,12 @@ def occluded_points(
     if not len(points) or not len(faces):
         return seen  # nothing to test, or nothing that could hide a point
     caster = MeshRaycaster(mesh_points, faces)
+    cells = PointCells(points)
     for camera in cameras:
-        # A point seen once stays seen (and was looked at), so each camera projects only the points not yet seen.
-        unseen = np.flatnonzero(~seen)
-        rows = unseen[points_in_image(points[unseen], camera)]
+        # A point seen once stays seen (and was looked at), so each camera projects only the points not yet seen, and
+        # of those only the ones in cubes that may lie in its view (``PointCells``: the same rows as all of them).
+        candidates = np.flatnonzero(cells.maybe_in_image(camera)[cells.cell_of_point] & ~seen)
+        rows = candidates[points_in_image(points[candidates], camera)]
         looked_at[rows] = True
         if len(rows):
             first, distance = caster.first_hits(camera.center, points[rows])

@@ -33,7 +33,7 @@ from seggaussian.pipeline.discover import discover, synthesize_default
 from seggaussian.pipeline.executors import run_tasks
 from seggaussian.pipeline.assembly import CACHE_DIR, assemble, write_build_record
 from seggaussian.pipeline.scene import STAGES
-from seggaussian.pipeline.records import BuildReport, SceneOutcome
+from seggaussian.pipeline.records import BuildReport, CpuClock, SceneOutcome
 
 
 def build_dataset(config: BuildConfig) -> BuildReport:
@@ -52,7 +52,9 @@ def build_dataset(config: BuildConfig) -> BuildReport:
     if config.source == "ply" and config.ply_dir is None:
         raise ValueError("build: --source ply needs --ply-dir (trained PLYs)")
     swept = sweep_temps(out, recursive=True)  # leftovers of a killed earlier build
-    tasks, failures = discover(config)
+    clock = CpuClock()
+    with clock.measure("discover"):
+        tasks, failures = discover(config)
     if not tasks and not failures:
         raise ValueError(f"{config.root}: no scenes found in the raw tree (an empty source root is an error)")
     bars = _progress_bars(len(tasks), config.progress)
@@ -72,10 +74,11 @@ def build_dataset(config: BuildConfig) -> BuildReport:
             if bar is not None:
                 bar.close()
     outcomes.sort(key=lambda o: o.scene_id)
-    kept = write_build_record(cache_root, config, outcomes)
-    split_counts, files, nbytes, assembled = assemble(out, config)
+    with clock.measure("assemble"):
+        kept = write_build_record(cache_root, config, outcomes)
+        split_counts, files, nbytes, assembled = assemble(out, config)
     return BuildReport(out, outcomes, split_counts, files, nbytes, assembled, synthesized,
-                       time.perf_counter() - start, tuple(kept), swept)
+                       time.perf_counter() - start, tuple(kept), swept, clock.rounded())
 
 
 def _progress_bars(total: int, enabled: bool) -> dict:

@@ -1,9 +1,18 @@
-"""The build's records: one scene task (sent to workers), what building it did, and the whole build's report."""
+"""The build's records: one scene task (sent to workers), what building it did, and the whole build's report; and
+the clock of their CPU seconds per stage (``CpuClock``: every thread of this process, ``time.process_time``).
+
+``CpuClock``'s parts nest: a part measured inside another is counted in its own name and left out of the enclosing
+one, so the parts add up to the CPU time spent inside the outermost ones. It lives here, not in ``seggaussian.util``:
+the util package is in every stage's code digest (``seggaussian.pipeline.cache``), this module in none, and the stage
+code that is handed a clock only calls its ``measure``.
+"""
 
 from __future__ import annotations
 
+import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import NamedTuple
+from typing import Iterator, NamedTuple
 
 
 class SceneTask(NamedTuple):
@@ -41,6 +50,10 @@ class SceneOutcome(NamedTuple):
         fragments: {table: cached per-scene Parquet path}.
         keys: {stage: key}.
         seconds: wall time.
+        cpu_seconds: CPU seconds (every thread of the process that built the scene) of what ran: ``read`` (the raw
+            scene), ``gaussians``, ``transfer`` (less the two below), ``occlusion`` (the label points and Gaussians
+            the views never see), ``views`` (rendering, encoding), ``shards`` (writing the scene's Parquet tables).
+            Kept out of ``info``: the manifest holds only what the inputs determine.
     """
 
     scene_id: str
@@ -53,6 +66,7 @@ class SceneOutcome(NamedTuple):
     fragments: dict
     keys: dict
     seconds: float
+    cpu_seconds: dict = {}
 
 
 class BuildReport(NamedTuple):
@@ -70,6 +84,9 @@ class BuildReport(NamedTuple):
     kept: tuple = ()
     #: Temporaries of killed earlier runs removed from the dataset folder at the start.
     swept: int = 0
+    #: CPU seconds of the build process outside the scenes: ``discover`` (raw tree, fingerprints), ``assemble``
+    #: (build record, split-named shards, manifest); each scene's own are in its outcome's ``cpu_seconds``.
+    cpu_seconds: dict = {}
 
     @property
     def counts(self) -> dict:
@@ -80,3 +97,28 @@ def failed_outcome(task: SceneTask, reason: str, seconds: float, trace: str | No
     """The outcome of a scene that failed with ``reason`` (the traceback appended when given)."""
     return SceneOutcome(task.scene_id, task.domain, task.official_split, "failed", (),
                         reason + (f"\n{trace}" if trace else ""), {}, {}, {}, seconds)
+
+
+class CpuClock:
+    """CPU seconds per named part (``seconds``); ``measure(name)`` times one part, nested parts excluded."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._inner: list[float] = []  # per open part: CPU seconds of the parts nested in it
+
+    @contextmanager
+    def measure(self, name: str) -> Iterator[None]:
+        start = time.process_time()
+        self._inner.append(0.0)
+        try:
+            yield
+        finally:
+            spent = time.process_time() - start
+            nested = self._inner.pop()
+            self.seconds[name] = self.seconds.get(name, 0.0) + spent - nested
+            if self._inner:
+                self._inner[-1] += spent
+
+    def rounded(self, digits: int = 3) -> dict[str, float]:
+        """``seconds`` rounded (for records and JSON)."""
+        return {name: round(value, digits) for name, value in self.seconds.items()}

@@ -1,8 +1,8 @@
 """One scene through the build's stage chain, each stage served from the cache when its key is unchanged.
 
     gaussians  stages.gaussians_{oracle,scan,fit,import}  -> gaussians.npz
-    transfer   stages.transfer                       -> gaussians.parquet, labels.npz
-    views      stages.views                          -> views.parquet
+    transfer   stages.transfer                            -> gaussians.parquet
+    views      stages.views                               -> views.parquet
 
 Outputs live in ``DATASET/.build/scenes/<scene>/`` with a record ``<stage>.json`` per stage
 (``build_cache.StageRecord``); a stage runs only when its key changed or an output is missing.
@@ -20,7 +20,7 @@ import numpy as np
 
 from seggaussian.pipeline import cache as build_cache
 from seggaussian.pipeline.config import BuildConfig
-from seggaussian.pipeline.records import SceneOutcome, SceneTask, failed_outcome
+from seggaussian.pipeline.records import CpuClock, SceneOutcome, SceneTask, failed_outcome
 from seggaussian.core.constants import read_class_names
 from seggaussian.fit.optimize import needs_fit
 from seggaussian.sources.layout import reader
@@ -89,42 +89,50 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
     stages = {name: build_cache.StageRecord(scene_dir, name) for name in STAGES}
     records = {name: stages[name].cached(keys[name], OUTPUTS[name]) for name in STAGES}
     ran: list[str] = []
+    clock = CpuClock()  # CPU seconds per stage (its reads and writes included), the scene's reading and occlusion apart
     scene = None
     gaussians = truth = labelled = None
 
     def get_scene():
         nonlocal scene
         if scene is None:
-            if task.domain == "replica":  # rooms without pre-rendered views are rendered into the cache
-                scene = reader("replica").read_scene(task.root, task.scene_id, cache_dir=cache_root / "replica_views")
-            else:
-                scene = reader(task.domain).read_scene(task.root, task.scene_id)
+            with clock.measure("read"):
+                if task.domain == "replica":  # rooms without pre-rendered views are rendered into the cache
+                    scene = reader("replica").read_scene(task.root, task.scene_id,
+                                                         cache_dir=cache_root / "replica_views")
+                else:
+                    scene = reader(task.domain).read_scene(task.root, task.scene_id)
         return scene
 
     if records["gaussians"] is None:
-        gaussians, truth, facts = GAUSSIANS_MODES[g_cfg["mode"]].run(get_scene(), config, scene_dir, task.trained_ply,
-                                                                      **({"transform_file": task.transform_file}
-                                                                         if g_cfg["mode"] == "import" else {}))
+        with clock.measure("gaussians"):
+            gaussians, truth, facts = GAUSSIANS_MODES[g_cfg["mode"]].run(
+                get_scene(), config, scene_dir, task.trained_ply,
+                **({"transform_file": task.transform_file} if g_cfg["mode"] == "import" else {}))
         facts["num_gaussians"] = len(gaussians)
         stages["gaussians"].save(keys["gaussians"], facts, parts["gaussians"])
         records["gaussians"] = {"info": facts}
         ran.append("gaussians")
     if records["transfer"] is None:
-        if gaussians is None:
-            gaussians, truth = gaussians_stage.load_gaussians(scene_dir)
-        labelled, facts = transfer_stage.run_transfer(get_scene(), gaussians, truth, config,
-                                                      refuse_misplaced=g_cfg["mode"] == "import")
-        transfer_stage.write_transfer(scene_dir, task.scene_id, labelled, config.shards)
+        with clock.measure("transfer"):
+            if gaussians is None:
+                gaussians, truth = gaussians_stage.load_gaussians(scene_dir)
+            labelled, facts = transfer_stage.run_transfer(get_scene(), gaussians, truth, config,
+                                                          refuse_misplaced=g_cfg["mode"] == "import", clock=clock)
+            with clock.measure("shards"):
+                transfer_stage.write_transfer(scene_dir, task.scene_id, labelled, config.shards)
         stages["transfer"].save(keys["transfer"], facts, parts["transfer"])
         records["transfer"] = {"info": facts}
         ran.append("transfer")
     if records["views"] is None:
-        if labelled is None:
-            if gaussians is None:
-                gaussians, _ = gaussians_stage.load_gaussians(scene_dir)
-            labelled = transfer_stage.load_labelled(scene_dir, gaussians)
-        rows, facts = views_stage.run_views(get_scene(), labelled, config, len(class_names))
-        views_stage.write_views(scene_dir, task.scene_id, rows, config.shards)
+        with clock.measure("views"):
+            if labelled is None:
+                if gaussians is None:
+                    gaussians, _ = gaussians_stage.load_gaussians(scene_dir)
+                labelled = transfer_stage.load_labelled(scene_dir, gaussians)
+            rows, facts = views_stage.run_views(get_scene(), labelled, config, len(class_names))
+            with clock.measure("shards"):
+                views_stage.write_views(scene_dir, task.scene_id, rows, config.shards)
         stages["views"].save(keys["views"], facts, parts["views"])
         records["views"] = {"info": facts}
         ran.append("views")
@@ -137,4 +145,4 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
     info["num_gaussians"] = info.get("transfer", {}).get("num_gaussians", info.get("num_gaussians", 0))
     fragments = {"gaussians": scene_dir / "gaussians.parquet", "views": scene_dir / "views.parquet"}
     return SceneOutcome(task.scene_id, task.domain, task.official_split, "built" if ran else "skipped", tuple(ran),
-                        None, info, fragments, keys, time.perf_counter() - start)
+                        None, info, fragments, keys, time.perf_counter() - start, clock.rounded())

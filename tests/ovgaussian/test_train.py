@@ -449,6 +449,15 @@ def test_cli_trains_on_shards_and_reports_json(shard_dataset, tmp_path):
     assert list((out / "caches").glob("text_minilm_*.safetensors"))
     again = runner.invoke(main, ["train", "--data", str(shard_dataset), "--out", str(out), "--epochs", "1"])
     assert again.exit_code != 0 and "--resume" in again.output and "Traceback" not in again.output
+    # --resume auto (what a torchrun restart runs): the folder holds a checkpoint, so the run continues from it
+    longer = runner.invoke(main, ["train", "--data", str(shard_dataset), "--out", str(out), "--epochs", "2",
+                                  "--model-preset", "slim", "--pixels-per-view", "128", "--batch-scenes", "2",
+                                  "--resume", "auto", "--no-progress", "--json"])
+    assert longer.exit_code == 0, longer.output
+    assert json.loads(longer.output[longer.output.index("{"):])["steps"] == 4
+    assert sorted(p.name for p in (out / "checkpoints").glob("epoch-*")) == ["epoch-0001", "epoch-0002"]
+    wrong = runner.invoke(main, ["train", "--data", str(shard_dataset), "--out", str(out), "--resume", "sometimes"])
+    assert wrong.exit_code != 0 and "sometimes" in wrong.output
     missing = runner.invoke(main, ["train", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "r2")])
     assert missing.exit_code != 0 and "manifest.json" in missing.output
 

@@ -75,6 +75,11 @@ def built(raw, tmp_path_factory):
 def test_build_split_and_read_back(built):
     ds, report = built
     assert report.counts == {"built": 3, "skipped": 0, "failed": 0}
+    # CPU seconds of each stage that ran, occlusion and the Parquet writes apart, and of the build around the scenes
+    for o in report.outcomes:
+        assert set(o.cpu_seconds) == {"read", "gaussians", "transfer", "occlusion", "views", "shards"}, o.cpu_seconds
+        assert all(v >= 0 for v in o.cpu_seconds.values()) and o.cpu_seconds["views"] > 0
+    assert set(report.cpu_seconds) == {"discover", "assemble"}
     assert report.split_counts == {"train": 1, "val": 1, "xval": 1}
     splits = json.loads((ds / "splits.json").read_text())
     assert [s for s, v in splits["scenes"].items() if v == "xval"] == ["synroom0_s0"]
@@ -225,6 +230,8 @@ def test_cli_build_split_export(built, raw, tmp_path):
     assert result.exit_code == 0, result.output
     payload = json.loads(result.output)
     assert payload["counts"] == {"built": 0, "skipped": 3, "failed": 0}
+    assert all(s["cpu_seconds"] == {} for s in payload["scenes"])  # every stage cached: no CPU spent on a scene
+    assert set(payload["cpu_seconds"]) == {"discover", "assemble"}
     result = runner.invoke(main, ["split", "--data", str(ds), "--json"])
     assert result.exit_code == 0, result.output
     assert json.loads(result.output)["counts"] == {"train": 1, "val": 1, "xval": 1}
@@ -284,6 +291,9 @@ def test_code_change_reruns_the_stage(built, raw, tmp_path, monkeypatch):
                         lambda entry: real(entry) + ("x" if entry == views_stage.__name__ else ""))
     report = build_mod.build_dataset(_config(raw, out))
     assert {o.stages_run for o in report.outcomes} == {("views",)}
+    # the views stage alone read the labels back from the transfer's table: the same views, the same shards
+    assert _public_files(out) == _public_files(ds)
+    assert not list((out / ".build").rglob("labels.npz"))  # the cache keeps one copy of the labels
 
 
 def test_process_pool_and_missing_ray(built, raw, tmp_path):

@@ -19,7 +19,9 @@ from seggaussian.core.cameras import Camera, look_at
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.core.scene import Scene, View
 from seggaussian.labels.config import TransferConfig
-from seggaussian.labels.occlusion import occluded_points, occluded_points_reference, points_in_image
+from seggaussian.labels.occlusion import (
+    NEAR_PLANE, PointCells, occluded_points, occluded_points_reference, points_in_image,
+)
 from seggaussian.labels.transfer import densify_labelled_mesh, transfer_labels
 
 WALL, WINDOW, FLOOR, BOX = 1, 2, 3, 4
@@ -355,3 +357,32 @@ def test_a_synthetic_scannetpp_room_turned_into_vertex_gaussians_keeps_every_lab
     assert wrong == 0 and facts["transfer"]["occluded_points"] > 1000 and facts["transfer"]["on_hidden_surface"] > 1000
     unlabelled = np.array([s == {IGNORE_LABEL} for s in allowed])
     assert unlabelled.any() and (got[unlabelled] == IGNORE_LABEL).all()
+
+
+@pytest.mark.parametrize("cell_size", [0.05, 0.25, 1.0])
+def test_cells_of_a_view_hold_every_point_the_exact_test_accepts(cell_size):
+    """``PointCells.maybe_in_image`` is conservative: every point ``points_in_image`` accepts is in a kept cube, for
+    points on the image borders and the near plane included (back-projected there), yet most cubes are culled."""
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-4, 4, size=(20_000, 3))
+    cells = PointCells(points, cell_size)
+    for trial in range(6):
+        eye = rng.uniform(-3, 3, 3)
+        width, height = (64, 48) if trial % 2 else (876, 584)
+        K = np.array([[rng.uniform(40, 700), rng.uniform(-2, 2), width * rng.uniform(0.3, 0.7)],
+                      [0, rng.uniform(40, 700), height * rng.uniform(0.3, 0.7)], [0, 0, 1.0]])
+        camera = Camera(K, look_at(eye, eye + rng.normal(size=3)), width, height)
+        # points on the edges of the image (u = 0 or just below width, v likewise) and just beyond the near plane
+        u = np.concatenate([np.zeros(50), np.full(50, np.nextafter(width, 0)), rng.uniform(0, width, 100)])
+        v = np.concatenate([rng.uniform(0, height, 100), np.where(rng.random(100) < 0.5, 0.0, np.nextafter(height, 0))])
+        depth = np.concatenate([np.full(100, NEAR_PLANE * 1.0001), rng.uniform(0.01, 5, 100)])
+        pixels = np.stack([u, v, np.ones_like(u)], axis=1) @ np.linalg.inv(K).T * depth[:, None]
+        edge = (pixels - camera.viewmat[:3, 3]) @ camera.viewmat[:3, :3]  # camera -> world (rotation: R^T)
+        probe = np.concatenate([points, edge])
+        probe_cells = PointCells(probe, cell_size)
+        exact = points_in_image(probe, camera)
+        kept = probe_cells.maybe_in_image(camera)[probe_cells.cell_of_point]
+        assert exact[len(points):].sum() > 20  # many edge points are inside (rounding puts others just outside)
+        assert not (exact & ~kept).any()
+        if cell_size < 1.0:
+            assert cells.maybe_in_image(camera).mean() < 0.8  # the cubes behind or beside the camera are culled

@@ -1,7 +1,7 @@
 """The per-scene stages of ``seggaussian build``, one module per stage (mode), each computing and writing its outputs.
 
     gaussians  gaussians_oracle | gaussians_scan | gaussians_fit | gaussians_import  -> gaussians.npz (+ oracle truth)
-    transfer   transfer                                                              -> gaussians.parquet, labels.npz
+    transfer   transfer                                                              -> gaussians.parquet
     views      views                                                                 -> views.parquet
 
 A stage module is the entry point of its stage's code: the build cache key of a stage hashes the source of

@@ -1,4 +1,4 @@
-"""transfer stage: labels of the Gaussians from the scene's labelled points -> ``gaussians.parquet``, ``labels.npz``.
+"""transfer stage: labels of the Gaussians from the scene's labelled points -> ``gaussians.parquet``.
 
 The algorithm (KD-tree, distance gate, statistics) is ``seggaussian.labels.transfer``; this module feeds it the
 scene's points, densified along the mesh faces, less those its train views look at but never see (a wall behind a
@@ -8,10 +8,12 @@ against the oracle truth (or the surface labels) and writes the per-scene ``gaus
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from seggaussian.pipeline.config import BuildConfig
 
@@ -24,20 +26,23 @@ from seggaussian.labels.placement import check_placement, measure_placement
 from seggaussian.core.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
 from seggaussian.shards.tables import gaussians_table
-from seggaussian.pipeline.stages.gaussians import save_npz
 from seggaussian.labels.transfer import HiddenSurfaceHits, densify_labelled_mesh, distance_gate, transfer_labels
 from seggaussian.labels.scoring import label_accuracy, surface_labels
 
-#: Files the stage writes into the scene's cache folder.
-OUTPUTS = ("gaussians.parquet", "labels.npz")
+#: Files the stage writes into the scene's cache folder (the views stage reads the labels back from its columns).
+OUTPUTS = ("gaussians.parquet",)
+#: The labels' second copy that earlier versions wrote beside the table.
+FORMER_LABELS = "labels.npz"
 
 
 def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, config: BuildConfig,
-                 refuse_misplaced: bool = False) -> tuple[Gaussians, dict]:
+                 refuse_misplaced: bool = False, clock=None) -> tuple[Gaussians, dict]:
     """Labels of the Gaussians (transfer + per-scene statistics, placement and accuracy).
 
     ``refuse_misplaced``: raise ``PlacementError`` when the Gaussians do not sit on the mesh (imported splats;
-    fitted and oracle Gaussians are made in the scene's frame, so theirs is only measured and reported)."""
+    fitted and oracle Gaussians are made in the scene's frame, so theirs is only measured and reported).
+    ``clock``: a ``seggaussian.pipeline.records.CpuClock`` (not imported: that module is in no stage's code digest);
+    the occlusion tests' CPU seconds are counted there as ``occlusion``."""
     points, semantic, instance = scene.points, scene.semantic, scene.instance
     multilabel = scene.multilabel
     extra = 0
@@ -51,8 +56,9 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         points = np.concatenate([points, samples])
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
-    occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
-    on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer)
+    with clock.measure("occlusion") if clock is not None else nullcontext():
+        occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
+        on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer)
     result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer,
                              hidden=occluded, on_surface=on_surface)
     # the placement is judged at the spacing-derived gate, whatever gate the user chose for the labels
@@ -114,12 +120,17 @@ def hidden_surface_gaussians(scene: Scene, means: np.ndarray, transfer: Transfer
 
 
 def write_transfer(scene_dir: Path, scene_id: str, labelled: Gaussians, shards: ShardConfig) -> None:
-    """The per-scene ``gaussians`` table and ``labels.npz`` (the labels the views stage renders)."""
+    """The per-scene ``gaussians`` table (and no ``labels.npz``: one left by an earlier version goes)."""
     write_parquet_atomic(Path(scene_dir) / OUTPUTS[0], "gaussians", [gaussians_table(scene_id, labelled)], shards)
-    save_npz(Path(scene_dir) / OUTPUTS[1], semantic=labelled.extras["semantic"], instance=labelled.extras["instance"])
+    (Path(scene_dir) / FORMER_LABELS).unlink(missing_ok=True)
 
 
 def load_labelled(scene_dir: Path, gaussians: Gaussians) -> Gaussians:
-    """``gaussians`` with the semantic and instance labels of ``labels.npz``."""
-    with np.load(Path(scene_dir) / OUTPUTS[1]) as z:
-        return gaussians.with_extras(semantic=z["semantic"], instance=z["instance"])
+    """``gaussians`` with the semantic and instance labels of the stage's ``gaussians`` table (the labels the views
+    stage renders; once kept in a ``labels.npz`` beside it, a second copy in the build cache)."""
+    path = Path(scene_dir) / OUTPUTS[0]
+    table = pq.read_table(path, columns=["semantic", "instance"])
+    if table.num_rows != len(gaussians):
+        raise ValueError(f"{path}: {table.num_rows} rows for {len(gaussians)} Gaussians")
+    return gaussians.with_extras(semantic=table.column("semantic").to_numpy(),
+                                 instance=table.column("instance").to_numpy())

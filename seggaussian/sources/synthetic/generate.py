@@ -45,6 +45,9 @@ class SynthConfig:
     """Longest mesh edge in metres (vertex colours carry texture at this resolution)."""
     focal_factor: float = 0.6
     """ScanNet++ layout: fx = fy = focal_factor * width (about 80 degrees horizontal field of view)."""
+    height: int | None = None
+    """ScanNet++ layout: image height in pixels; None: 3/4 of the width (876 x 584 is the size of ScanNet++'s
+    undistorted DSLR images)."""
 
 
 def scene_name(seed: int, index: int, layout: str) -> str:
@@ -68,7 +71,7 @@ def build_scene(seed: int, index: int, layout: str, config: SynthConfig = SynthC
         width, height = replica_size(config.width)
         K = nice_slam_intrinsics(width, height)
     else:
-        width, height = config.width, int(round(config.width * 3 / 4))
+        width, height = config.width, config.height or int(round(config.width * 3 / 4))
         K = default_intrinsics(width, height, config.focal_factor)
     cameras = generate_camera_path(room.room_min, room.room_max, config.num_views, K, width, height, rng)
     return room, cameras
@@ -94,7 +97,7 @@ def synthesize(
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
     if num_scenes < 0:
         raise ValueError(f"num_scenes must be >= 0, got {num_scenes}")
-    if config.width < 16 or config.num_views < 1 or not config.max_edge > 0:
+    if config.width < 16 or config.num_views < 1 or not config.max_edge > 0 or (config.height or 16) < 16:
         raise ValueError(f"invalid SynthConfig {config}")
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
