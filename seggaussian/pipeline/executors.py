@@ -9,6 +9,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 from seggaussian.pipeline.config import BuildConfig
+from seggaussian.pipeline.ray_tasks import run_ray
 from seggaussian.pipeline.scene import build_scene
 from seggaussian.pipeline.records import SceneOutcome, SceneTask, crashed_outcome
 from seggaussian.util.threads import cap_threads
@@ -27,8 +28,6 @@ def run_tasks(tasks: list[SceneTask], config: BuildConfig, cache_root: Path, on_
     jobs = max(1, int(config.jobs))
     threads = max(1, (os.cpu_count() or 1) // jobs)
     if config.executor == "ray":
-        from seggaussian.pipeline.ray_tasks import run_ray
-
         return run_ray(tasks, config, cache_root, on_done, _worker)
     if config.executor != "local":
         raise ValueError(f"build: --executor must be local or ray, got {config.executor!r}")

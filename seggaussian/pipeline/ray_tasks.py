@@ -10,8 +10,8 @@
   the output folder the driver sees: a task pinned to the node (``NodeAffinitySchedulingStrategy``, hard) lists
   the raw roots, reads a probe file the driver wrote into the output, and writes and removes its own. A node that
   fails stops the build with one line naming the node and the path.
-* Each scene task asks for ``ray_cpus`` CPUs and ``ray_memory_gb`` of memory; a request no alive node can hold is
-  refused at the start (Ray would wait for such a node forever). Ray reruns a task whose worker process or node
+* Each scene task asks for ``ray_cpus`` CPUs and ``ray_memory_gb`` of memory, spread over the nodes (``SPREAD``);
+  a request no alive node can hold is refused at the start (Ray would wait for such a node forever). Ray reruns a task whose worker process or node
   was lost up to ``ray_retries`` times (``max_retries``); an error raised inside a scene is already a failed scene
   (``scene.build_scene`` never raises), so application errors are never retried (``retry_exceptions=False``).
 * A task that still fails (retries used up, the object lost) fails its scene only, with the same reason the
@@ -197,7 +197,7 @@ def _run_ray(tasks, config, cache_root, on_done, worker):
                         *([Path(config.ply_dir)] if config.ply_dir is not None else [])})
         checked = check_nodes(ray, nodes, roots, Path(config.out), float(config.ray_timeout))
         remote = ray.remote(worker).options(num_cpus=cpus, memory=memory, max_retries=int(config.ray_retries),
-                                            retry_exceptions=False)
+                                            retry_exceptions=False, scheduling_strategy="SPREAD")
         threads = max(1, math.ceil(cpus))
         refs = {remote.remote(t, config, cache_root, threads): t for t in tasks}
         pending = list(refs)

@@ -84,8 +84,8 @@ class LoopbackRayCluster:
         return env
 
     def _start_node(self, name: str, head: bool) -> RayNode:
-        # one temp dir per node, as on separate machines (nodes starting at once in one session folder race for
-        # the same socket names), in a short folder of the system's temp dir: Ray's socket paths must stay
+        # one temp dir per node, as on separate machines (nodes starting at once in one temp folder race for the
+        # same socket names), in a short folder of the system's temp dir: Ray's socket paths must stay
         # under the AF_UNIX limit of 107 bytes
         if self.temp is None:
             self.temp = Path(tempfile.mkdtemp(prefix="sgray-"))
@@ -93,9 +93,7 @@ class LoopbackRayCluster:
         temp.mkdir()
         args = [sys.executable, "-m", "seggaussian.tools.ray_cluster", "start", "--node-ip-address", "127.0.0.1",
                 "--num-cpus", str(self.cpus), "--memory", str(self.memory), "--object-store-memory",
-                str(self.object_store), "--temp-dir", str(temp), "--disable-usage-stats",
-                "--dashboard-agent-listen-port", str(free_port()), "--dashboard-agent-grpc-port", str(free_port()),
-                "--metrics-export-port", str(free_port()), "--runtime-env-agent-port", str(free_port())]
+                str(self.object_store), "--temp-dir", str(temp), "--disable-usage-stats"]  # other ports: random
         if head:
             args += ["--head", "--port", str(self.port), "--include-dashboard", "false",
                      "--dashboard-port", str(free_port())]
@@ -158,8 +156,8 @@ class LoopbackRayCluster:
         return sorted((pid, table[pid][2]) for pid in mine)
 
     def kill_node(self, name: str) -> None:
-        """SIGKILL node ``name``: its process group (raylet, object store, agents) and its workers, as when the
-        machine is lost."""
+        """SIGKILL node ``name``: its process group (raylet, object store and the rest) and its workers, as when
+        the machine is lost."""
         victims = self.processes(name)
         try:
             os.killpg(self.group(name), signal.SIGKILL)
