@@ -16,6 +16,7 @@ import argparse
 import json
 import os
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -54,6 +55,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("/tmp/bench_ray_nodes"))
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped benchmark stops its clusters too
     work = args.work.resolve()
     raw = work / "raw"
     if not raw.is_dir():

@@ -1,7 +1,7 @@
 """Scenes of ``seggaussian build --executor ray`` as Ray tasks on a cluster of one or more nodes.
 
 * Connecting is bounded: ``BuildConfig.ray_timeout`` seconds for the cluster's GCS to accept a TCP connection and
-  for ``ray.init`` to return, else a one-line error. Ray rewrites a loopback address (``127.0.0.1:PORT``, the
+  for ``ray.init`` to return in a child process (killed when it does not), else a one-line error. Ray rewrites a loopback address (``127.0.0.1:PORT``, the
   ``--node-ip-address 127.0.0.1`` of ``ray start``) to the machine's outward address; a cluster whose nodes were
   started bound to 127.0.0.1 is then never reached and ``ray.init`` retries forever. For a loopback address (and
   for a Ray started here) the driver therefore takes 127.0.0.1 as its own address, through Ray's
@@ -25,8 +25,8 @@ import math
 import os
 import secrets
 import socket
+import subprocess
 import sys
-import threading
 from pathlib import Path
 from typing import NamedTuple
 
@@ -83,25 +83,25 @@ def connect(config: BuildConfig):
         except OSError as exc:
             raise ConnectionError(f"build: no Ray cluster answers at {config.address} "
                                   f"({exc.strerror or type(exc).__name__})") from None
-    result: list = []
-
-    def init() -> None:
-        try:
-            ray.init(address=config.address, include_dashboard=False, log_to_driver=False)
-            result.append(None)
-        except Exception as exc:  # noqa: BLE001 -- handed to the caller's thread
-            result.append(exc)
-
-    thread = threading.Thread(target=init, name="ray-connect", daemon=True)
-    thread.start()
-    thread.join(timeout)
-    if not result:
-        raise TimeoutError(f"build: Ray did not connect to {config.address or 'a local Ray'} within {timeout:g} s "
-                           f"(--ray-timeout)")
-    if result[0] is not None:
-        raise RuntimeError(f"build: Ray could not connect to {config.address or 'a local Ray'}: "
-                           f"{str(result[0]).splitlines()[0] if str(result[0]) else type(result[0]).__name__}")
+        _check_connects(config.address, timeout)
+    ray.init(address=config.address, include_dashboard=False, log_to_driver=False)
     return ray, True
+
+
+def _check_connects(address: str, timeout: float) -> None:
+    """Connect to ``address`` from a child process first: a ``ray.init`` that hangs there is killed after
+    ``timeout`` seconds and reported in one line (a hung ``ray.init`` cannot be left behind in this process)."""
+    code = ("import sys, ray; ray.init(address=sys.argv[1], include_dashboard=False, log_to_driver=False); "
+            "ray.shutdown()")
+    try:
+        proc = subprocess.run([sys.executable, "-c", code, address], capture_output=True, text=True, timeout=timeout,
+                              stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise TimeoutError(f"build: Ray did not connect to {address} within {timeout:g} s (--ray-timeout)") from None
+    if proc.returncode != 0:
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        said = next((line for line in reversed(lines) if "Error" in line), lines[-1] if lines else "")
+        raise RuntimeError(f"build: Ray could not connect to {address}: {said.strip()[:300]}")
 
 
 def _probe(roots: list[str], out: str, token: str, node_id: str) -> tuple[str, str] | None:

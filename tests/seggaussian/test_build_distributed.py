@@ -144,3 +144,34 @@ def test_ray_multi_node_build_loses_a_node_and_equals_the_local_build(raw, one_p
     assert len(report["ray_nodes"]) == 3 and {n["address"] for n in report["ray_nodes"]} == {"127.0.0.1"}
     assert _files(out) == _files(one_process)
     assert not any(name.startswith(".ray-probe-") for name in os.listdir(out))
+
+
+def test_a_node_that_does_not_see_the_paths_names_them(tmp_path):
+    from seggaussian.pipeline.ray_tasks import PROBE_PREFIX, _probe
+
+    out, raw = tmp_path / "out", tmp_path / "raw"
+    out.mkdir()
+    raw.mkdir()
+    (out / f"{PROBE_PREFIX}abc").write_text("abc")
+    assert _probe([str(raw)], str(out), "abc", "n" * 56) is None
+    assert sorted(os.listdir(out)) == [f"{PROBE_PREFIX}abc"]  # its own probe file written and removed
+    assert _probe([str(raw / "missing")], str(out), "abc", "n" * 56) == (str(raw / "missing"),
+                                                                         "no such folder on that node")
+    other = tmp_path / "other"  # same name on the node, another folder: the driver's probe file is not there
+    other.mkdir()
+    path, why = _probe([str(raw)], str(other), "abc", "n" * 56)
+    assert path == str(other) and "not the driver's folder" in why
+
+
+def test_ray_connect_to_an_address_that_never_answers_is_a_bounded_one_line_error(raw, tmp_path):
+    pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'seggaussian[ray]')")
+    import socket
+
+    with socket.socket() as silent:  # accepts connections (the kernel does) and never speaks
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        address = f"127.0.0.1:{silent.getsockname()[1]}"
+        build = _build(raw, tmp_path / "o", "--executor", "ray", "--address", address, "--ray-timeout", "3")
+        stdout, _ = build.communicate(timeout=BUILD_TIMEOUT)
+    assert build.returncode == 1
+    assert json.loads(stdout)["error"] == f"build: Ray did not connect to {address} within 3 s (--ray-timeout)"
