@@ -174,6 +174,32 @@ def check_nodes(ray, nodes: list[dict], roots: list[Path], out: Path, timeout: f
     return [NodeCheck(n["NodeID"], n.get("NodeManagerAddress", "")) for n in nodes]
 
 
+def collect(ray, refs: dict, scene_timeout: float, on_done) -> list[SceneOutcome]:
+    """The outcome of every scene task in ``refs`` ({object ref: task}) as it finishes (``on_done`` called each
+    time). A task that raises (its retries used up, its object lost) fails its scene only; when no task finishes
+    within ``scene_timeout`` seconds (0 = no limit), the tasks still out are cancelled and their scenes fail."""
+    pending = list(refs)
+    outcomes: list[SceneOutcome] = []
+    wait = scene_timeout or None
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1, timeout=wait)
+        if not done:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+                outcome = failed_outcome(refs[ref], f"no scene finished on Ray within {wait:g} s (--ray-scene-timeout)",
+                                         wait)
+                outcomes.append(outcome)
+                on_done(outcome)
+            break
+        try:
+            outcome = ray.get(done[0])
+        except Exception as exc:  # noqa: BLE001 -- retries used up: that scene fails, the others go on
+            outcome = crashed_outcome(refs[done[0]], exc)
+        outcomes.append(outcome)
+        on_done(outcome)
+    return outcomes
+
+
 def run_ray(tasks: list[SceneTask], config: BuildConfig, cache_root: Path, on_done,
             worker) -> tuple[list[SceneOutcome], list[NodeCheck]]:
     """Build every task as a Ray task running ``worker(task, config, cache_root, threads)``; see the module
@@ -200,25 +226,7 @@ def _run_ray(tasks, config, cache_root, on_done, worker):
                                             retry_exceptions=False, scheduling_strategy="SPREAD")
         threads = max(1, math.ceil(cpus))
         refs = {remote.remote(t, config, cache_root, threads): t for t in tasks}
-        pending = list(refs)
-        outcomes: list[SceneOutcome] = []
-        wait = float(config.ray_scene_timeout) or None
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1, timeout=wait)
-            if not done:  # nothing finished within the limit: the scenes still out fail
-                for ref in pending:
-                    ray.cancel(ref, force=True)
-                    outcome = failed_outcome(refs[ref], f"no scene finished on Ray within {wait:g} s "
-                                                        f"(--ray-scene-timeout)", wait)
-                    outcomes.append(outcome)
-                    on_done(outcome)
-                break
-            try:
-                outcome = ray.get(done[0])
-            except Exception as exc:  # noqa: BLE001 -- retries used up: that scene fails, the others go on
-                outcome = crashed_outcome(refs[done[0]], exc)
-            outcomes.append(outcome)
-            on_done(outcome)
+        outcomes = collect(ray, refs, float(config.ray_scene_timeout), on_done)
         return outcomes, checked
     finally:
         if connected:

@@ -42,15 +42,6 @@ def frozen_code_hash():
         yield
 
 
-@pytest.fixture(scope="module")
-def raw(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("raw")
-    cfg = synthetic.SynthConfig(width=48, num_views=4)
-    synthetic.synthesize(root / "scannetpp", 2, 0, "scannetpp", cfg)
-    synthetic.synthesize(root / "replica", 1, 0, "replica", cfg)
-    return root
-
-
 def _config(raw: Path, out: Path, **kw) -> BuildConfig:
     return BuildConfig(source="synthetic", root=raw, out=out, gaussians="oracle", progress=False,
                        oracle=OracleConfig(num_gaussians=1500), **kw)

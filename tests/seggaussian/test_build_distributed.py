@@ -26,21 +26,12 @@ from seggaussian.labels.config import OracleConfig
 from seggaussian.pipeline.slicing import slice_ids
 from seggaussian.shards.layout import MANIFEST_NAME, SPLITS_NAME
 
-synthetic = pytest.importorskip("seggaussian.sources.synthetic.generate")
+pytest.importorskip("seggaussian.sources.synthetic.generate")
 
 REPO = Path(__file__).resolve().parents[2]
 #: Bounded waits (seconds) for the processes these tests start.
 BUILD_TIMEOUT = 300
 START_TIMEOUT = 120
-
-
-@pytest.fixture(scope="module")
-def raw(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("raw")
-    cfg = synthetic.SynthConfig(width=48, num_views=4)
-    synthetic.synthesize(root / "scannetpp", 2, 0, "scannetpp", cfg)
-    synthetic.synthesize(root / "replica", 1, 0, "replica", cfg)
-    return root
 
 
 OPTIONS = ["--gaussians", "oracle", "--oracle-gaussians", "1500", "--no-progress"]
@@ -175,3 +166,43 @@ def test_ray_connect_to_an_address_that_never_answers_is_a_bounded_one_line_erro
         stdout, _ = build.communicate(timeout=BUILD_TIMEOUT)
     assert build.returncode == 1
     assert json.loads(stdout)["error"] == f"build: Ray did not connect to {address} within 3 s (--ray-timeout)"
+
+
+class _Scheduler:
+    """Ray's ``wait`` / ``get`` / ``cancel`` over fixed results: a value, an exception raised by ``get``, or None
+    for a task that never finishes."""
+
+    def __init__(self, results: dict):
+        self.results, self.cancelled = results, []
+
+    def wait(self, pending, num_returns, timeout):
+        ready = [r for r in pending if self.results[r] is not None][:num_returns]
+        if not ready:
+            time.sleep(timeout)
+        return ready, [r for r in pending if r not in ready]
+
+    def get(self, ref):
+        if isinstance(self.results[ref], BaseException):
+            raise self.results[ref]
+        return self.results[ref]
+
+    def cancel(self, ref, force):
+        self.cancelled.append(ref)
+
+
+def test_a_lost_scene_task_fails_that_scene_only_as_in_the_local_pool():
+    from seggaussian.pipeline.ray_tasks import collect
+    from seggaussian.pipeline.records import SceneOutcome, SceneTask
+
+    tasks = {name: SceneTask(name, "scannetpp", Path("raw"), "f", None, None) for name in ("a", "b", "c")}
+    built = SceneOutcome("a", "scannetpp", None, "built", ("views",), None, {}, {}, {}, 1.0)
+    lost = RuntimeError("The worker died unexpectedly while executing this task.\nmore lines")
+    ray = _Scheduler({"ref-a": built, "ref-b": lost, "ref-c": None})
+    seen = []
+    outcomes = collect(ray, {"ref-a": tasks["a"], "ref-b": tasks["b"], "ref-c": tasks["c"]}, 0.1, seen.append)
+    assert seen == outcomes and [o.scene_id for o in outcomes] == ["a", "b", "c"]
+    assert outcomes[0] is built
+    assert outcomes[1].status == "failed" and outcomes[1].reason == (
+        "worker crashed: RuntimeError: The worker died unexpectedly while executing this task.")
+    assert outcomes[2].status == "failed" and "--ray-scene-timeout" in outcomes[2].reason
+    assert ray.cancelled == ["ref-c"]
