@@ -6,7 +6,7 @@ The raw tree is the default synthetic set (9 ScanNet++-layout + 3 Replica-layout
 defaults), synthesized once into ``WORK/raw``. Each repeat builds it twice with ``--gaussians oracle --executor
 ray``, once on a cluster of one node with 2 CPUs and once on a cluster of two nodes with 1 CPU each (both clusters
 on this machine, every node bound to 127.0.0.1: ``seggaussian.tools.ray_cluster``), one scene task per CPU
-(``--ray-cpus 1``), the two alternated in one run. The figure is the ratio of the median wall times of the builds
+(``--ray-cpus 1``), the two alternated in one run (ABBA). The figure is the ratio of the median wall times of the builds
 (the cluster started before the clock starts); the two outputs are compared byte for byte.
 """
 
@@ -40,10 +40,10 @@ def build_on(cluster: LoopbackRayCluster, raw: Path, out: Path) -> tuple[float, 
     """(wall seconds, JSON report) of one build of ``raw`` into a fresh ``out`` on ``cluster``."""
     shutil.rmtree(out, ignore_errors=True)
     t = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "cli.seggaussian_cli", "build", "--root", str(raw), "--out", str(out),
-                           "--gaussians", "oracle", "--executor", "ray", "--address", cluster.address, "--ray-cpus", "1",
-                           "--ray-memory-gb", "1", "--json", "--no-progress"], cwd=REPO, env=cluster.driver_env(),
-                          capture_output=True, text=True, timeout=3600)
+    command = [sys.executable, "-m", "cli.seggaussian_cli", "build", "--root", str(raw), "--out", str(out),
+               "--gaussians", "oracle", "--executor", "ray", "--address", cluster.address, "--ray-cpus", "1",
+               "--ray-memory-gb", "1", "--json", "--no-progress"]
+    proc = subprocess.run(command, cwd=REPO, env=cluster.driver_env(), capture_output=True, text=True, timeout=3600)
     seconds = time.perf_counter() - t
     if proc.returncode != 0:
         raise SystemExit(f"build failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
@@ -64,15 +64,18 @@ def main() -> None:
     times: dict[str, list[float]] = {label: [] for label, _, _ in LAYOUTS}
     load = [os.getloadavg()[0]]
     for rep in range(args.repeats):
-        for label, nodes, cpus in LAYOUTS:
+        for label, nodes, cpus in (LAYOUTS if rep % 2 == 0 else LAYOUTS[::-1]):  # ABBA: load drift hits both
             with LoopbackRayCluster(work / f"cluster-{nodes}", nodes=nodes, cpus=cpus, memory_gb=1.5 * cpus,
                                     object_store_mb=200) as cluster:
                 seconds, report = build_on(cluster, raw, work / f"out-{nodes}")
             assert report["counts"]["failed"] == 0 and report["counts"]["built"] == len(report["scenes"])
             assert len(report["ray_nodes"]) == nodes and {n["address"] for n in report["ray_nodes"]} == {"127.0.0.1"}
             times[label].append(seconds)
+            (work / f"report-{nodes}-{rep}.json").write_text(json.dumps(report, indent=1))
+            scene_seconds = sum(o["seconds"] for o in report["scenes"])
             load.append(os.getloadavg()[0])
-            print(f"repeat {rep}: {label}: {seconds:.1f} s, {report['counts']['built']} scenes", flush=True)
+            print(f"repeat {rep}: {label}: {seconds:.1f} s, {report['counts']['built']} scenes, "
+                  f"{scene_seconds:.1f} s of scene tasks (sum)", flush=True)
     same = files(work / "out-1") == files(work / "out-2")
     one, two = (statistics.median(times[label]) for label, _, _ in LAYOUTS)
     print(f"median build: 1 node x 2 CPUs {one:.1f} s, 2 nodes x 1 CPU {two:.1f} s; speed-up of two nodes "

@@ -21,7 +21,8 @@ def _worker(task: SceneTask, config: BuildConfig, cache_root: Path, threads: int
     return build_scene(task, config, cache_root)
 
 
-def run_tasks(tasks: list[SceneTask], config: BuildConfig, cache_root: Path, on_done) -> tuple[list[SceneOutcome], list]:
+def run_tasks(tasks: list[SceneTask], config: BuildConfig, cache_root: Path,
+              on_done) -> tuple[list[SceneOutcome], list]:
     """Build every task with the configured executor; ``on_done(outcome)`` is called as scenes finish.
     Returns the outcomes and, for Ray, the nodes that passed the storage check (``ray_tasks.NodeCheck``)."""
     outcomes: list[SceneOutcome] = []

@@ -1,19 +1,21 @@
 """Scenes of ``seggaussian build --executor ray`` as Ray tasks on a cluster of one or more nodes.
 
-* Connecting is bounded: ``BuildConfig.ray_timeout`` seconds for the cluster's GCS to accept a TCP connection and
-  for ``ray.init`` to return in a child process (killed when it does not), else a one-line error. Ray rewrites a loopback address (``127.0.0.1:PORT``, the
-  ``--node-ip-address 127.0.0.1`` of ``ray start``) to the machine's outward address; a cluster whose nodes were
-  started bound to 127.0.0.1 is then never reached and ``ray.init`` retries forever. For a loopback address (and
-  for a Ray started here) the driver therefore takes 127.0.0.1 as its own address, through Ray's
-  ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` (its node address becomes the loopback one), set before Ray is imported.
-* Every alive node that can hold a scene task checks, before any scene is built, that it sees the raw root(s) and
-  the output folder the driver sees: a task pinned to the node (``NodeAffinitySchedulingStrategy``, hard) lists
-  the raw roots, reads a probe file the driver wrote into the output, and writes and removes its own. A node that
-  fails stops the build with one line naming the node and the path.
-* Each scene task asks for ``ray_cpus`` CPUs and ``ray_memory_gb`` of memory, spread over the nodes (``SPREAD``);
-  a request no alive node can hold is refused at the start (Ray would wait for such a node forever). Ray reruns a task whose worker process or node
-  was lost up to ``ray_retries`` times (``max_retries``); an error raised inside a scene is already a failed scene
-  (``scene.build_scene`` never raises), so application errors are never retried (``retry_exceptions=False``).
+* Connecting is bounded: ``BuildConfig.ray_timeout`` seconds for the cluster's GCS to accept a TCP connection
+  and for ``ray.init`` to return in a child process (killed when it does not), else a one-line error. Ray
+  rewrites a loopback address (``127.0.0.1:PORT``, the ``--node-ip-address 127.0.0.1`` of ``ray start``) to the
+  machine's outward address; a cluster whose nodes were started bound to 127.0.0.1 is then never reached and
+  ``ray.init`` retries forever. For a loopback address (and for a Ray started here) the driver therefore takes
+  127.0.0.1 as its own address, through Ray's ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` (its node address becomes
+  the loopback one), set before Ray is imported.
+* Every alive node that can hold a scene task checks, before any scene is built, that it sees the raw root(s)
+  and the output folder the driver sees: a task pinned to the node (``NodeAffinitySchedulingStrategy``, hard)
+  lists the raw roots, reads a probe file the driver wrote into the output, and writes and removes its own. A
+  node that fails stops the build with one line naming the node and the path.
+* Each scene task asks for ``ray_cpus`` CPUs and ``ray_memory_gb`` of memory, spread over the nodes
+  (``SPREAD``); a request no alive node can hold is refused at the start (Ray would wait for such a node
+  forever). Ray reruns a task whose worker process or node was lost up to ``ray_retries`` times
+  (``max_retries``); an error raised inside a scene is already a failed scene (``scene.build_scene`` never
+  raises), so application errors are never retried (``retry_exceptions=False``).
 * A task that still fails (retries used up, the object lost) fails its scene only, with the same reason the
   local process pool gives a crashed worker (``records.crashed_outcome``); the other scenes go on.
 """

@@ -2,11 +2,12 @@
 ``seggaussian build --executor ray``.
 
 Each node is its own ``ray start`` (the head with ``--head``, the others with ``--address``), started in a new
-process group so that one node can be killed alone (``kill_node``: SIGKILL to the group, raylet and workers
-together) and every node is stopped by its own group id (``stop``), never by ``ray stop`` (that ends every Ray of
-the user on the machine). Each node has a private ``--temp-dir`` (removed by ``stop``), listens on free ports, have a small object store
-and no dashboard, reports no usage statistics; the nodes use token authentication with a token of their own
-(``RAY_AUTH_MODE=token``, ``RAY_AUTH_TOKEN``; ``driver_env`` gives a driver the same).
+process group, so that one node can be killed alone (``kill_node``: SIGKILL to its group and to the workers its
+raylet started, each in a group of its own) and ``stop`` ends the processes of these nodes by their ids, never by
+``ray stop`` (that ends every Ray of the user on the machine). Each node has a private ``--temp-dir`` (removed by
+``stop``), random ports, a small object store, no dashboard and no usage statistics; the nodes use token
+authentication with a token of their own (``RAY_AUTH_MODE=token``, ``RAY_AUTH_TOKEN``; ``driver_env`` gives a
+driver the same).
 
 ``ray start --node-ip-address 127.0.0.1`` is rewritten by Ray to the machine's outward address (its
 ``resolve_ip_for_localhost``), and so is ``--address 127.0.0.1:PORT``; run as ``python -m
