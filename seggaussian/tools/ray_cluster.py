@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import NamedTuple
 
+from seggaussian.pipeline.ray_tasks import LOOPBACK_ENV
+
 #: Ray's health checks made fast, so a killed node is declared dead within seconds (defaults: about 30 s).
 FAST_HEALTH_CHECKS = {"RAY_health_check_initial_delay_ms": "1000", "RAY_health_check_period_ms": "1000",
                       "RAY_health_check_timeout_ms": "1000", "RAY_health_check_failure_threshold": "3"}
@@ -102,6 +104,9 @@ class LoopbackRayCluster:
             args += ["--address", self.address]
         log = self.folder / f"{name}.log"
         env = dict(self.driver_env(), **FAST_HEALTH_CHECKS)
+        # a driver here may have made 127.0.0.1 its own Ray address through Ray's switch (ray_tasks.import_ray);
+        # `ray start` of a worker node refuses to run under it, and this module keeps loopback itself
+        env.pop(LOOPBACK_ENV, None)
         with open(log, "wb") as f:
             process = subprocess.Popen(args, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                        start_new_session=True)
