@@ -25,6 +25,17 @@ from seggaussian.fit.config import PRESETS, FitConfig
 @config_option(BuildConfig, "executor", "--executor", type=click.Choice(["local", "ray"]), default="local",
                show_default=True)
 @config_option(BuildConfig, "address", "--address", default=None)
+@config_option(BuildConfig, "ray_cpus", "--ray-cpus", type=click.FloatRange(min=0, min_open=True), default=1.0,
+               show_default=True)
+@config_option(BuildConfig, "ray_memory_gb", "--ray-memory-gb", type=click.FloatRange(min=0), default=2.0,
+               show_default=True)
+@config_option(BuildConfig, "ray_retries", "--ray-retries", type=click.IntRange(min=0), default=3, show_default=True)
+@config_option(BuildConfig, "ray_timeout", "--ray-timeout", type=click.FloatRange(min=0, min_open=True), default=60.0,
+               show_default=True)
+@config_option(BuildConfig, "ray_scene_timeout", "--ray-scene-timeout", type=click.FloatRange(min=0), default=0.0,
+               show_default=True)
+@config_option(BuildConfig, "num_shards", "--num-shards", type=click.IntRange(min=1), default=1, show_default=True)
+@config_option(BuildConfig, "shard_index", "--shard-index", type=click.IntRange(min=0), default=0, show_default=True)
 @config_option(BuildConfig, "fit", "--fit", "fit_mode", type=click.Choice(["auto", "always", "never"]), default="auto",
                show_default=True)
 @config_option(BuildConfig, "gaussians", "--gaussians", "gaussians_mode", type=click.Choice(["fit", "oracle", "scan"]),
@@ -47,12 +58,16 @@ from seggaussian.fit.config import PRESETS, FitConfig
 @config_option(BuildConfig, "progress", "--progress/--no-progress", default=True, show_default=True)
 @json_option
 @guarded
-def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussians_mode, ply_dir, seed, gate,
+def command(source, root, out, scenes, jobs, executor, address, ray_cpus, ray_memory_gb, ray_retries, ray_timeout,
+            ray_scene_timeout, num_shards, shard_index, fit_mode, gaussians_mode, ply_dir, seed, gate,
             occlusion_tolerance, keep_occluded, oracle_gaussians, fit_preset, fit_iterations, fit_max_gaussians, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
     from seggaussian.pipeline.dataset import build_dataset, summary_table
 
     config = BuildConfig(source=source, root=root, out=out, jobs=jobs, executor=executor, address=address,
+                         ray_cpus=ray_cpus, ray_memory_gb=ray_memory_gb, ray_retries=ray_retries,
+                         ray_timeout=ray_timeout, ray_scene_timeout=ray_scene_timeout, num_shards=num_shards,
+                         shard_index=shard_index,
                          fit=fit_mode, gaussians=gaussians_mode, ply_dir=ply_dir, seed=seed,
                          progress=progress and not as_json,
                          scenes=tuple(s for item in scenes for s in item.split(",") if s) or None)
@@ -77,10 +92,16 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
         config = replace(config, views=replace(config.views, view_stride=view_stride))
     report = build_dataset(config)
     c = report.counts
-    summary = (f"built {c['built']}, skipped {c['skipped']} (cached), failed {c['failed']} scenes -> {report.dataset} "
-               f"({report.split_counts.get('train', 0)} train / {report.split_counts.get('val', 0)} val / "
-               f"{report.split_counts.get('xval', 0)} xval; {report.files} files, {report.bytes} bytes"
-               f"{'' if report.assembled else ', shards unchanged'}) in {report.seconds:.1f} s")
+    if report.shard is not None:
+        summary = (f"slice {report.shard[0]} of {report.shard[1]}: built {c['built']}, skipped {c['skipped']} "
+                   f"(cached), failed {c['failed']} scenes -> {report.dataset} (not assembled: a build without "
+                   f"--num-shards assembles every slice) in {report.seconds:.1f} s")
+    else:
+        summary = (f"built {c['built']}, skipped {c['skipped']} (cached), failed {c['failed']} scenes -> "
+                   f"{report.dataset} ({report.split_counts.get('train', 0)} train / "
+                   f"{report.split_counts.get('val', 0)} val / {report.split_counts.get('xval', 0)} xval; "
+                   f"{report.files} files, {report.bytes} bytes{'' if report.assembled else ', shards unchanged'}) "
+                   f"in {report.seconds:.1f} s")
     payload = {
         "dataset": str(report.dataset),
         "counts": c,
@@ -93,6 +114,8 @@ def command(source, root, out, scenes, jobs, executor, address, fit_mode, gaussi
         "kept_last_good": list(report.kept),
         "swept_temps": report.swept,
         "cpu_seconds": report.cpu_seconds,
+        "shard": None if report.shard is None else {"index": report.shard[0], "count": report.shard[1]},
+        "ray_nodes": [{"node_id": n.node_id, "address": n.address} for n in report.nodes],
         "scenes": [{"scene": o.scene_id, "source": o.domain, "status": o.status, "stages_run": list(o.stages_run),
                     "reason": o.reason, "seconds": o.seconds, "cpu_seconds": o.cpu_seconds, **o.info}
                    for o in report.outcomes],

@@ -30,7 +30,8 @@ def content_config_hash(config: BuildConfig) -> str:
     """Hash of every setting that changes dataset bytes (no paths, job counts or executors)."""
     d = config_dict(config)
     for k in ("root", "out", "scenes", "jobs", "executor", "address", "progress", "ply_dir",
-              "synthesize_missing", "synthetic_counts", "split"):
+              "synthesize_missing", "synthetic_counts", "split", "ray_cpus", "ray_memory_gb", "ray_retries",
+              "ray_timeout", "ray_scene_timeout", "num_shards", "shard_index"):
         d.pop(k, None)
     return sha256_json(d)[:16]
 

@@ -61,8 +61,27 @@ class BuildConfig:
     jobs: int = 1
     #: ``local`` (process pool, spawn) or ``ray``.
     executor: Literal["local", "ray"] = "local"
-    #: Ray cluster address (None = start a local Ray).
+    #: Ray cluster address (None = start a local Ray). A loopback address (``127.0.0.1:PORT``) is kept as
+    #: given: the driver then takes 127.0.0.1 as its own address too, as the nodes of such a cluster do.
     address: str | None = None
+    #: CPUs each scene's Ray task asks for (it also caps the task's torch and numba threads).
+    ray_cpus: float = 1.0
+    #: Memory each scene's Ray task asks for (GiB); the scheduler places a scene only where this much is free.
+    ray_memory_gb: float = 2.0
+    #: Times Ray reruns a scene whose worker process or node was lost (an error raised by the scene is a
+    #: failed scene, never retried: it would fail again).
+    ray_retries: int = 3
+    #: Seconds to wait for the Ray cluster: connecting, and every node's check of the raw root and the output.
+    ray_timeout: float = 60.0
+    #: Seconds a build waits for the next scene to finish on Ray; when none does, the scenes still running
+    #: fail with this as their reason (0 = wait without limit).
+    ray_scene_timeout: float = 0.0
+    #: Slices of the sorted scene list for job arrays (each array task builds one slice into the same
+    #: output; a later build without slicing finds every scene cached and assembles the dataset).
+    num_shards: int = 1
+    #: The slice this run builds: scenes whose position in the sorted scene ids is ``shard_index``
+    #: modulo ``num_shards`` (0-based).
+    shard_index: int = 0
     #: ``auto`` fits when no trained PLY exists, ``always`` refits, ``never`` requires a PLY.
     fit: Literal["auto", "always", "never"] = "auto"
     #: ``fit`` = optimized Gaussians (or imported PLY); ``oracle`` = sampled from the labelled mesh; ``scan`` = one

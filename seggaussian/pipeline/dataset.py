@@ -7,8 +7,12 @@ Orchestration only; every step is a call into its own module:
                  gaussians  stages.gaussians_{oracle,fit,import} (oracle.py | fit.py | io.formats)
                  transfer   stages.transfer (transfer.py)  -> per-scene ``gaussians`` table
                  views      stages.views (render/)         -> per-scene ``views`` table
-    executors  build_executors: in process, a spawned process pool, or Ray
+    executors  build_executors: in process, a spawned process pool, or Ray (ray_tasks)
     assemble   build_record: the build record, split.assign_splits + shards.write_dataset
+
+``--num-shards N --shard-index K`` builds one slice of the scenes (``slicing``) and stops before the
+build record and the assembly; slices run at once into one output, and a later build without slicing
+assembles them.
 
 Cache (``DATASET/.build/scenes/<scene>/``): each stage writes its outputs atomically, then a record
 ``<stage>.json`` holding the stage key = sha256 of (input fingerprint, upstream keys, the stage's config,
@@ -32,6 +36,7 @@ from seggaussian.pipeline.config import BuildConfig
 from seggaussian.pipeline.discover import discover, synthesize_default
 from seggaussian.pipeline.executors import run_tasks
 from seggaussian.pipeline.assembly import CACHE_DIR, assemble, write_build_record
+from seggaussian.pipeline.slicing import check_slice, slice_ids
 from seggaussian.pipeline.scene import STAGES
 from seggaussian.pipeline.records import BuildReport, CpuClock, SceneOutcome
 
@@ -42,21 +47,32 @@ def build_dataset(config: BuildConfig) -> BuildReport:
     out = Path(config.out)
     cache_root = out / CACHE_DIR
     synthesized: list[str] = []
+    check_slice(config.num_shards, config.shard_index)
+    sliced = config.num_shards > 1
     if out.exists() and not out.is_dir():
         raise NotADirectoryError(errno.ENOTDIR, "the output is not a folder", str(out))
     ensure_writable_dir(out)  # fail before building scenes, not after
     if config.source == "synthetic" and not Path(config.root).exists():
-        if not config.synthesize_missing:
+        if not config.synthesize_missing or sliced:  # slices would race to write one tree
             raise FileNotFoundError(f"{config.root}: no synthetic tree (write one with `seggaussian synth`)")
         synthesized = synthesize_default(config)
     if config.source == "ply" and config.ply_dir is None:
         raise ValueError("build: --source ply needs --ply-dir (trained PLYs)")
-    swept = sweep_temps(out, recursive=True)  # leftovers of a killed earlier build
     clock = CpuClock()
     with clock.measure("discover"):
         tasks, failures = discover(config)
     if not tasks and not failures:
         raise ValueError(f"{config.root}: no scenes found in the raw tree (an empty source root is an error)")
+    if sliced:
+        keep = set(slice_ids([t.scene_id for t in tasks] + [f.scene_id for f in failures], config.num_shards,
+                             config.shard_index))
+        tasks = [t for t in tasks if t.scene_id in keep]
+        failures = [f for f in failures if f.scene_id in keep]
+        # other slices write beside this one: sweep only this slice's scene folders (a temporary's pid
+        # says nothing about a writer on another machine)
+        swept = _sweep_scene_folders(cache_root, tasks)
+    else:
+        swept = sweep_temps(out, recursive=True)  # leftovers of a killed earlier build
     bars = _progress_bars(len(tasks), config.progress)
     outcomes = list(failures)
 
@@ -68,17 +84,28 @@ def build_dataset(config: BuildConfig) -> BuildReport:
                     bar.set_postfix_str(f"last ran: {outcome.scene_id}", refresh=False)
 
     try:
-        outcomes += run_tasks(tasks, config, cache_root, on_done)
+        done, nodes = run_tasks(tasks, config, cache_root, on_done)
+        outcomes += done
     finally:
         for bar in bars.values():
             if bar is not None:
                 bar.close()
+    swept += _sweep_scene_folders(cache_root, tasks)  # what a worker lost mid-write (and then rerun) left
     outcomes.sort(key=lambda o: o.scene_id)
+    if sliced:  # the dataset-level files are left to a build without slicing
+        return BuildReport(out, outcomes, {}, 0, 0, False, synthesized, time.perf_counter() - start, (), swept,
+                           clock.rounded(), (config.shard_index, config.num_shards), tuple(nodes))
     with clock.measure("assemble"):
         kept = write_build_record(cache_root, config, outcomes)
         split_counts, files, nbytes, assembled = assemble(out, config)
     return BuildReport(out, outcomes, split_counts, files, nbytes, assembled, synthesized,
-                       time.perf_counter() - start, tuple(kept), swept, clock.rounded())
+                       time.perf_counter() - start, tuple(kept), swept, clock.rounded(), None, tuple(nodes))
+
+
+def _sweep_scene_folders(cache_root: Path, tasks) -> int:
+    """Sweep the temporaries whose writer is gone from the cache folders of ``tasks``' scenes only."""
+    return sum(sweep_temps(cache_root / folder / t.scene_id, recursive=True) for folder in ("scenes", "replica_views")
+               for t in tasks)
 
 
 def _progress_bars(total: int, enabled: bool) -> dict:

@@ -87,6 +87,10 @@ class BuildReport(NamedTuple):
     #: CPU seconds of the build process outside the scenes: ``discover`` (raw tree, fingerprints), ``assemble``
     #: (build record, split-named shards, manifest); each scene's own are in its outcome's ``cpu_seconds``.
     cpu_seconds: dict = {}
+    #: (index, count) of the slice a sliced build built (nothing assembled), None for a whole build.
+    shard: tuple | None = None
+    #: The Ray nodes that passed the storage check before the scenes were sent (``ray_tasks.NodeCheck``).
+    nodes: tuple = ()
 
     @property
     def counts(self) -> dict:
@@ -97,6 +101,13 @@ def failed_outcome(task: SceneTask, reason: str, seconds: float, trace: str | No
     """The outcome of a scene that failed with ``reason`` (the traceback appended when given)."""
     return SceneOutcome(task.scene_id, task.domain, task.official_split, "failed", (),
                         reason + (f"\n{trace}" if trace else ""), {}, {}, {}, seconds)
+
+
+def crashed_outcome(task: SceneTask, exc: BaseException) -> SceneOutcome:
+    """The outcome of a scene whose worker (a pool process, a Ray task with its retries used up) raised ``exc``
+    instead of returning: that scene fails, the build goes on. The reason keeps the error's first line."""
+    text = str(exc).strip().splitlines()
+    return failed_outcome(task, f"worker crashed: {type(exc).__name__}: {text[0] if text else ''}", 0.0)
 
 
 class CpuClock:

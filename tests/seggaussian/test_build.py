@@ -42,15 +42,6 @@ def frozen_code_hash():
         yield
 
 
-@pytest.fixture(scope="module")
-def raw(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("raw")
-    cfg = synthetic.SynthConfig(width=48, num_views=4)
-    synthetic.synthesize(root / "scannetpp", 2, 0, "scannetpp", cfg)
-    synthetic.synthesize(root / "replica", 1, 0, "replica", cfg)
-    return root
-
-
 def _config(raw: Path, out: Path, **kw) -> BuildConfig:
     return BuildConfig(source="synthetic", root=raw, out=out, gaussians="oracle", progress=False,
                        oracle=OracleConfig(num_gaussians=1500), **kw)
@@ -376,17 +367,24 @@ def test_oracle_samples_lie_on_the_mesh_with_their_surface_label():
     assert len(empty) == 0 and len(t0) == 0
 
 
-def test_ray_executor_builds_the_same_bytes(built, raw, tmp_path):
+def test_ray_executor_builds_the_same_bytes(built, raw, tmp_path, monkeypatch):
     """Scenes as Ray tasks on a local Ray instance give byte-identical shards to the local executor."""
     ray = pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'seggaussian[ray]')")
+    import ray._private.ray_constants as ray_constants
+
+    # Ray was imported already: its switch RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 (the node address is 127.0.0.1, not
+    # the machine's outward one), read at import, is set on the module
+    monkeypatch.setattr(ray_constants, "ENABLE_RAY_CLUSTER", False)
     ds, _ = built
     out = tmp_path / "ray"
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
+        assert {n["NodeManagerAddress"] for n in ray.nodes()} == {"127.0.0.1"}
         report = build_mod.build_dataset(replace(_config(raw, out), executor="ray"))
     finally:
         ray.shutdown()
     assert report.counts["failed"] == 0 and report.counts["built"] == 3
+    assert [n.address for n in report.nodes] == ["127.0.0.1"]
     local, remote = _public_files(ds), _public_files(out)
     shards = [name for name in local if name.endswith(".parquet")]
     assert shards and all(local[name] == remote[name] for name in shards)
