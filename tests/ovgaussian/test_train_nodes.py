@@ -86,10 +86,12 @@ class Launches:
             assert code == 0, f"torchrun exited {code}:\n{log.read_text()[-3000:]}"
 
     def close(self) -> None:
-        for proc in self.procs:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)  # the launcher's own process group: it and its workers
-                proc.wait(timeout=30)
+        for proc in self.procs:  # the launcher's own process group: it and its workers, orphaned ones included
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:  # the group is gone: nothing left of that launch
+                pass
+            proc.wait(timeout=30)
 
 
 @pytest.fixture
