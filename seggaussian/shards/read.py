@@ -125,6 +125,15 @@ def _check_finite(table: pa.Table, path: Path, scene_id: str) -> None:
                              f"(check with `seggaussian inspect DATASET --verify`)")
 
 
+def _scene_entry(dataset: Path, split: str, scene_id: str) -> tuple[dict, dict]:
+    """(the manifest, its entry of ``scene_id``); ShardError when the scene is not in ``split``."""
+    manifest = read_manifest(dataset)
+    info = manifest.get("scenes", {}).get(scene_id)
+    if info is None or info.get("split") != split:
+        raise ShardError(f"{dataset / MANIFEST_NAME}: no scene {scene_id!r} in split {split!r}")
+    return manifest, info
+
+
 def read_scene(dataset: Path, split: str, scene_id: str, *, views: bool = True, verify: bool = False) -> SceneRecord:
     """One scene of ``split``: its Gaussians (with labels) and views, reading only its row groups.
 
@@ -132,10 +141,7 @@ def read_scene(dataset: Path, split: str, scene_id: str, *, views: bool = True, 
     Every problem is a ``ShardError`` naming the file and the scene.
     """
     dataset = Path(dataset)
-    manifest = read_manifest(dataset)
-    info = manifest.get("scenes", {}).get(scene_id)
-    if info is None or info.get("split") != split:
-        raise ShardError(f"{dataset / MANIFEST_NAME}: no scene {scene_id!r} in split {split!r}")
+    manifest, info = _scene_entry(dataset, split, scene_id)
     rel = info["files"][GAUSSIANS_TABLE]
     table = _read_scene_table(dataset, GAUSSIANS_TABLE, rel, scene_id, verify=verify, manifest=manifest)
     _check_finite(table, dataset / rel, scene_id)
@@ -161,10 +167,7 @@ def read_scene_cameras(dataset: Path, split: str, scene_id: str) -> list[ViewCam
     """The cameras of one scene's views (stored order), without reading their images; the shard file is checked
     against the manifest (size) first."""
     dataset = Path(dataset)
-    manifest = read_manifest(dataset)
-    info = manifest.get("scenes", {}).get(scene_id)
-    if info is None or info.get("split") != split:
-        raise ShardError(f"{dataset / MANIFEST_NAME}: no scene {scene_id!r} in split {split!r}")
+    manifest, info = _scene_entry(dataset, split, scene_id)
     rel = info["files"][VIEWS_TABLE]
     table = _read_scene_table(dataset, VIEWS_TABLE, rel, scene_id, manifest=manifest, columns=_CAMERA_COLUMNS)
     try:
