@@ -65,6 +65,12 @@ def _label_maps_kernel():
     def kernel(ids, weights, residual, semantic, instance, num_classes, min_alpha, ignore, sem_out, inst_out, soft):
         height, width, k_max = ids.shape
         for y in numba.prange(height):
+            # per pixel, the distinct labels of its contributors in order of first appearance and their totals: one
+            # pass sums each label's weights in slot order (the torch reference's order), a second picks the label
+            # of the first valid slot with the largest total (a label met again has the same total: never larger)
+            slot_label = np.empty(k_max, np.int64)
+            slot_total = np.empty(k_max, np.float32)
+            slot_voted = np.empty(k_max, np.bool_)
             for x in range(width):
                 total_alpha = np.float32(0.0)
                 for k in range(k_max):
@@ -74,6 +80,21 @@ def _label_maps_kernel():
                 inst_out[y, x] = ignore
                 for which in range(2):
                     labels = semantic if which == 0 else instance
+                    distinct = 0
+                    for j in range(k_max):
+                        gj = ids[y, x, j]
+                        if gj < 0:
+                            continue
+                        label = labels[gj]
+                        s = 0
+                        while s < distinct and slot_label[s] != label:
+                            s += 1
+                        if s == distinct:
+                            slot_label[s] = label
+                            slot_total[s] = np.float32(0.0)
+                            slot_voted[s] = False
+                            distinct += 1
+                        slot_total[s] += weights[y, x, j]
                     best_label = ignore
                     best_total = np.float32(0.0)
                     for k in range(k_max):
@@ -83,13 +104,14 @@ def _label_maps_kernel():
                         label = labels[gid]
                         if which == 0 and label != ignore:
                             soft[y, x, label] += weights[y, x, k]
-                        total = np.float32(0.0)  # same summation order as the torch reference
-                        for j in range(k_max):
-                            gj = ids[y, x, j]
-                            if gj >= 0 and labels[gj] == label:
-                                total += weights[y, x, j]
-                        if total > best_total:
-                            best_total = total
+                        s = 0
+                        while slot_label[s] != label:
+                            s += 1
+                        if slot_voted[s]:
+                            continue
+                        slot_voted[s] = True
+                        if slot_total[s] > best_total:
+                            best_total = slot_total[s]
                             best_label = label
                     if total_alpha >= min_alpha and best_total > 0 and best_label != ignore:
                         if which == 0:
