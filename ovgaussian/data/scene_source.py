@@ -165,7 +165,8 @@ def with_renditions(scan: ScanResult, renditions: Sequence[SceneSource], names: 
     digests = [scan.fingerprint]
     for name, source in zip(names, renditions):
         other = scan_scenes(source, vocabulary)
-        missing = [s for s in scan.usable if s not in set(other.usable)]
+        usable = set(other.usable)
+        missing = [s for s in scan.usable if s not in usable]
         if missing:
             raise ValueError(f"{name}: rendition has no trainable scene {missing[0]!r} of the training split "
                              f"({len(missing)} of {len(scan.usable)} missing; build it from the same raw tree and "

@@ -187,7 +187,7 @@ class TrainingData:
                  cache_dir: Path | None = None, teacher: "DenseTeacher | None" = None,
                  pixel_blend_function: Callable | None = None, scan: ScanResult | None = None,
                  cache_budget_bytes: int | None = None, renditions: Sequence[SceneSource] = ()):
-        self.source, self.config, self.vocabulary = source, config, vocabulary
+        self.config, self.vocabulary = config, vocabulary
         self.sources = (source, *renditions)  # rendition 0 is the dataset itself
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.teacher = teacher
