@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seggaussian.core.rotations import quats_to_rotmats
 from seggaussian.io.splat_common import SplatFormatError
 
 __all__ = ["GLB_MAGIC", "GltfDocument", "looks_like_gltf", "parse_glb", "parse_json", "load_buffers", "node_matrices",
@@ -263,9 +264,7 @@ def local_matrix(doc: GltfDocument, node: dict, index: int) -> np.ndarray:
     t = numbers("translation", 3, [0, 0, 0])
     x, y, z, w = numbers("rotation", 4, [0, 0, 0, 1])
     s = numbers("scale", 3, [1, 1, 1])
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    rot = quats_to_rotmats(np.array([[w, x, y, z]]))[0]  # glTF's x, y, z, w in ours (w first)
     matrix = np.eye(4)
     matrix[:3, :3] = rot * s[None, :]
     matrix[:3, 3] = t

@@ -70,7 +70,7 @@ def _label_maps_kernel():
             # of the first valid slot with the largest total (a label met again has the same total: never larger)
             slot_label = np.empty(k_max, np.int64)
             slot_total = np.empty(k_max, np.float32)
-            slot_voted = np.empty(k_max, np.bool_)
+            slot_of = np.empty(k_max, np.int64)  # the slot of each contributor's label
             for x in range(width):
                 total_alpha = np.float32(0.0)
                 for k in range(k_max):
@@ -92,8 +92,8 @@ def _label_maps_kernel():
                         if s == distinct:
                             slot_label[s] = label
                             slot_total[s] = np.float32(0.0)
-                            slot_voted[s] = False
                             distinct += 1
+                        slot_of[j] = s
                         slot_total[s] += weights[y, x, j]
                     best_label = ignore
                     best_total = np.float32(0.0)
@@ -104,12 +104,7 @@ def _label_maps_kernel():
                         label = labels[gid]
                         if which == 0 and label != ignore:
                             soft[y, x, label] += weights[y, x, k]
-                        s = 0
-                        while slot_label[s] != label:
-                            s += 1
-                        if slot_voted[s]:
-                            continue
-                        slot_voted[s] = True
+                        s = slot_of[k]
                         if slot_total[s] > best_total:
                             best_total = slot_total[s]
                             best_label = label
