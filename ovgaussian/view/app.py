@@ -121,7 +121,6 @@ class QueryViewer:
         self.last_camera: int | None = None  # the scene camera a client was last moved to
         self.start_camera: int | None = None  # the scene camera the viewer opens at
         self._at_camera: int | None = None  # the camera whose frustum is hidden
-        self.start_pose: ViewerPose | None = None  # the pose the page opens at
         self._marker = None  # the scene node marking the clicked Gaussian
         self._apply_lock = threading.Lock()
         self._request_lock = threading.Lock()
@@ -201,7 +200,6 @@ class QueryViewer:
         else:
             self.start_camera = None
             pose = centre_pose(means)
-        self.start_pose = pose
         camera = self.server.initial_camera
         camera.fov = float(pose.fov)
         camera.up = tuple(float(v) for v in pose.up)

@@ -146,14 +146,14 @@ def calibrated_relevancy(query_scores: np.ndarray, competitor_scores: np.ndarray
     inv = np.float32(1.0 / temperature)
     out = np.empty(q.shape, np.float32)
     for j in range(q.shape[1]):
-        rivals = comp[:, mask[j]]
-        for start in range(0, q.shape[0], chunk_rows):
+        cols = np.flatnonzero(mask[j])
+        if not len(cols):  # no competitor: the query wins everywhere
+            out[:, j] = 1.0
+            continue
+        for start in range(0, q.shape[0], chunk_rows):  # a chunk of rows at a time: memory bounded
             sq = q[start:start + chunk_rows, j]
-            if rivals.shape[1] == 0:
-                out[start:start + chunk_rows, j] = 1.0
-                continue
             # 1 / (1 + sum_c exp((s_c - s_q) / T)), its largest exponent subtracted: no overflow
-            diff = (rivals[start:start + chunk_rows] - sq[:, None]) * inv  # [rows, C]
+            diff = (comp[start:start + chunk_rows, cols] - sq[:, None]) * inv  # [rows, C]
             top = np.maximum(diff.max(axis=1), 0.0)
             total = np.exp(-top) + np.exp(diff - top[:, None]).sum(axis=1)
             out[start:start + chunk_rows, j] = np.exp(-top) / total

@@ -72,6 +72,7 @@ class PointCells:
     def __init__(self, points: np.ndarray, cell_size: float = 0.25):
         points = np.asarray(points, np.float64)
         self.cell_size = float(cell_size)
+        self.radius = self.cell_size * np.sqrt(3.0) / 2.0 + CELL_MARGIN
         if not len(points):
             self.cell_of_point, self.centres = np.zeros(0, np.int64), np.zeros((0, 3))
             return
@@ -82,7 +83,6 @@ class PointCells:
         unique, self.cell_of_point = np.unique(keys, return_inverse=True)
         cells = np.stack([unique // (span[1] * span[2]), (unique // span[2]) % span[1], unique % span[2]], axis=1)
         self.centres = low + (cells + 0.5) * self.cell_size
-        self.radius = self.cell_size * np.sqrt(3.0) / 2.0 + CELL_MARGIN
 
     def maybe_in_image(self, camera: Camera) -> np.ndarray:  # [C] bool
         """Cubes that may hold a point ``points_in_image(.., camera)`` accepts."""

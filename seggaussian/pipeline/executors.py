@@ -26,12 +26,12 @@ def run_tasks(tasks: list[SceneTask], config: BuildConfig, cache_root: Path,
     """Build every task with the configured executor; ``on_done(outcome)`` is called as scenes finish.
     Returns the outcomes and, for Ray, the nodes that passed the storage check (``ray_tasks.NodeCheck``)."""
     outcomes: list[SceneOutcome] = []
-    jobs = max(1, int(config.jobs))
-    threads = max(1, (os.cpu_count() or 1) // jobs)
     if config.executor == "ray":
         return run_ray(tasks, config, cache_root, on_done, _worker)
     if config.executor != "local":
         raise ValueError(f"build: --executor must be local or ray, got {config.executor!r}")
+    jobs = max(1, int(config.jobs))
+    threads = max(1, (os.cpu_count() or 1) // jobs)
     if jobs == 1 or len(tasks) <= 1:
         for t in tasks:
             outcome = build_scene(t, config, cache_root)
