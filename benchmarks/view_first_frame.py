@@ -41,7 +41,8 @@ def measure_room(browser, data: Path, scene_id: str, viewport) -> dict:
     from ovgaussian.view.state import ViewerState
     from seggaussian.core.cameras import Camera, intrinsics
     from seggaussian.render import render_gaussians
-    from test_view_browser import _hide_overlays, _screenshot, _settle, _wait
+    from test_view_browser import _hide_overlays, _settle, _wait
+    from test_view_cameras_browser import _stable_screenshot
 
     scene = load_view_scene(dataset=data, scene_id=scene_id)
     viewer = QueryViewer(ViewerState(scene), port=0, mode="rgb")
@@ -55,13 +56,7 @@ def measure_room(browser, data: Path, scene_id: str, viewport) -> dict:
         _settle(client)
         viewer.show_cameras.value = False
         _hide_overlays(page)
-        previous = None
-        while True:
-            image = _screenshot(page)
-            if previous is not None and np.array_equal(image, previous):
-                break
-            previous = image
-            time.sleep(0.5)
+        image = _stable_screenshot(page)  # gives up after 60 s
         seconds = time.perf_counter() - start
         background = (np.abs(image.astype(np.int32) - 255) <= BACKGROUND_TOLERANCE).all(axis=2)
         focal = camera.K[1, 1] * viewport[1] / camera.height  # the view's vertical fov, square pixels, centred
