@@ -9,7 +9,6 @@ the label of what is in front, not of a surface hidden behind it.
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -55,68 +54,6 @@ def _majority(labels: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     return torch.gather(labels, -1, best_slot[..., None])[..., 0], best_total
 
 
-@functools.lru_cache(maxsize=None)
-def _label_maps_kernel():
-    """The compiled per-pixel vote (built on first use, once per process: each new dispatcher would load the
-    kernel from numba's disk cache again, 19 ms a view in cProfile; numba is imported only here)."""
-    import numba
-
-    @numba.njit(parallel=True, cache=True)
-    def kernel(ids, weights, residual, semantic, instance, num_classes, min_alpha, ignore, sem_out, inst_out, soft):
-        height, width, k_max = ids.shape
-        for y in numba.prange(height):
-            # per pixel, the distinct labels of its contributors in order of first appearance and their totals: one
-            # pass sums each label's weights in slot order (the torch reference's order), a second picks the label
-            # of the first valid slot with the largest total (a label met again has the same total: never larger)
-            slot_label = np.empty(k_max, np.int64)
-            slot_total = np.empty(k_max, np.float32)
-            slot_of = np.empty(k_max, np.int64)  # the slot of each contributor's label
-            for x in range(width):
-                total_alpha = np.float32(0.0)
-                for k in range(k_max):
-                    total_alpha += weights[y, x, k]
-                total_alpha += residual[y, x]
-                sem_out[y, x] = ignore
-                inst_out[y, x] = ignore
-                for which in range(2):
-                    labels = semantic if which == 0 else instance
-                    distinct = 0
-                    for j in range(k_max):
-                        gj = ids[y, x, j]
-                        if gj < 0:
-                            continue
-                        label = labels[gj]
-                        s = 0
-                        while s < distinct and slot_label[s] != label:
-                            s += 1
-                        if s == distinct:
-                            slot_label[s] = label
-                            slot_total[s] = np.float32(0.0)
-                            distinct += 1
-                        slot_of[j] = s
-                        slot_total[s] += weights[y, x, j]
-                    best_label = ignore
-                    best_total = np.float32(0.0)
-                    for k in range(k_max):
-                        gid = ids[y, x, k]
-                        if gid < 0 or weights[y, x, k] <= 0:
-                            continue
-                        label = labels[gid]
-                        if which == 0 and label != ignore:
-                            soft[y, x, label] += weights[y, x, k]
-                        s = slot_of[k]
-                        if slot_total[s] > best_total:
-                            best_total = slot_total[s]
-                            best_label = label
-                    if total_alpha >= min_alpha and best_total > 0 and best_label != ignore:
-                        if which == 0:
-                            sem_out[y, x] = best_label
-                        else:
-                            inst_out[y, x] = best_label
-
-    return kernel
-
-
 def render_label_maps(
     blend: BlendWeights,
     semantic: Tensor,  # [N] int class ids, IGNORE_LABEL for unlabelled
@@ -137,33 +74,46 @@ def render_label_maps(
     if backend not in ("auto", "fast"):
         raise ValueError(f"render_label_maps: backend must be auto, fast or reference, got {backend!r}")
     semantic, instance = _check_labels(blend, semantic, instance, num_classes)
+    from seggaussian.render.labelmaps_numba import vote_kernel
+
     ids = blend.ids.to(torch.int64).contiguous().numpy()
     weights = blend.weights.to(torch.float32).contiguous().numpy()
-    height, width, _ = ids.shape
-    residual = blend.residual_alpha.to(torch.float32).reshape(height, width).contiguous().numpy()
-    sem_out = np.empty((height, width), np.int64)
-    inst_out = np.empty((height, width), np.int64)
-    soft = np.zeros((height, width, num_classes), np.float32)
-    _label_maps_kernel()(ids, weights, residual, semantic.numpy(), instance.numpy(), int(num_classes),
-                         np.float32(min_alpha), IGNORE_LABEL, sem_out, inst_out, soft)
+    height, width, top_k = ids.shape
+    residual = blend.residual_alpha.to(torch.float32).reshape(-1).contiguous().numpy()
+    sem_out = np.empty(height * width, np.int64)
+    inst_out = np.empty(height * width, np.int64)
+    soft = np.zeros((height * width, num_classes), np.float32)
+    vote_kernel(ids.reshape(-1, top_k), weights.reshape(-1, top_k), residual, semantic.numpy(), instance.numpy(),
+                np.float32(min_alpha), IGNORE_LABEL, sem_out, inst_out, soft)
+    sem_out, inst_out = sem_out.reshape(height, width), inst_out.reshape(height, width)
+    soft = soft.reshape(height, width, num_classes)
     return LabelMaps(torch.from_numpy(sem_out), torch.from_numpy(inst_out), torch.from_numpy(soft))
 
 
 def _check_labels(blend: BlendWeights, semantic, instance, num_classes: int) -> tuple[Tensor, Tensor]:
     """Labels as flat int64 tensors, after checking they fit the blend weights and the class count."""
+    semantic, instance = check_labels(None, semantic, instance, num_classes, "render_label_maps")
+    n = semantic.shape[0]
+    ids = blend.ids
+    if (ids >= 0).any() and int(ids.max()) >= n:
+        raise ValueError(f"render_label_maps: blend weights refer to Gaussian {int(ids.max())} but only {n} labels")
+    return semantic, instance
+
+
+def check_labels(num_gaussians: int | None, semantic, instance, num_classes: int, what: str) -> tuple[Tensor, Tensor]:
+    """Per-Gaussian labels as flat int64 tensors, or a one-line ``ValueError`` (``what``: the caller's name): as many
+    semantic as instance labels (and as ``num_gaussians`` when given), every semantic label a class id below
+    ``num_classes`` or IGNORE_LABEL."""
     semantic = torch.as_tensor(semantic).to(torch.int64).reshape(-1)
     instance = torch.as_tensor(instance).to(torch.int64).reshape(-1)
     n = semantic.shape[0]
     if instance.shape[0] != n:
-        raise ValueError(f"render_label_maps: semantic has {n} entries but instance has {instance.shape[0]}")
-    ids = blend.ids
-    if (ids >= 0).any() and int(ids.max()) >= n:
-        raise ValueError(f"render_label_maps: blend weights refer to Gaussian {int(ids.max())} but only {n} labels")
+        raise ValueError(f"{what}: semantic has {n} entries but instance has {instance.shape[0]}")
+    if num_gaussians is not None and n != num_gaussians:
+        raise ValueError(f"{what}: {n} labels for {num_gaussians} Gaussians")
     bad = ~((semantic >= 0) & (semantic < num_classes)) & (semantic != IGNORE_LABEL)
     if bool(bad.any()):
-        raise ValueError(
-            f"render_label_maps: {int(bad.sum())} semantic labels outside 0..{num_classes - 1} and not IGNORE_LABEL"
-        )
+        raise ValueError(f"{what}: {int(bad.sum())} semantic labels outside 0..{num_classes - 1} and not IGNORE_LABEL")
     return semantic, instance
 
 

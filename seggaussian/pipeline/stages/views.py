@@ -1,7 +1,7 @@
 """views stage: per selected view, the RGB image and the label maps rendered through the blend weights -> ``views.parquet``.
 
 Label maps come from the one rasterizer (``seggaussian.render``): per-pixel blend weights of the labelled
-Gaussians, the ignore label counted as a label of its own; anonymized pixels (ScanNet++ masks) are ignore.
+Gaussians, voted on inside the walk (``render_label_images``), the ignore label counted as a label of its own; anonymized pixels (ScanNet++ masks) are ignore.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from seggaussian.pipeline.config import BuildConfig, ViewConfig
 from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.gaussians import Gaussians
-from seggaussian.render import compute_blend_weights, render_gaussians, render_label_maps
+from seggaussian.render import render_gaussians
+from seggaussian.render.label_images import render_label_images
 from seggaussian.render.rasterize import camera_tensors
 from seggaussian.core.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
@@ -80,9 +81,9 @@ def run_views(scene: Scene, gaussians: Gaussians, config: BuildConfig, num_class
         image_format(rgb_bytes)
         if len(gaussians):
             viewmat, K = camera_tensors(cam)
-            blend = compute_blend_weights(t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
-                                          cam.width, cam.height, top_k=config.views.top_k)
-            maps = render_label_maps(blend, semantic, instance, num_classes, min_alpha=config.views.min_alpha)
+            maps = render_label_images(t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
+                                       cam.width, cam.height, semantic, instance, num_classes,
+                                       top_k=config.views.top_k, min_alpha=config.views.min_alpha)
             sem_map = maps.semantic.numpy()
             inst_map = maps.instance.numpy()
         else:
