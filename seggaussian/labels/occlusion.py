@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numba
 import numpy as np
 
 from seggaussian.core.cameras import Camera
@@ -50,12 +51,45 @@ DEGENERATE_TRIANGLE_AREA = 1e-18
 
 
 def points_in_image(points: np.ndarray, camera: Camera) -> np.ndarray:  # [P, 3] -> [P] bool
-    """Points in front of ``camera`` (camera z > ``NEAR_PLANE``) that project inside its image (``Camera.project``,
-    pixel edges at 0 and width/height)."""
-    uv, z = camera.project(points)
-    front = z > NEAR_PLANE
-    uv = np.where(front[:, None], uv, -1.0)  # behind the camera: outside, whatever the division gave
-    return front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    """Points in front of ``camera`` (camera z > ``NEAR_PLANE``) that project inside its image (pixel edges at 0 and
+    width/height). The arithmetic is written out element by element in a fixed order (camera coordinates
+    ``R[r, 0] x + R[r, 1] y + R[r, 2] z + t[r]``, then ``u = (K[0] . p) / z``, ``v = (K[1] . p) / z``), the order the
+    compiled test of ``PointCells.rows_in_image`` follows, so that both accept the same points to the bit."""
+    points = np.asarray(points, np.float64)
+    rotation, translation, K = camera.viewmat[:3, :3], camera.viewmat[:3, 3], camera.K
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    cam = [rotation[r, 0] * x + rotation[r, 1] * y + rotation[r, 2] * z + translation[r] for r in range(3)]
+    front = cam[2] > NEAR_PLANE
+    depth = np.where(front, cam[2], 1.0)  # behind the camera: outside, whatever the division gave
+    u = (K[0, 0] * cam[0] + K[0, 1] * cam[1] + K[0, 2] * cam[2]) / depth
+    v = (K[1, 0] * cam[0] + K[1, 1] * cam[1] + K[1, 2] * cam[2]) / depth
+    return front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+
+
+@numba.njit(cache=True, nogil=True)
+def _rows_in_image(points, order, cell_start, cell_kept, skip, rotation, translation, K, width, height, near, out):
+    """Into ``out``: the rows ``order[cell_start[c]:cell_start[c + 1]]`` of every kept cell ``c`` that ``skip`` does
+    not mark and that :func:`points_in_image` accepts (its arithmetic, in its order); returns how many."""
+    n = 0
+    for c in range(cell_kept.shape[0]):
+        if not cell_kept[c]:
+            continue
+        for j in range(cell_start[c], cell_start[c + 1]):
+            i = order[j]
+            if skip[i]:
+                continue
+            x, y, z = points[i, 0], points[i, 1], points[i, 2]
+            cx = rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2] * z + translation[0]
+            cy = rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2] * z + translation[1]
+            cz = rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2] * z + translation[2]
+            if not cz > near:
+                continue
+            u = (K[0, 0] * cx + K[0, 1] * cy + K[0, 2] * cz) / cz
+            v = (K[1, 0] * cx + K[1, 1] * cy + K[1, 2] * cz) / cz
+            if u >= 0 and u < width and v >= 0 and v < height:
+                out[n] = i
+                n += 1
+    return n
 
 
 class PointCells:
@@ -75,6 +109,7 @@ class PointCells:
         self.radius = self.cell_size * np.sqrt(3.0) / 2.0 + CELL_MARGIN
         if not len(points):
             self.cell_of_point, self.centres = np.zeros(0, np.int64), np.zeros((0, 3))
+            self._points, self._order, self._cell_start = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(1, np.int64)
             return
         low = points.min(axis=0)
         ijk = np.floor((points - low) / self.cell_size).astype(np.int64)
@@ -83,6 +118,9 @@ class PointCells:
         unique, self.cell_of_point = np.unique(keys, return_inverse=True)
         cells = np.stack([unique // (span[1] * span[2]), (unique // span[2]) % span[1], unique % span[2]], axis=1)
         self.centres = low + (cells + 0.5) * self.cell_size
+        self._points = np.ascontiguousarray(points)
+        self._order = np.argsort(self.cell_of_point, kind="stable")  # the points cell by cell
+        self._cell_start = np.searchsorted(self.cell_of_point[self._order], np.arange(len(unique) + 1))
 
     def maybe_in_image(self, camera: Camera) -> np.ndarray:  # [C] bool
         """Cubes that may hold a point ``points_in_image(.., camera)`` accepts."""
@@ -94,6 +132,16 @@ class PointCells:
         signed = self.centres @ world.T + (normals @ translation + offsets)
         reach = self.radius * np.linalg.norm(world, axis=1)
         return (signed >= -reach).all(axis=1)
+
+    def rows_in_image(self, camera: Camera, skip: np.ndarray) -> np.ndarray:  # [P] bool -> [M] int64
+        """The rows of the points ``points_in_image(.., camera)`` accepts, less those ``skip`` marks, found among the
+        points of the ``maybe_in_image`` cubes only (compiled; cube by cube, so the rows are not sorted)."""
+        out = np.empty(len(self._order), np.int64)
+        count = _rows_in_image(self._points, self._order, self._cell_start, self.maybe_in_image(camera),
+                               np.ascontiguousarray(skip, np.bool_), np.ascontiguousarray(camera.viewmat[:3, :3]),
+                               np.ascontiguousarray(camera.viewmat[:3, 3]), np.ascontiguousarray(camera.K),
+                               float(camera.width), float(camera.height), NEAR_PLANE, out)
+        return out[:count]
 
 
 def _checked_points(points: np.ndarray, name: str) -> np.ndarray:
@@ -136,8 +184,7 @@ def occluded_points(
     for camera in cameras:
         # A point seen once stays seen (and was looked at), so each camera projects only the points not yet seen, and
         # of those only the ones in cubes that may lie in its view (``PointCells``: the same rows as all of them).
-        candidates = np.flatnonzero(cells.maybe_in_image(camera)[cells.cell_of_point] & ~seen)
-        rows = candidates[points_in_image(points[candidates], camera)]
+        rows = cells.rows_in_image(camera, seen)
         looked_at[rows] = True
         if len(rows):
             first, distance = caster.first_hits(camera.center, points[rows])

@@ -384,5 +384,10 @@ def test_cells_of_a_view_hold_every_point_the_exact_test_accepts(cell_size):
         kept = probe_cells.maybe_in_image(camera)[probe_cells.cell_of_point]
         assert exact[len(points):].sum() > 20  # many edge points are inside (rounding puts others just outside)
         assert not (exact & ~kept).any()
+        # the compiled search finds exactly the points the exact test accepts, less the skipped ones, edges included
+        skip = rng.random(len(probe)) < 0.3
+        rows = probe_cells.rows_in_image(camera, skip)
+        assert len(np.unique(rows)) == len(rows)
+        assert np.array_equal(np.sort(rows), np.flatnonzero(exact & ~skip))
         if cell_size < 1.0:
             assert cells.maybe_in_image(camera).mean() < 0.8  # the cubes behind or beside the camera are culled
