@@ -172,14 +172,16 @@ def occluded_points(
     points: np.ndarray,  # [P, 3] the points to test (vertices, samples on the faces, ...)
     cameras: Sequence[Camera],
     tolerance: float = DEFAULT_OCCLUSION_TOLERANCE,
+    caster: MeshRaycaster | None = None,
 ) -> np.ndarray:  # [P] bool
-    """``[P]`` True where the point is occluded (module docstring) by the mesh ``(mesh_points, faces)``."""
+    """``[P]`` True where the point is occluded (module docstring) by the mesh ``(mesh_points, faces)``; ``caster``:
+    that mesh's raycaster when the caller has one (its BVH is built once per mesh)."""
     mesh_points, faces, points = _check(mesh_points, faces, points, tolerance)
     looked_at = np.zeros(len(points), bool)
     seen = np.zeros(len(points), bool)
     if not len(points) or not len(faces):
         return seen  # nothing to test, or nothing that could hide a point
-    caster = MeshRaycaster(mesh_points, faces)
+    caster = caster if caster is not None else MeshRaycaster(mesh_points, faces)
     cells = PointCells(points)
     for camera in cameras:
         # A point seen once stays seen (and was looked at), so each camera projects only the points not yet seen, and
@@ -261,30 +263,27 @@ def on_hidden_surface(
     cameras: Sequence[Camera],
     tolerance: float = DEFAULT_OCCLUSION_TOLERANCE,
     on_surface_tolerance: float = DEFAULT_ON_SURFACE_TOLERANCE,
+    caster: MeshRaycaster | None = None,
 ) -> HiddenSurfaceHits:
     """The Gaussians whose closest point on the mesh is within ``on_surface_tolerance`` and occluded
-    (``occluded_points`` with ``tolerance``): they lie on a surface the views never see (module docstring)."""
+    (``occluded_points`` with ``tolerance``): they lie on a surface the views never see (module docstring).
+    ``caster``: the mesh's raycaster when the caller has one (one BVH for the closest points and the rays)."""
     mesh_points, faces, _ = _check(mesh_points, faces, np.zeros((0, 3)), tolerance)
     means = _check_means(means, on_surface_tolerance)
     if not len(means) or not len(faces) or not len(cameras):
         return _no_hits()
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(mesh_points.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    caster = caster if caster is not None else MeshRaycaster(mesh_points, faces)
     finite = np.flatnonzero(np.isfinite(means).all(axis=1))
-    answer = scene.compute_closest_points(o3d.core.Tensor(means[finite].astype(np.float32)))
-    tri = answer["primitive_ids"].numpy().astype(np.int64)
     # the closest point again in float64 from its triangle and barycentrics, so that distances are exact to float32's
     # barycentrics and not to float32 coordinates far from the origin
-    uv = answer["primitive_uvs"].numpy().astype(np.float64)
+    tri, uv = caster.closest_points(means[finite])
     bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
     closest = np.einsum("nk,nkd->nd", bary, mesh_points[faces[tri]])
     distance = np.linalg.norm(means[finite] - closest, axis=1)
     near = np.flatnonzero(distance <= on_surface_tolerance)
     if not len(near):
         return _no_hits()
-    occluded = occluded_points(mesh_points, faces, closest[near], cameras, tolerance)
+    occluded = occluded_points(mesh_points, faces, closest[near], cameras, tolerance, caster)
     return _hits(finite[near], tri[near], bary[near], distance[near], faces, occluded)
 
 

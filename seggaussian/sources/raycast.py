@@ -103,6 +103,14 @@ class MeshRaycaster:
         t_hit = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
         return np.where(np.isfinite(t_hit), t_hit, np.inf), distance
 
+    def closest_points(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each of ``points [M, 3]``: ``(triangle [M] int64, uv [M, 2] float64)``, the mesh triangle holding the
+        closest point and that point's barycentric ``(u, v)`` (weights ``1 - u - v``, ``u``, ``v`` of its corners)."""
+        import open3d as o3d
+
+        answer = self._scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
+        return answer["primitive_ids"].numpy().astype(np.int64), answer["primitive_uvs"].numpy().astype(np.float64)
+
     def render(self, camera: Camera, colors: np.ndarray, background=(0, 0, 0)) -> MeshRender:
         """Barycentric interpolation of vertex ``colors`` ``[P, 3]`` uint8 at each hit."""
         hits = self.cast(camera)

@@ -28,6 +28,7 @@ from seggaussian.shards.files import write_parquet_atomic
 from seggaussian.shards.tables import gaussians_table
 from seggaussian.labels.transfer import HiddenSurfaceHits, densify_labelled_mesh, distance_gate, transfer_labels
 from seggaussian.labels.scoring import label_accuracy, surface_labels
+from seggaussian.sources.raycast import MeshRaycaster
 
 #: Files the stage writes into the scene's cache folder (the views stage reads the labels back from its columns).
 OUTPUTS = ("gaussians.parquet",)
@@ -57,8 +58,11 @@ def run_transfer(scene: Scene, gaussians: Gaussians, truth: np.ndarray | None, c
         semantic, instance = np.concatenate([semantic, s_sem]), np.concatenate([instance, s_inst])
         multilabel = np.concatenate([multilabel, s_multi])
     with clock.measure("occlusion") if clock is not None else nullcontext():
-        occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance)
-        on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer)
+        # one raycaster (one BVH of the mesh) for both tests, where they apply
+        applies = occlusion_cameras(scene, config.transfer.occlusion_tolerance) is not None
+        caster = MeshRaycaster(scene.points, scene.faces) if applies else None
+        occluded = occluded_label_points(scene, points, config.transfer.occlusion_tolerance, caster)
+        on_surface = hidden_surface_gaussians(scene, gaussians.means, config.transfer, caster)
     result = transfer_labels(gaussians.means, points, semantic, instance, multilabel, config.transfer,
                              hidden=occluded, on_surface=on_surface)
     # the placement is judged at the spacing-derived gate, whatever gate the user chose for the labels
@@ -102,21 +106,23 @@ def occlusion_cameras(scene: Scene, tolerance: float | None) -> list | None:
     return cameras
 
 
-def occluded_label_points(scene: Scene, points: np.ndarray, tolerance: float | None) -> np.ndarray | None:
+def occluded_label_points(scene: Scene, points: np.ndarray, tolerance: float | None,
+                          caster: MeshRaycaster | None = None) -> np.ndarray | None:
     """``[P]`` True for the label points (vertices and face samples) the scene's ``train`` views look at but never
-    see; None where the test does not apply (``occlusion_cameras``)."""
+    see; None where the test does not apply (``occlusion_cameras``). ``caster``: the scene mesh's raycaster, if built."""
     cameras = occlusion_cameras(scene, tolerance)
-    return None if cameras is None else occluded_points(scene.points, scene.faces, points, cameras, tolerance)
+    return None if cameras is None else occluded_points(scene.points, scene.faces, points, cameras, tolerance, caster)
 
 
-def hidden_surface_gaussians(scene: Scene, means: np.ndarray, transfer: TransferConfig) -> HiddenSurfaceHits | None:
+def hidden_surface_gaussians(scene: Scene, means: np.ndarray, transfer: TransferConfig,
+                             caster: MeshRaycaster | None = None) -> HiddenSurfaceHits | None:
     """The Gaussians that lie on a surface the scene's ``train`` views look at but never see, with the vertex whose
     labels each keeps (``seggaussian.labels.occlusion.on_hidden_surface``); None where the test does not apply."""
     cameras = occlusion_cameras(scene, transfer.occlusion_tolerance)
     if cameras is None:
         return None
     return on_hidden_surface(means, scene.points, scene.faces, cameras, transfer.occlusion_tolerance,
-                             transfer.on_surface_tolerance)
+                             transfer.on_surface_tolerance, caster)
 
 
 def write_transfer(scene_dir: Path, scene_id: str, labelled: Gaussians, shards: ShardConfig) -> None:
