@@ -56,7 +56,11 @@ def synthesize_raw(raw: Path, width: int, height: int, views: int, max_edge: flo
             "views": len(scene.views), "view_sizes": sorted(sizes)}
 
 
-def run_build(raw: Path, dataset: Path, gaussians: int, max_side: int) -> dict:
+#: Environment variables that cap a process's compute threads (torch/OpenMP, numba, BLAS, open3d's OpenMP).
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def run_build(raw: Path, dataset: Path, gaussians: int, max_side: int, threads: int | None = None) -> dict:
     """A fresh build in a child process: its JSON payload plus wall and CPU seconds and peak RSS (bytes)."""
     if dataset.exists():
         shutil.rmtree(dataset)
@@ -66,7 +70,10 @@ def run_build(raw: Path, dataset: Path, gaussians: int, max_side: int) -> dict:
     log = dataset.parent / f"{dataset.name}.log"
     start = time.perf_counter()
     with open(log, "w") as out:
-        proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
+        env = dict(os.environ)
+        if threads is not None:
+            env.update({name: str(threads) for name in THREAD_VARIABLES})
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, env=env)
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - start
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -90,7 +97,7 @@ def folder_bytes(folder: Path) -> dict[str, int]:
 def measure(work: Path, width: int, height: int, args) -> dict:
     raw, dataset = work / f"raw_{width}x{height}", work / f"dataset_{width}x{height}"
     scene = synthesize_raw(raw, width, height, args.views, args.max_edge)
-    build = run_build(raw, dataset, args.gaussians, max(width, height))
+    build = run_build(raw, dataset, args.gaussians, max(width, height), args.threads)
     payload = build.pop("payload")
     (record,) = payload["scenes"]
     stages = {name: float(record["cpu_seconds"].get(name, 0.0)) for name in STAGES}
@@ -99,7 +106,7 @@ def measure(work: Path, width: int, height: int, args) -> dict:
     cache = folder_bytes(dataset / ".build")
     shard_bytes = int(payload["bytes"])
     views = int(record["num_views"])
-    return {"size": f"{width}x{height}", **scene, "gaussians": int(record["num_gaussians"]), "rendered_views": views,
+    return {"size": f"{width}x{height}", "threads": args.threads, **scene, "gaussians": int(record["num_gaussians"]), "rendered_views": views,
             **build, "stages_cpu_s": stages, "discover_cpu_s": outside,
             "cpu_s_per_view": build["cpu_s"] / views, "shard_bytes": shard_bytes,
             "cache_bytes": sum(cache.values()), "cache_files": dict(sorted(cache.items(), key=lambda kv: -kv[1]))}
@@ -116,7 +123,8 @@ def projection(cpu_per_scene: float, cores: tuple[int, ...], nodes: tuple[int, .
 
 
 def report(results: list[dict], args) -> str:
-    lines = [f"Real-size scene build, `--gaussians oracle` ({args.gaussians:,} Gaussians), one scene; "
+    cap = "no thread cap" if args.threads is None else f"compute threads capped at {args.threads}"
+    lines = [f"Real-size scene build, `--gaussians oracle` ({args.gaussians:,} Gaussians), one scene, {cap}; "
              f"CPU seconds are user + system of the build process and its children.", "",
              "| size | mesh vertices | views | CPU s total | CPU s / view | " + " | ".join(STAGES) + " | wall s | "
              "peak RSS GB | shards MB | build cache MB |",
@@ -148,6 +156,9 @@ def main() -> None:
     parser.add_argument("--gaussians", type=int, default=1_000_000)
     parser.add_argument("--views", type=int, default=200)
     parser.add_argument("--max-edge", type=float, default=0.01, help="longest mesh edge (m): 0.01 gives 1.77 M vertices")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="cap the build's compute threads (THREAD_VARIABLES); 1 is how each scene runs in a build of "
+                             "many scenes with one scene per core, the projection's assumption (default: no cap)")
     parser.add_argument("--out", type=Path, default=None, help="also write the markdown report here")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)

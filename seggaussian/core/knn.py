@@ -19,7 +19,8 @@ def nearest_neighbours(cand_points: np.ndarray, backend: str) -> KnnQuery:
     """The one k-nearest-neighbour search of the toolkit over ``cand_points`` ``[C, 3]``:
     ``query(x [Q, 3], k) -> (distances [Q, k] float64 ascending, indices [Q, k] int64)``.
 
-    ``backend`` (``TransferConfig.backend``): ``scipy`` (cKDTree, all cores) or ``open3d`` (its NNS index;
+    ``backend`` (``TransferConfig.backend``): ``scipy`` (cKDTree, on as many threads as torch's intra-op count, which
+    ``seggaussian.util.threads.cap_threads`` caps in a scene worker; the answer is the same on any count) or ``open3d`` (its NNS index;
     it returns squared distances, square-rooted here). With no candidate every distance is inf and every
     index -1."""
     cand_points = np.ascontiguousarray(cand_points, dtype=np.float64)
@@ -28,12 +29,13 @@ def nearest_neighbours(cand_points: np.ndarray, backend: str) -> KnnQuery:
     if not len(cand_points):
         return lambda x, k: (np.full((len(x), k), np.inf), np.full((len(x), k), -1, np.int64))
     if backend == "scipy":
+        import torch
         from scipy.spatial import cKDTree
 
         tree = cKDTree(cand_points)
 
         def query(x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-            d, i = tree.query(x, k=k, workers=-1)
+            d, i = tree.query(x, k=k, workers=max(1, torch.get_num_threads()))
             return np.asarray(d, np.float64).reshape(len(x), k), np.asarray(i, np.int64).reshape(len(x), k)
 
         return query
