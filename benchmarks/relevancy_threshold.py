@@ -153,7 +153,8 @@ def table(rows: list[dict]) -> str:
     lines = ["| run | queries | n | " + " | ".join(METHODS) + " | LERF best - calibrated |",
              "|---|---|---|" + "---|" * (len(METHODS) + 1)]
     for run, group, n, *values in summary(rows):
-        lines.append(f"| {Path(run).name} | {group} | {n} | " + " | ".join(f"{v:.3f}" for v in values) + " |")
+        lines.append(f"| {Path(run).name} | {group} | {n} | " + " | ".join(f"{v:.3f}" for v in values[:-1])
+                     + f" | {values[-1]:.4f} |")
     return "\n".join(lines)
 
 
@@ -211,7 +212,7 @@ def main() -> int:
             tmp.write_text(doc)
     gaps = [s[-1] for s in summary(rows) if s[1] == "in vocabulary"]
     print(f"relevancy: {len(rows)} queries ({sum(bool(r.get('absent')) for r in rows)} of absent names); in-vocabulary gap of the calibrated default to the per-query best "
-          f"(LERF): {', '.join(f'{g:.3f}' for g in gaps)}")
+          f"(LERF): {', '.join(f'{g:.4f}' for g in gaps)}")
     return 0
 
 
