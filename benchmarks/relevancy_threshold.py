@@ -105,9 +105,10 @@ def measure(run: Path, data: Path, splits, min_gaussians: int, progress) -> tupl
                              "softmax 0.5": float(np.mean(plain.relevancies((query,))[:, 0] >= DEFAULT_THRESHOLD)),
                              "calibrated": float(np.mean(state.relevancies((query,))[:, 0] >= DEFAULT_THRESHOLD))})
             progress(f"{run.name} {split} {scene_id}: {sum(r['scene'] == scene_id for r in rows)} queries")
+    fitted = calibration.calibration
     record = {"run": str(run), "note": calibration.note,
-              "offsets": {} if calibration.calibration is None else dict(zip(calibration.calibration.names,
-                                                                            calibration.calibration.offsets))}
+              "offsets": {} if fitted is None else {n: o for n, o, k in zip(fitted.names, fitted.offsets, fitted.rooms)
+                                                    if k > 0}}
     return rows, record
 
 
@@ -138,7 +139,8 @@ def absent_table(rows: list[dict]) -> str:
 
 
 def offsets_table(records: list[dict]) -> str:
-    """Per run: each name's fitted offset (its threshold on the softmax probability) and where they came from."""
+    """Per run: each name's fitted offset (its threshold on the softmax probability; "-": too rare in the train rooms,
+    offset 0) and where they came from."""
     names = list(dict.fromkeys(n for r in records for n in r["offsets"]))
     lines = ["| run | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for r in records:
@@ -201,11 +203,12 @@ def main() -> int:
                f"`benchmarks/relevancy_threshold.py --data DATA {' '.join('--run ' + r.name for r in args.run)} "
                f"--splits {','.join(splits)}`: the rooms of {', '.join(splits)}, each ground-truth class with at "
                f"least {args.min_gaussians} Gaussians queried by its name; per-Gaussian IoU of the highlighted "
-               f"Gaussians with the class's (mean over queries). Default threshold: {DEFAULT_THRESHOLD}; \"softmax 0.5\": "
-               f"every offset 0 (`--no-calibrate`); \"calibrated\": each name's offset fitted on the run's train rooms "
-               f"(`ovgaussian.view.calibration`). "
+               f"Gaussians with the class's (mean over queries). Default threshold: {DEFAULT_THRESHOLD}; "
+               f"\"softmax 0.5\": every offset 0 (`--no-calibrate`); \"calibrated\": each name's offset fitted on "
+               f"the run's train rooms (`ovgaussian.view.calibration`). "
                f"\"best\": the threshold of highest IoU chosen per query with the labels (oracle).\n\n"
-               f"{text}\n\n## Offsets fitted on the train rooms (threshold on the softmax probability)\n\n"
+               f"{text}\n\n## Offsets fitted on the train rooms (threshold on the softmax probability; "
+               f"-: too rare there, offset 0)\n\n"
                f"{offsets_table(records)}\n\n"
                f"## Per query (classes of the run's vocabulary)\n\n{per_query_table(rows)}\n")
         with atomic_path(args.out, suffix=".md") as tmp:

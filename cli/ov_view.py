@@ -34,8 +34,8 @@ from ovgaussian.view.relevancy import DEFAULT_THRESHOLD
 @transform_options
 @json_option
 @guarded
-def command(scene, run, checkpoint, dataset, scene_id, cameras, vocab, query, mode, threshold, calibrate, host, port, export,
-            on_invalid, device, transform, from_frame, as_json):
+def command(scene, run, checkpoint, dataset, scene_id, cameras, vocab, query, mode, threshold, calibrate, host, port,
+            export, on_invalid, device, transform, from_frame, as_json):
     """Query SCENE (any splat format) with free text in the browser: RGB, ground-truth, predicted-label and
     query modes, click a Gaussian to inspect it. Serves until Ctrl-C; --export writes a file and exits."""
     from ovgaussian.predict.query import parse_vocabulary
