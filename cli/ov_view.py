@@ -24,6 +24,7 @@ from ovgaussian.view.relevancy import DEFAULT_THRESHOLD
 @config_option(ViewConfig, "mode", "--mode", type=click.Choice(MODES), default=None)
 @config_option(ViewConfig, "threshold", "--threshold", type=click.FloatRange(0.0, 1.0), default=DEFAULT_THRESHOLD,
                show_default=True)
+@config_option(ViewConfig, "calibrate", "--calibrate/--no-calibrate", default=True, show_default=True)
 @config_option(ViewConfig, "host", "--host", default=DEFAULT_HOST, show_default=True)
 @config_option(ViewConfig, "port", "--port", type=click.IntRange(0, 65535), default=DEFAULT_PORT, show_default=True)
 @config_option(ViewConfig, "export", "--export", type=click.Path(path_type=Path, dir_okay=False), default=None)
@@ -33,8 +34,8 @@ from ovgaussian.view.relevancy import DEFAULT_THRESHOLD
 @transform_options
 @json_option
 @guarded
-def command(scene, run, checkpoint, dataset, scene_id, cameras, vocab, query, mode, threshold, host, port, export, on_invalid,
-            device, transform, from_frame, as_json):
+def command(scene, run, checkpoint, dataset, scene_id, cameras, vocab, query, mode, threshold, calibrate, host, port,
+            export, on_invalid, device, transform, from_frame, as_json):
     """Query SCENE (any splat format) with free text in the browser: RGB, ground-truth, predicted-label and
     query modes, click a Gaussian to inspect it. Serves until Ctrl-C; --export writes a file and exits."""
     from ovgaussian.predict.query import parse_vocabulary
@@ -43,7 +44,7 @@ def command(scene, run, checkpoint, dataset, scene_id, cameras, vocab, query, mo
 
     config = ViewConfig(scene=scene, run=run, checkpoint=checkpoint, dataset=dataset, scene_id=scene_id,
                         cameras=cameras, vocabulary=parse_vocabulary(vocab) if vocab else (), queries=query, mode=mode,
-                        threshold=threshold, host=host, port=port, export=export,
+                        threshold=threshold, calibrate=calibrate, host=host, port=port, export=export,
                         frame=FrameConfig(transform, from_frame), on_invalid=on_invalid, device=device)
 
     def say(message: str) -> None:  # progress: stderr under --json, so stdout stays one JSON document

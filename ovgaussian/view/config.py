@@ -43,7 +43,11 @@ class ViewConfig:
     """Colour mode to start with; None: query when --query is given, else rgb."""
     threshold: float = DEFAULT_THRESHOLD
     """Relevancy threshold of the query mode: Gaussians below it are greyed. The relevancy is calibrated (the query's
-    probability against the vocabulary and the negatives), so the default suits every phrase; the slider overrides."""
+    probability against the vocabulary and the negatives, at its class's operating point fitted on the run's train
+    rooms), so the default suits every phrase; the slider overrides."""
+    calibrate: bool = True
+    """Fit each vocabulary name's relevancy offset on the run's train rooms (once; cached in the run folder as
+    relevancy_calibration.json). Off, or when those rooms cannot be read: every offset is 0."""
     negatives: tuple[str, ...] = CANONICAL_NEGATIVES
     """Canonical negative phrases, competitors of every query beside the vocabulary (LERF's: object, things, stuff,
     texture)."""

@@ -23,9 +23,19 @@ query itself and its repeats left out) and the canonical negatives,
 
     calibrated = exp(s_q / T) / (exp(s_q / T) + sum_c exp(s_c / T)).
 
-One threshold then means the same for every phrase: at 0.5 the query is more likely than all its competitors
+One threshold then means nearly the same for every phrase: at 0.5 the query is more likely than all its competitors
 together. It is unchanged when the same constant is added to every score, never lowered by a higher query score,
 and a competitor far below the query everywhere changes nothing (its term vanishes).
+
+What is left between phrases is each class's own operating point (walls, which border doors and windows
+everywhere, are best taken below 0.5; doors and monitors, which other things resemble, above). A run's
+**relevancy calibration** (``ovgaussian.view.calibration``) fits one logit offset ``d_q`` per name of its
+vocabulary on the train split's rooms; the query's logit is lowered by it,
+
+    calibrated = exp(s_q / T - d_q) / (exp(s_q / T - d_q) + sum_c exp(s_c / T)),
+
+so that 0.5 falls where the softmax probability equals ``sigmoid(d_q)``, the threshold of best IoU on the train
+rooms. Names without an offset (outside the vocabulary, or too rare in the train rooms) keep ``d_q = 0``.
 """
 
 from __future__ import annotations
@@ -36,8 +46,9 @@ import numpy as np
 
 #: LERF's canonical negative phrases (Kerr et al. 2023, section 3.4).
 CANONICAL_NEGATIVES = ("object", "things", "stuff", "texture")
-#: Default highlight threshold on the calibrated relevancy: the query more likely than all its competitors together
-#: (measured against the per-query best threshold: benchmarks/relevancy_threshold.py, results/relevancy.md).
+#: Default highlight threshold on the calibrated relevancy: the query more likely than all its competitors together,
+#: at the operating point its offset sets (measured against the per-query best threshold:
+#: benchmarks/relevancy_threshold.py, results/relevancy.md).
 DEFAULT_THRESHOLD = 0.5
 #: Softmax temperature of the calibrated relevancy when the run records none: ``ovgaussian train``'s default loss
 #: temperature (``LossConfig.temperature``), the scale the scores were trained at.
@@ -107,29 +118,45 @@ def relevancy_reference(query_scores: np.ndarray, negative_scores: np.ndarray) -
     return out[:, 0] if squeeze else out
 
 
-def competitor_mask(queries: Sequence[str], competitors: Sequence[str]) -> np.ndarray:
-    """``[Q, C]`` bool: competitor ``c`` counts against query ``q`` unless it is the same phrase (case and repeated
-    whitespace ignored), so a query in the vocabulary is not its own competitor."""
-    def key(text: str) -> str:
-        return " ".join(text.split()).lower()
+def phrase_key(text: str) -> str:
+    """What makes two phrases the same: case and repeated whitespace ignored."""
+    return " ".join(text.split()).lower()
 
-    return np.array([[key(c) != key(q) for c in competitors] for q in queries], dtype=bool).reshape(
+
+def competitor_mask(queries: Sequence[str], competitors: Sequence[str]) -> np.ndarray:
+    """``[Q, C]`` bool: competitor ``c`` counts against query ``q`` unless it is the same phrase (``phrase_key``),
+    so a query in the vocabulary is not its own competitor."""
+    return np.array([[phrase_key(c) != phrase_key(q) for c in competitors] for q in queries], dtype=bool).reshape(
         len(queries), len(competitors))
 
 
+def query_offsets(queries: Sequence[str], offsets: dict[str, float] | None) -> np.ndarray:
+    """``[Q]`` float32 logit offsets of ``queries`` from ``{name: offset}`` (matched by ``phrase_key``); 0 for a
+    phrase without one."""
+    table = {phrase_key(name): float(value) for name, value in (offsets or {}).items()}
+    return np.array([table.get(phrase_key(q), 0.0) for q in queries], np.float32)
+
+
+def competitors_of(vocabulary: Sequence[str], negatives: Sequence[str]) -> tuple[str, ...]:
+    """The competitors of every query: the vocabulary, then the negatives, repeats dropped (first kept)."""
+    return tuple(dict.fromkeys(tuple(vocabulary) + tuple(negatives)))
+
+
 def calibrated_relevancy(query_scores: np.ndarray, competitor_scores: np.ndarray, mask: np.ndarray | None = None,
-                         temperature: float = DEFAULT_TEMPERATURE,
+                         temperature: float = DEFAULT_TEMPERATURE, offsets: np.ndarray | None = None,
                          chunk_rows: int = CALIBRATION_CHUNK_ROWS) -> np.ndarray:
-    """The probability of each query against its competitors, softmax of ``scores / temperature``.
+    """The probability of each query against its competitors, softmax of ``scores / temperature`` with each query's
+    logit lowered by its offset.
 
     Args:
         query_scores: ``[N]`` or ``[N, Q]`` scores of the queries.
         competitor_scores: ``[N, C]`` scores of the competitors (vocabulary and canonical negatives).
         mask: ``[Q, C]`` bool, the competitors each query is compared with (:func:`competitor_mask`); None: all.
         temperature: softmax temperature (> 0).
+        offsets: ``[Q]`` finite logit offsets ``d_q`` (module docstring); None: all 0.
 
     Returns:
-        float32, the shape of ``query_scores``, in (0, 1].
+        float32, the shape of ``query_scores``, in [0, 1].
     """
     q = np.asarray(query_scores, dtype=np.float32)
     squeeze = q.ndim == 1
@@ -143,6 +170,9 @@ def calibrated_relevancy(query_scores: np.ndarray, competitor_scores: np.ndarray
     mask = np.ones((q.shape[1], comp.shape[1]), bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (q.shape[1], comp.shape[1]):
         raise ValueError(f"calibrated relevancy: mask must be [Q, C] = {(q.shape[1], comp.shape[1])}, got {mask.shape}")
+    shift = np.zeros(q.shape[1], np.float32) if offsets is None else np.asarray(offsets, np.float32).reshape(-1)
+    if shift.shape != (q.shape[1],) or not np.isfinite(shift).all():
+        raise ValueError(f"calibrated relevancy: offsets must be {q.shape[1]} finite numbers, got {offsets}")
     inv = np.float32(1.0 / temperature)
     out = np.empty(q.shape, np.float32)
     for j in range(q.shape[1]):
@@ -152,8 +182,8 @@ def calibrated_relevancy(query_scores: np.ndarray, competitor_scores: np.ndarray
             continue
         for start in range(0, q.shape[0], chunk_rows):  # a chunk of rows at a time: memory bounded
             sq = q[start:start + chunk_rows, j]
-            # 1 / (1 + sum_c exp((s_c - s_q) / T)), its largest exponent subtracted: no overflow
-            diff = (comp[start:start + chunk_rows, cols] - sq[:, None]) * inv  # [rows, C]
+            # 1 / (1 + sum_c exp((s_c - s_q) / T + d_q)), its largest exponent subtracted: no overflow
+            diff = (comp[start:start + chunk_rows, cols] - sq[:, None]) * inv + shift[j]  # [rows, C]
             top = np.maximum(diff.max(axis=1), 0.0)
             total = np.exp(-top) + np.exp(diff - top[:, None]).sum(axis=1)
             out[start:start + chunk_rows, j] = np.exp(-top) / total
@@ -161,18 +191,20 @@ def calibrated_relevancy(query_scores: np.ndarray, competitor_scores: np.ndarray
 
 
 def calibrated_relevancy_reference(query_scores: np.ndarray, competitor_scores: np.ndarray,
-                                   mask: np.ndarray | None = None,
-                                   temperature: float = DEFAULT_TEMPERATURE) -> np.ndarray:
+                                   mask: np.ndarray | None = None, temperature: float = DEFAULT_TEMPERATURE,
+                                   offsets: np.ndarray | None = None) -> np.ndarray:
     """The softmax as written, one Gaussian and query at a time, in float64 (tests only)."""
     q = np.asarray(query_scores, dtype=np.float64)
     squeeze = q.ndim == 1
     q = q[:, None] if squeeze else q
     comp = np.asarray(competitor_scores, dtype=np.float64)
     mask = np.ones((q.shape[1], comp.shape[1]), bool) if mask is None else np.asarray(mask, bool)
+    shift = [0.0] * q.shape[1] if offsets is None else [float(v) for v in np.asarray(offsets).reshape(-1)]
     out = np.empty(q.shape)
     for n in range(q.shape[0]):
         for j in range(q.shape[1]):
-            logits = [q[n, j] / temperature] + [comp[n, c] / temperature for c in range(comp.shape[1]) if mask[j, c]]
+            logits = [q[n, j] / temperature - shift[j]] + [comp[n, c] / temperature for c in range(comp.shape[1])
+                                                           if mask[j, c]]
             top = max(logits)
             out[n, j] = np.exp(logits[0] - top) / sum(np.exp(v - top) for v in logits)
     return out[:, 0] if squeeze else out

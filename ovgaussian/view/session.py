@@ -16,6 +16,7 @@ from typing import Callable, NamedTuple
 from ovgaussian.run.checkpoint import CONFIG_NAME, read_json
 from ovgaussian.predict.query import load_model_predictor
 from ovgaussian.view.app import QueryViewer
+from ovgaussian.view.calibration import CalibrationResult, run_calibration
 from ovgaussian.view.config import ViewConfig
 from ovgaussian.view.field import QueryField
 from ovgaussian.view.relevancy import DEFAULT_TEMPERATURE
@@ -69,7 +70,15 @@ def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], No
     start = time.perf_counter()
     vectors = predictor.encode_gaussians(scene.gaussians)
     field = QueryField.from_predictor(predictor, vectors)
-    state = ViewerState(scene, field, vocabulary, config.negatives, run_temperature(config.run))
+    temperature = run_temperature(config.run)
+    calibration = CalibrationResult({}, None, "relevancy offsets 0 (--no-calibrate)")
+    if config.run is not None and config.calibrate:
+        calibration = run_calibration(config.run, predictor, vocabulary, config.negatives, temperature, say)
+    elif config.run is None:
+        calibration = CalibrationResult({}, None, "relevancy offsets 0 (no run folder)")
+    say(f"view: {calibration.note}")
+    state = ViewerState(scene, field, vocabulary, config.negatives, temperature, calibration.offsets,
+                        calibration.note)
     field.scores(state.competitors)  # the text encoder's first load, and the competitors' columns, before any query
     say(f"view: language field of {len(field):,} Gaussians ready in {time.perf_counter() - start:.1f} s")
     return state
@@ -95,6 +104,8 @@ def _summary(config: ViewConfig, state: ViewerState, viewer) -> dict:
         "vocabulary": list(state.vocabulary),
         "negatives": list(state.negatives) if state.field is not None else [],
         "temperature": state.temperature if state.field is not None else None,
+        "relevancy_offsets": dict(state.offsets) if state.field is not None else {},
+        "relevancy_calibration": state.calibration_note if state.field is not None else None,
         "status": None if viewer.last is None else viewer.last.status,
         "cameras": len(state.scene.cameras),
         "start_camera": None if viewer.start_camera is None else state.scene.cameras[viewer.start_camera].name,

@@ -12,8 +12,8 @@ import numpy as np
 from ovgaussian.view.config import MODES
 from ovgaussian.view.field import QueryField
 from ovgaussian.view.relevancy import (CANONICAL_NEGATIVES, DEFAULT_TEMPERATURE, DEFAULT_THRESHOLD, QueryHits,
-                                       calibrated_relevancy, competitor_mask, dimmed_colours, query_colours,
-                                       query_hits, top_k)
+                                       calibrated_relevancy, competitor_mask, competitors_of, dimmed_colours,
+                                       query_colours, query_hits, query_offsets, top_k)
 from ovgaussian.view.scene import ViewScene, pick_gaussian, splat_arrays
 from seggaussian.core.constants import IGNORE_LABEL, read_class_names
 from seggaussian.labels.palette import label_colours, palette
@@ -62,10 +62,14 @@ class ViewerState:
         vocabulary: class names of the predicted-labels mode.
         negatives: the canonical negatives of the relevancy.
         temperature: softmax temperature of the calibrated relevancy (the run's training temperature).
+        offsets: ``{name: logit offset}`` of the calibrated relevancy (``calibration.run_calibration``, fitted for
+            this vocabulary and these negatives); None or a missing name: 0.
+        calibration_note: one line saying where ``offsets`` came from (shown in the summary).
     """
 
     def __init__(self, scene: ViewScene, field: QueryField | None = None, vocabulary: Sequence[str] = (),
-                 negatives: Sequence[str] = CANONICAL_NEGATIVES, temperature: float = DEFAULT_TEMPERATURE) -> None:
+                 negatives: Sequence[str] = CANONICAL_NEGATIVES, temperature: float = DEFAULT_TEMPERATURE,
+                 offsets: dict[str, float] | None = None, calibration_note: str = "") -> None:
         if field is not None and len(field) != len(scene.gaussians):
             raise ValueError(f"{scene.source}: {len(scene.gaussians)} Gaussians but {len(field)} language vectors")
         if field is not None and not vocabulary:
@@ -79,8 +83,9 @@ class ViewerState:
         self.temperature = float(temperature)
         if not self.temperature > 0:
             raise ValueError(f"{scene.source}: the relevancy temperature must be > 0, got {temperature}")
-        # the competitors of every query: the vocabulary, then the negatives (repeats dropped)
-        self.competitors = tuple(dict.fromkeys(self.vocabulary + self.negatives))
+        self.offsets = dict(offsets or {})
+        self.calibration_note = calibration_note
+        self.competitors = competitors_of(self.vocabulary, self.negatives)
         self.arrays = splat_arrays(scene.gaussians)
         self.radii = scene.gaussians.scales().max(axis=1) if len(scene.gaussians) else np.zeros(0, np.float32)
         self.dimmed = dimmed_colours(self.arrays.rgb)
@@ -137,8 +142,8 @@ class ViewerState:
 
     # --- queries ---------------------------------------------------------------------------------------
     def relevancies(self, queries: Sequence[str]) -> np.ndarray:
-        """``[N, Q]`` calibrated relevancy of every Gaussian to each query against the vocabulary and the negatives
-        (``relevancy.calibrated_relevancy``; cached per query list)."""
+        """``[N, Q]`` calibrated relevancy of every Gaussian to each query against the vocabulary and the negatives,
+        with each query's offset (``relevancy.calibrated_relevancy``; cached per query list)."""
         queries = tuple(queries)
         if self.field is None:
             raise ValueError(f"{self.scene.source}: queries need a run (--run)")
@@ -146,7 +151,8 @@ class ViewerState:
             if queries in self._relevancy:
                 return self._relevancy[queries]
             out = calibrated_relevancy(self.field.scores(queries), self.field.scores(self.competitors),
-                                       competitor_mask(queries, self.competitors), self.temperature)
+                                       competitor_mask(queries, self.competitors), self.temperature,
+                                       query_offsets(queries, self.offsets))
             self._relevancy = {queries: out}  # the last answer only: 4 bytes x N x Q
             return out
 

@@ -320,6 +320,8 @@ def test_cli_export_with_a_run_and_a_dataset(tmp_path):
     assert payload["modes"] == ["rgb", "semantic", "instance", "predicted", "query"]
     assert payload["vocabulary"] == [NAMES[i] for i in (0, 1, 2)]  # the run's class_ids, top-100 names
     assert payload["negatives"] == list(CANONICAL_NEGATIVES)
+    # the tiny run records no train rooms: its relevancy stays uncalibrated, and says so
+    assert payload["relevancy_offsets"] == {} and "no train dataset recorded" in payload["relevancy_calibration"]
     assert out.stat().st_size == payload["export_bytes"] and payload["summary"].startswith("view: 160 Gaussians")
     assert payload["cameras"] == 3 and payload["start_camera"] in {f"frame{i:06d}.jpg" for i in range(3)}
     assert payload["details"]["cameras_from"] == "dataset views"
