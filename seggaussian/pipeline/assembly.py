@@ -11,6 +11,7 @@ import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
+from seggaussian.pipeline import fragments as fragments_mod
 from seggaussian.pipeline.cache import code_digest, sha256_json
 from seggaussian.pipeline.config import BuildConfig, SplitConfig, config_dict
 from seggaussian.shards.config import ShardConfig
@@ -60,26 +61,43 @@ def write_build_record(cache_root: Path, config: BuildConfig, outcomes: list[Sce
             else:
                 scenes.pop(o.scene_id, None)
             continue
-        fragments = {k: str(Path(v).relative_to(root)) for k, v in o.fragments.items()}
+        fragments = {k: fragments_mod.to_record(root, v) for k, v in o.fragments.items()}
         old = scenes.get(o.scene_id, {})
-        digests = {k: (old["fragment_sha256"][k] if not o.stages_run and old.get("fragments", {}).get(k) == f
-                       and k in old.get("fragment_sha256", {}) else sha256_file(root / f))
-                   for k, f in fragments.items()}
+        digests = {k: _fragment_digest(root, k, f, old, reuse=not o.stages_run) for k, f in fragments.items()}
         scenes[o.scene_id] = {"domain": o.domain, "official_split": o.official_split, "info": o.info,
                               "keys": o.keys, "fragments": fragments, "fragment_sha256": digests}
-    # a scene whose cached fragments vanished is dropped rather than shipped broken
-    scenes = {s: v for s, v in scenes.items() if all((root / f).is_file() for f in v["fragments"].values())}
+    # a scene whose cached fragments vanished is dropped rather than shipped broken (those of the scenes built
+    # now were checked by their workers)
+    checked = {o.scene_id for o in outcomes if o.status != "failed"}
+    scenes = {s: v for s, v in scenes.items()
+              if s in checked or all(fragments_mod.present(root, f) for f in v["fragments"].values())}
     record = {"config_hash": content_config_hash(config), "config": _content_config(config),
               "scenes": dict(sorted(scenes.items()))}
     write_json_atomic(path, record, nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
     return kept
 
 
+def _fragment_digest(root: Path, table: str, fragment: str | dict, old: dict, reuse: bool) -> str:
+    """sha256 of a recorded fragment: the file's (the earlier record's when ``reuse`` and it names the same file),
+    or the rows' fingerprint (``shards.rows.SceneRows.sha256``)."""
+    if isinstance(fragment, dict):
+        return fragment["sha256"]
+    if reuse and old.get("fragments", {}).get(table) == fragment and table in old.get("fragment_sha256", {}):
+        return old["fragment_sha256"][table]
+    return sha256_file(root / fragment)
+
+
 def _fragments_intact(root: Path, entry: dict) -> bool:
-    """True when every cached fragment of a build-record entry still holds the bytes it recorded."""
+    """True when every cached fragment of a build-record entry still holds the bytes it recorded (a file its sha256;
+    rows in a shard their fingerprint)."""
     digests = entry.get("fragment_sha256", {})
-    return all(k in digests and (root / f).is_file() and sha256_file(root / f) == digests[k]
-               for k, f in entry["fragments"].items())
+    for k, f in entry["fragments"].items():
+        if isinstance(f, dict):
+            if not fragments_mod.present(root, f):
+                return False
+        elif not (k in digests and (root / f).is_file() and sha256_file(root / f) == digests[k]):
+            return False
+    return True
 
 
 def _content_config(config: BuildConfig) -> dict:
@@ -112,20 +130,27 @@ def assemble(out: Path, config: BuildConfig | None = None, split_config=None) ->
     state_path = cache_root / "assembly.json"
     state = json.loads(state_path.read_text()) if state_path.is_file() else {}
     manifest_path = out / MANIFEST_NAME
-    if state.get("key") == key and manifest_path.is_file():
+    # nothing to write when the key is unchanged, the files are there and every scene's rows are in them already
+    # (a scene served from a per-scene file has just been rebuilt: its shard was removed or changed)
+    if state.get("key") == key and manifest_path.is_file() and all(
+            isinstance(f, dict) for v in scenes.values() for f in v["fragments"].values()):
         manifest = json.loads(manifest_path.read_text())
         if all((out / rel).is_file() and (out / rel).stat().st_size == f["bytes"]
                for rel, f in manifest["files"].items()):
             write_json_atomic(out / SPLITS_NAME, splits_payload(result, split_config), nan=NAN_AS_NULL, sort_keys=True,
                               only_if_changed=True)
             return result.counts, len(manifest["files"]), sum(f["bytes"] for f in manifest["files"].values()), False
-    payload = {s: dict(v["info"], fragments={k: out / f for k, f in v["fragments"].items()},
+    payload = {s: dict(v["info"], fragments={k: fragments_mod.from_record(out, f) for k, f in v["fragments"].items()},
                        official_split=v.get("official_split"))
                for s, v in scenes.items()}
     manifest = write_dataset(out, result.assignments, payload, shard_config, class_names, record["config_hash"])
     write_json_atomic(out / SPLITS_NAME, splits_payload(result, split_config), nan=NAN_AS_NULL, sort_keys=True,
                       only_if_changed=True)
     write_json_atomic(state_path, {"key": key}, nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
+    # the cache keeps no copy of the shards' rows: pointers first, then the record naming them, then the files go
+    pointed = fragments_mod.point_at_shards(out, cache_root, manifest, scenes)
+    write_json_atomic(path, dict(record, scenes=pointed), nan=NAN_AS_NULL, sort_keys=True, only_if_changed=True)
+    fragments_mod.drop_files(out, scenes, pointed)
     return result.counts, len(manifest["files"]), sum(f["bytes"] for f in manifest["files"].values()), True
 
 

@@ -16,9 +16,11 @@ assembles them.
 
 Cache (``DATASET/.build/scenes/<scene>/``): each stage writes its outputs atomically, then a record
 ``<stage>.json`` holding the stage key = sha256 of (input fingerprint, upstream keys, the stage's config,
-the source of every module the stage's code imports: ``build_cache``). A stage runs only when its key changed or an output is missing, so an unchanged rerun
-reads no raw scene and writes no file; a changed setting reruns the stages downstream of it; a killed build
-resumes at the first stage without a record. Outputs are byte-deterministic for the same inputs and config.
+the source of every module the stage's code imports: ``build_cache``). A stage runs only when its key changed or an
+output is missing, so an unchanged rerun reads no raw scene and writes no file; a changed setting reruns the stages
+downstream of it; a killed build resumes at the first stage without a record. Outputs are byte-deterministic for
+the same inputs and config. Once assembled, a scene's two tables leave the cache: a pointer at its rows in the
+shards replaces them (``fragments``), and a later assembly copies the rows from there.
 
 ``--source synthetic``: ``ROOT/scannetpp`` (ScanNet++ layout) and ``ROOT/replica`` (Replica layout), as
 written by ``seggaussian synth``; a root holding only one layout is read as that layout. When ``ROOT``

@@ -1,11 +1,13 @@
 """One scene through the build's stage chain, each stage served from the cache when its key is unchanged.
 
-    gaussians  stages.gaussians_{oracle,scan,fit,import}  -> gaussians.npz
-    transfer   stages.transfer                            -> gaussians.parquet
-    views      stages.views                               -> views.parquet
+    gaussians  stages.gaussians_{oracle,scan,fit,import}  -> gaussians_stage.parquet
+    transfer   stages.transfer                            -> gaussians.parquet (the scene's gaussians table)
+    views      stages.views                               -> views.parquet (the scene's views table)
 
 Outputs live in ``DATASET/.build/scenes/<scene>/`` with a record ``<stage>.json`` per stage
-(``build_cache.StageRecord``); a stage runs only when its key changed or an output is missing.
+(``build_cache.StageRecord``); a stage runs only when its key changed or an output is missing. Once assembled, the
+two tables are rows of the shards, and the scene's ``shards.json`` points at them (``fragments``): the transfer and
+views stages are cached while the shard still holds their rows.
 """
 
 from __future__ import annotations
@@ -19,10 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from seggaussian.pipeline import cache as build_cache
+from seggaussian.pipeline import fragments
 from seggaussian.pipeline.config import BuildConfig
 from seggaussian.pipeline.records import CpuClock, SceneOutcome, SceneTask, failed_outcome
 from seggaussian.core.constants import read_class_names
 from seggaussian.fit.optimize import needs_fit
+from seggaussian.shards.rows import read_fragment_rows
 from seggaussian.sources.layout import reader
 from seggaussian.pipeline.stages import gaussians as gaussians_stage
 from seggaussian.pipeline.stages import gaussians_fit, gaussians_import, gaussians_oracle, gaussians_scan
@@ -87,7 +91,16 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
     g_cfg = gaussians_stage_config(config, task)
     keys, parts = stage_keys(task, config, g_cfg, len(class_names))
     stages = {name: build_cache.StageRecord(scene_dir, name) for name in STAGES}
-    records = {name: stages[name].cached(keys[name], OUTPUTS[name]) for name in STAGES}
+    records = {name: stages[name].cached(keys[name], OUTPUTS[name] if name == "gaussians" else ()) for name in STAGES}
+    dataset = cache_root.parent
+    files = {table: scene_dir / OUTPUTS[stage][0] for stage, table in fragments.STAGE_TABLES.items()}
+    pointers = fragments.read_pointers(scene_dir)
+    tables = {}  # {table: its per-scene file, or its rows in a shard}
+    for stage, table in fragments.STAGE_TABLES.items():
+        if records[stage] is not None:
+            tables[table] = fragments.cached(dataset, files[table], pointers.get(table), keys[stage])
+            if tables[table] is None:
+                records[stage] = None
     ran: list[str] = []
     clock = CpuClock()  # CPU seconds per stage (its reads and writes included), the scene's reading and occlusion apart
     scene = None
@@ -121,6 +134,7 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
                                                           refuse_misplaced=g_cfg["mode"] == "import", clock=clock)
             with clock.measure("shards"):
                 transfer_stage.write_transfer(scene_dir, task.scene_id, labelled, config.shards)
+        tables[fragments.STAGE_TABLES["transfer"]] = files[fragments.STAGE_TABLES["transfer"]]
         stages["transfer"].save(keys["transfer"], facts, parts["transfer"])
         records["transfer"] = {"info": facts}
         ran.append("transfer")
@@ -129,10 +143,13 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
             if labelled is None:
                 if gaussians is None:
                     gaussians, _ = gaussians_stage.load_gaussians(scene_dir)
-                labelled = transfer_stage.load_labelled(scene_dir, gaussians)
+                source = tables["gaussians"]
+                labels = read_fragment_rows(dataset, source, "gaussians", list(transfer_stage.LABEL_COLUMNS))
+                labelled = transfer_stage.with_labels(gaussians, labels, fragments.location(dataset, source))
             rows, facts = views_stage.run_views(get_scene(), labelled, config, len(class_names))
             with clock.measure("shards"):
                 views_stage.write_views(scene_dir, task.scene_id, rows, config.shards)
+        tables[fragments.STAGE_TABLES["views"]] = files[fragments.STAGE_TABLES["views"]]
         stages["views"].save(keys["views"], facts, parts["views"])
         records["views"] = {"info": facts}
         ran.append("views")
@@ -143,6 +160,5 @@ def _build_scene(task: SceneTask, config: BuildConfig, cache_root: Path, start: 
         info["fit_metrics"] = {k: v for k, v in info["fit_metrics"].items()
                                if not isinstance(v, float) or np.isfinite(v)}
     info["num_gaussians"] = info.get("transfer", {}).get("num_gaussians", info.get("num_gaussians", 0))
-    fragments = {"gaussians": scene_dir / "gaussians.parquet", "views": scene_dir / "views.parquet"}
     return SceneOutcome(task.scene_id, task.domain, task.official_split, "built" if ran else "skipped", tuple(ran),
-                        None, info, fragments, keys, time.perf_counter() - start, clock.rounded())
+                        None, info, tables, keys, time.perf_counter() - start, clock.rounded())

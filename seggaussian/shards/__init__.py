@@ -9,6 +9,7 @@ per module:
 - ``images``: PNG/JPEG codecs of RGB and label maps;
 - ``tables``: Gaussians and views <-> Arrow tables of one scene;
 - ``files``: atomic Parquet and JSON writers, sha256, footer metadata;
+- ``rows``: one scene's rows inside a written shard (``SceneRows``): located, checked, read back;
 - ``writer``: shards, manifest and card of a dataset (``write_dataset``);
 - ``card``: the dataset card;
 - ``read``: manifest, scene index and one scene's rows, verified against the manifest (``read_scene``);

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Iterable
 
@@ -69,23 +70,32 @@ def write_parquet_atomic(
     scene_tables: Iterable[pa.Table],
     config: ShardConfig,
     metadata: dict[bytes, bytes] | None = None,
+    *,
+    stack: ExitStack | None = None,
 ) -> bool:
     """Write the tables (one per scene, in order) into one Parquet file; each table fills its own row
     groups. Temp name + rename; byte-deterministic for the same inputs and pyarrow version. Returns False
-    when an identical file was already there (left untouched)."""
+    when an identical file was already there (left untouched).
+
+    ``stack``: the rename waits until ``stack`` closes (and the temporary goes if it closes on an error), so
+    that the files of one assembly replace the earlier ones together, after every row copied from those was read.
+    """
     path = Path(path)
+    if stack is None:
+        with ExitStack() as own:
+            return write_parquet_atomic(path, table_name, scene_tables, config, metadata, stack=own)
     schema = SCHEMAS[table_name].with_metadata(metadata or {})
-    with atomic.atomic_path(path) as tmp:
-        with pq.ParquetWriter(
-            tmp, schema, compression=config.compression, compression_level=config.compression_level,
-            use_dictionary=[c for c in DICTIONARY_COLUMNS if c in schema.names], write_statistics=True,
-        ) as writer:
-            for table in scene_tables:
-                if table.num_rows:
-                    writer.write_table(table.cast(schema), row_group_size=rows_per_row_group(table, config.row_group_bytes))
-        if path.is_file() and path.stat().st_size == tmp.stat().st_size and sha256_file(path) == sha256_file(tmp):
-            tmp.unlink()
-            return False  # same bytes: keep the existing file (and its mtime)
+    tmp = stack.enter_context(atomic.atomic_path(path))
+    with pq.ParquetWriter(
+        tmp, schema, compression=config.compression, compression_level=config.compression_level,
+        use_dictionary=[c for c in DICTIONARY_COLUMNS if c in schema.names], write_statistics=True,
+    ) as writer:
+        for table in scene_tables:
+            if table.num_rows:
+                writer.write_table(table.cast(schema), row_group_size=rows_per_row_group(table, config.row_group_bytes))
+    if path.is_file() and path.stat().st_size == tmp.stat().st_size and sha256_file(path) == sha256_file(tmp):
+        tmp.unlink()
+        return False  # same bytes: keep the existing file (and its mtime)
     return True
 
 

@@ -1,11 +1,14 @@
 """Write a dataset: scenes packed into split-named shard files, the manifest and the card.
 
 A scene's rows are contiguous, never span two shards, and fill whole row groups of their own, so
-``read_scene`` reads only that scene's row groups. Shards of a split no longer in the plan are removed.
+``read_scene`` reads only that scene's row groups. A scene's rows come from its per-scene table in the build
+cache or from the shard an earlier assembly wrote them to (``rows.SceneRows``). Shards of a split no longer in
+the plan are removed.
 """
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from pathlib import Path
 from typing import NamedTuple
 
@@ -17,7 +20,8 @@ from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.util.jsonsafe import NAN_AS_NULL
 from seggaussian.shards.card import dataset_card
-from seggaussian.shards.files import footer_metadata, read_fragment, sha256_file, write_parquet_atomic
+from seggaussian.shards.files import footer_metadata, sha256_file, write_parquet_atomic
+from seggaussian.shards.rows import SceneRows, fragment_bytes, read_fragment_rows
 from seggaussian.shards.layout import CARD_NAME, MANIFEST_NAME, SHARD_NAME, SPLITS, ShardError, shard_name
 from seggaussian.shards.schema import GAUSSIANS_TABLE, SCHEMA_VERSION, VIEWS_TABLE
 
@@ -51,32 +55,37 @@ def plan_shards(scene_bytes: list[tuple[str, int]], shard_bytes: int) -> list[li
 def write_split_shards(
     dataset: Path,
     split: str,
-    fragments: dict[str, dict[str, Path]],
+    fragments: dict[str, dict[str, Path | SceneRows]],
     config: ShardConfig,
     class_names,
     config_hash: str,
-) -> list[FileInfo]:
-    """Write ``{table}/{split}-*.parquet`` from per-scene fragment files.
+    stack: ExitStack,
+) -> tuple[list[tuple[Path, tuple]], dict[Path, set[str]]]:
+    """Write ``{table}/{split}-*.parquet`` from per-scene fragments, renamed into place when ``stack`` closes
+    (``files.write_parquet_atomic``).
 
-    ``fragments[scene_id][table]`` is the cached per-scene Parquet file of that table. Scenes are written in
-    sorted order; shards of the split that are no longer part of the plan are removed. Returns the files.
+    ``fragments[scene_id][table]`` is the cached per-scene Parquet file of that table, or the scene's rows in a
+    shard written before (``rows.SceneRows``). Scenes are written in sorted order. Returns the files with their
+    scenes, and per table folder the names the split keeps (the caller removes the others once ``stack`` closed).
     """
     dataset = Path(dataset)
-    infos: list[FileInfo] = []
+    written: list[tuple[Path, tuple]] = []
+    keep: dict[Path, set[str]] = {}
     scene_ids = sorted(fragments)
     for table_name in (GAUSSIANS_TABLE, VIEWS_TABLE):
         folder = dataset / table_name
-        sizes = [(s, fragments[s][table_name].stat().st_size) for s in scene_ids]
+        sizes = [(s, fragment_bytes(fragments[s][table_name])) for s in scene_ids]
         plan = plan_shards(sizes, config.shard_bytes)
         names = [shard_name(split, i, len(plan)) for i in range(len(plan))]
         meta = footer_metadata(table_name, split, class_names, config_hash)
         for name, group in zip(names, plan):
             path = folder / name
-            write_parquet_atomic(path, table_name, (read_fragment(fragments[s][table_name], table_name) for s in group),
-                                 config, meta)
-            infos.append(_file_info(dataset, path, tuple(group)))
-        remove_stale_shards(folder, split, keep=set(names))
-    return infos
+            write_parquet_atomic(path, table_name,
+                                 (read_fragment_rows(dataset, fragments[s][table_name], table_name) for s in group),
+                                 config, meta, stack=stack)
+            written.append((path, tuple(group)))
+        keep[folder] = set(names)
+    return written, keep
 
 
 def remove_stale_shards(folder: Path, split: str, keep: set[str]) -> list[str]:
@@ -107,8 +116,10 @@ def write_dataset(
     """Write every split's shards, the manifest and the dataset card of ``dataset``.
 
     ``assignments``: scene id -> split. ``scenes[scene_id]`` holds ``fragments`` ({table: cached per-scene
-    Parquet path}) and any JSON-ready per-scene information (source, counts, transfer statistics) copied
-    into the manifest. Scenes without an assignment are left out. Returns the manifest.
+    Parquet path, or the scene's ``rows.SceneRows`` in a shard written before}) and any JSON-ready per-scene
+    information (source, counts, transfer statistics) copied into the manifest. Scenes without an assignment are
+    left out. Every shard is renamed into place once all are written, so rows copied from an earlier shard are read
+    before the file holding them is replaced; the shards no longer in the plan go last. Returns the manifest.
     """
     dataset = Path(dataset)
     for table_name in (GAUSSIANS_TABLE, VIEWS_TABLE):  # leftovers of a killed writer
@@ -119,15 +130,23 @@ def write_dataset(
     unknown = sorted({sp for sp in assignments.values()} - set(SPLITS))
     if unknown:
         raise ShardError(f"unknown split names {unknown}; expected {', '.join(SPLITS)}")
-    for split in SPLITS:
-        ids = by_split[split]
-        if not ids:
-            for table_name in (GAUSSIANS_TABLE, VIEWS_TABLE):
-                remove_stale_shards(dataset / table_name, split, keep=set())
-            continue
-        infos = write_split_shards(dataset, split, {s: scenes[s]["fragments"] for s in ids}, config, class_names,
-                                   config_hash)
-        for info in infos:
+    written: dict[str, list[tuple[Path, tuple]]] = {}
+    keep: dict[tuple[Path, str], set[str]] = {}
+    # every shard is renamed into place once all are written: the rows copied from earlier shards stay readable
+    with ExitStack() as stack:
+        for split in SPLITS:
+            ids = by_split[split]
+            if not ids:
+                keep.update({(dataset / table_name, split): set() for table_name in (GAUSSIANS_TABLE, VIEWS_TABLE)})
+                continue
+            written[split], kept = write_split_shards(dataset, split, {s: scenes[s]["fragments"] for s in ids}, config,
+                                                      class_names, config_hash, stack)
+            keep.update({(folder, split): names for folder, names in kept.items()})
+    for (folder, split), names in keep.items():
+        remove_stale_shards(folder, split, keep=names)
+    for split, shards in written.items():
+        for path, group in shards:
+            info = _file_info(dataset, path, group)
             files[info.path] = {"rows": info.rows, "bytes": info.bytes, "sha256": info.sha256,
                                 "scenes": list(info.scenes)}
             table_name = info.path.split("/", 1)[0]

@@ -140,8 +140,8 @@ def test_rerun_changes_nothing_and_setting_change_reruns_downstream(built, raw):
     changed = build_mod.build_dataset(replace(_config(raw, ds), transfer=TransferConfig(max_distance=0.01)))
     assert {o.stages_run for o in changed.outcomes} == {("transfer", "views")}
     after = _mtimes(ds)
-    npz = [k for k in before if k.endswith("gaussians.npz")]
-    assert npz and all(after[k] == before[k] for k in npz)
+    stage_outputs = [k for k in before if k.endswith("gaussians_stage.parquet")]
+    assert stage_outputs and all(after[k] == before[k] for k in stage_outputs)
     assert any(o.info["transfer"]["beyond_gate"] > 0 for o in changed.outcomes)
     # back to the default: same bytes as the first build
     back = build_mod.build_dataset(_config(raw, ds))

@@ -1,6 +1,6 @@
 """The per-scene stages of ``seggaussian build``, one module per stage (mode), each computing and writing its outputs.
 
-    gaussians  gaussians_oracle | gaussians_scan | gaussians_fit | gaussians_import  -> gaussians.npz (+ oracle truth)
+    gaussians  gaussians_oracle | gaussians_scan | gaussians_fit | gaussians_import  -> gaussians_stage.parquet (+ oracle truth)
     transfer   transfer                                                              -> gaussians.parquet
     views      views                                                                 -> views.parquet
 

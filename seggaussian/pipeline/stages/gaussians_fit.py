@@ -17,7 +17,7 @@ REPORTED_METRICS = ("novel_psnr", "novel_ssim", "novel_l1", "iterations", "early
 
 def run(scene: Scene, config: BuildConfig, scene_dir: Path, trained_ply: Path | None = None
         ) -> tuple[Gaussians, None, dict]:
-    """Fit, write ``gaussians.npz``; returns (Gaussians, None, facts with the fit metrics)."""
+    """Fit, write ``gaussians_stage.parquet``; returns (Gaussians, None, facts with the fit metrics)."""
     result = fit_scene(scene, config.fit_config, seed=scene_seed(config.seed, scene.scene_id) % 2**31,
                        progress=config.progress and config.jobs == 1)
     metrics = {k: v for k, v in result.metrics.items() if k in REPORTED_METRICS}

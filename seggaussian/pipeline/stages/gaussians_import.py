@@ -26,7 +26,7 @@ def frame_key(transform_file: Path | None) -> dict:
 
 def run(scene: Scene, config: BuildConfig, scene_dir: Path, trained_ply: Path | None = None,
         transform_file: Path | None = None) -> tuple[Gaussians, None, dict]:
-    """Read ``trained_ply``, move it by ``transform_file`` (if any), write ``gaussians.npz``; returns
+    """Read ``trained_ply``, move it by ``transform_file`` (if any), write ``gaussians_stage.parquet``; returns
     (Gaussians, None, facts with the frame record)."""
     g, _report, _format = read_gaussians(trained_ply)
     g = Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)  # labels come from the transfer

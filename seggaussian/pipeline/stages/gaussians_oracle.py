@@ -16,7 +16,7 @@ from seggaussian.pipeline.stages.gaussians import save_gaussians
 
 def run(scene: Scene, config: BuildConfig, scene_dir: Path, trained_ply: Path | None = None
         ) -> tuple[Gaussians, np.ndarray, dict]:
-    """Sample, write ``gaussians.npz``; returns (Gaussians, truth ``[N]``, facts)."""
+    """Sample, write ``gaussians_stage.parquet``; returns (Gaussians, truth ``[N]``, facts)."""
     rng = np.random.default_rng(scene_seed(config.oracle.seed + config.seed, scene.scene_id))
     g, truth = sample_oracle_gaussians(scene.points, scene.colors, scene.semantic, scene.faces, config.oracle, rng,
                                        tuple(v.camera for v in scene.views))

@@ -36,7 +36,7 @@ def scan_settings(vertices: int) -> FitConfig:
 
 def run(scene: Scene, config: BuildConfig, scene_dir: Path, trained_ply: Path | None = None
         ) -> tuple[Gaussians, None, dict]:
-    """One Gaussian per vertex, write ``gaussians.npz``; returns (Gaussians, None, facts)."""
+    """One Gaussian per vertex, write ``gaussians_stage.parquet``; returns (Gaussians, None, facts)."""
     settings = scan_settings(len(scene.points))
     gaussians, _ = initialize_gaussians(scene.points, scene.colors, settings, rng=np.random.default_rng(0))  # no draw: every vertex is kept
     save_gaussians(scene_dir, gaussians, None)

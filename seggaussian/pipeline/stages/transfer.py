@@ -13,7 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
+import pyarrow as pa
 
 from seggaussian.pipeline.config import BuildConfig
 
@@ -32,6 +32,8 @@ from seggaussian.sources.raycast import MeshRaycaster
 
 #: Files the stage writes into the scene's cache folder (the views stage reads the labels back from its columns).
 OUTPUTS = ("gaussians.parquet",)
+#: The columns of the table that the views stage reads back (``with_labels``).
+LABEL_COLUMNS = ("semantic", "instance")
 #: The labels' second copy that earlier versions wrote beside the table.
 FORMER_LABELS = "labels.npz"
 
@@ -131,12 +133,10 @@ def write_transfer(scene_dir: Path, scene_id: str, labelled: Gaussians, shards: 
     (Path(scene_dir) / FORMER_LABELS).unlink(missing_ok=True)
 
 
-def load_labelled(scene_dir: Path, gaussians: Gaussians) -> Gaussians:
-    """``gaussians`` with the semantic and instance labels of the stage's ``gaussians`` table (the labels the views
-    stage renders; once kept in a ``labels.npz`` beside it, a second copy in the build cache)."""
-    path = Path(scene_dir) / OUTPUTS[0]
-    table = pq.read_table(path, columns=["semantic", "instance"])
-    if table.num_rows != len(gaussians):
-        raise ValueError(f"{path}: {table.num_rows} rows for {len(gaussians)} Gaussians")
-    return gaussians.with_extras(semantic=table.column("semantic").to_numpy(),
-                                 instance=table.column("instance").to_numpy())
+def with_labels(gaussians: Gaussians, labels: pa.Table, where: Path) -> Gaussians:
+    """``gaussians`` with the semantic and instance labels of the stage's ``gaussians`` table (``LABEL_COLUMNS`` of it,
+    read from its per-scene file or from the shard holding its rows: the labels the views stage renders)."""
+    if labels.num_rows != len(gaussians):
+        raise ValueError(f"{where}: {labels.num_rows} rows for {len(gaussians)} Gaussians")
+    return gaussians.with_extras(semantic=labels.column("semantic").to_numpy(),
+                                 instance=labels.column("instance").to_numpy())
