@@ -18,7 +18,7 @@ from seggaussian.shards.config import ShardConfig
 from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.core.gaussians import Gaussians
 from seggaussian.render import render_gaussians
-from seggaussian.render.label_images import render_label_images
+from seggaussian.render.label_images import prepare_label_scene, render_label_scene
 from seggaussian.render.rasterize import camera_tensors
 from seggaussian.core.scene import Scene
 from seggaussian.shards.files import write_parquet_atomic
@@ -57,7 +57,7 @@ def run_views(scene: Scene, gaussians: Gaussians, config: BuildConfig, num_class
     t = gaussians.to_torch()
     semantic = torch.from_numpy(gaussians.extras["semantic"].astype(np.int64))
     instance = torch.from_numpy(gaussians.extras["instance"].astype(np.int64))
-    rows = []
+    rows, label_scene = [], None
     for view in select_views(scene.views, config.views.view_stride):
         cam = view.camera
         scale = view_scale(cam.width, cam.height, config.views)
@@ -81,9 +81,11 @@ def run_views(scene: Scene, gaussians: Gaussians, config: BuildConfig, num_class
         image_format(rgb_bytes)
         if len(gaussians):
             viewmat, K = camera_tensors(cam)
-            maps = render_label_images(t["means"], t["quats"], t["log_scales"], t["opacity_logits"], viewmat, K,
-                                       cam.width, cam.height, semantic, instance, num_classes,
-                                       top_k=config.views.top_k, min_alpha=config.views.min_alpha)
+            if label_scene is None:  # checked and prepared once, for every view
+                label_scene = prepare_label_scene(t["means"], t["quats"], t["log_scales"], t["opacity_logits"],
+                                                  semantic, instance, num_classes)
+            maps = render_label_scene(label_scene, viewmat, K, cam.width, cam.height, top_k=config.views.top_k,
+                                      min_alpha=config.views.min_alpha)
             sem_map = maps.semantic.numpy()
             inst_map = maps.instance.numpy()
         else:

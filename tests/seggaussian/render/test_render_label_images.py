@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -78,3 +79,47 @@ def test_bad_labels_and_options_are_refused():
         render_label_images(*geometry, viewmat, K, WIDTH, HEIGHT, semantic, instance, 4, top_k=0)
     with pytest.raises(ValueError, match="backend"):
         render_label_images(*geometry, viewmat, K, WIDTH, HEIGHT, semantic, instance, 4, backend="gpu")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_screen_candidates_hold_every_gaussian_the_projection_keeps(seed):
+    """Gaussians all around the camera (behind it, at the near plane, just beside the image, far beyond the Jacobian's
+    clamp), small to huge and needle-like: every one the projection keeps is a candidate, most others are not."""
+    from seggaussian.render.projection_numba import project_gaussians_fast
+    from seggaussian.render.screen_cull import largest_scales, screen_candidates
+
+    g = torch.Generator().manual_seed(seed)
+    n = 20_000
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 4.0
+    means[: n // 10, 1] = -3.0 + 0.01 + torch.rand(n // 10, generator=g, dtype=torch.float64) * 1e-3  # at the near plane
+    log_scales = torch.randn(n, 3, generator=g, dtype=torch.float64) * 1.5 - 2.5
+    log_scales[::7, 0] += 4.0  # needles
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    width, height = (64, 48) if seed % 2 else (160, 90)
+    viewmat, K = camera(width, height)
+    projection = project_gaussians_fast(means, quats, log_scales, viewmat, K, width, height)
+    box = projection.pixel_box
+    kept = projection.valid & (box[:, 0] <= box[:, 2]) & (box[:, 1] <= box[:, 3])
+    rows = screen_candidates(means.numpy(), largest_scales(log_scales.numpy()), viewmat.numpy(), K.numpy(), width,
+                             height)
+    assert np.all(np.diff(rows) > 0)
+    candidate = np.zeros(n, bool)
+    candidate[rows] = True
+    assert not (kept.numpy() & ~candidate).any()
+    assert kept.sum() > 100 and candidate.mean() < 0.7  # behind and beside the camera: culled
+
+
+def test_label_scene_renders_many_views_as_the_reference():
+    from seggaussian.render.label_images import prepare_label_scene, render_label_scene
+
+    scene = random_scene(300, 11, spread=1.5)
+    scene["log_scales"][::5] += 2.0  # some large Gaussians reaching in from beside the image
+    semantic, instance = labels_of(300, 11)
+    prepared = prepare_label_scene(*(scene[k] for k in GEOMETRY), semantic, instance, 4)
+    for eye in ((0.3, -3.0, 0.6), (2.5, 0.5, 0.4), (0.1, 0.2, 3.0)):
+        viewmat, K = camera(40, 30, eye)
+        fast = render_label_scene(prepared, viewmat, K, 40, 30, 4, 0.5)
+        ref = render_label_images(*(scene[k] for k in GEOMETRY), viewmat, K, 40, 30, semantic, instance, 4, 4, 0.5,
+                                  backend="reference")
+        assert torch.equal(fast.semantic, ref.semantic) and torch.equal(fast.instance, ref.instance)
+        assert (fast.semantic != IGNORE_LABEL).any()
