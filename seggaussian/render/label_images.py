@@ -21,6 +21,7 @@ from seggaussian.core.constants import IGNORE_LABEL
 from seggaussian.render.blend import DEFAULT_TOP_K, compute_blend_weights
 from seggaussian.render.inputs import check_camera, check_gaussians
 from seggaussian.render.labelmaps import LABEL_MIN_ALPHA, check_labels, render_label_maps
+from seggaussian.render.labelmaps_numba import walk_vote_kernel
 from seggaussian.render.parallel import run_parallel
 from seggaussian.render.projection_numba import project_gaussians_fast
 from seggaussian.render.screen_cull import largest_scales, screen_candidates
@@ -71,8 +72,6 @@ def render_label_scene(scene: LabelScene, viewmat: Tensor, K: Tensor, width: int
                        top_k: int = DEFAULT_TOP_K, min_alpha: float = LABEL_MIN_ALPHA) -> LabelImages:
     """One view's label images (the fast path of :func:`render_label_images`): the Gaussians that may reach the image
     (``screen_cull.screen_candidates``) projected, binned and walked, voting per tile."""
-    from seggaussian.render.labelmaps_numba import walk_vote_kernel
-
     if int(top_k) < 1:
         raise ValueError(f"render_label_images: top_k must be >= 1, got {top_k}")
     width, height, top_k = int(width), int(height), int(top_k)

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from seggaussian.core.constants import IGNORE_LABEL
+from seggaussian.render.labelmaps_numba import vote_kernel
 from seggaussian.render.results import BlendWeights
 
 #: A pixel whose accumulated alpha (all contributors, captured or residual) is below this gets
@@ -74,8 +75,6 @@ def render_label_maps(
     if backend not in ("auto", "fast"):
         raise ValueError(f"render_label_maps: backend must be auto, fast or reference, got {backend!r}")
     semantic, instance = _check_labels(blend, semantic, instance, num_classes)
-    from seggaussian.render.labelmaps_numba import vote_kernel
-
     ids = blend.ids.to(torch.int64).contiguous().numpy()
     weights = blend.weights.to(torch.float32).contiguous().numpy()
     height, width, top_k = ids.shape
