@@ -22,8 +22,9 @@ grid reaches ``ln 49`` (threshold 0.98).
 
 The fit is done once per run and vocabulary, on demand, and cached in the run folder (``CALIBRATION_NAME``,
 keyed by the weights' sha256, the competitors, the temperature, the train rooms and ``CALIBRATION_FORMAT``).
-A run whose train rooms cannot be read (dataset moved, no dataset recorded) keeps every offset at 0: the
-uncalibrated default (``CalibrationResult.note`` says why).
+Where the recorded train rooms cannot be read, the viewer's ``--dataset`` is tried; where neither can, a cached fit of
+the same model and vocabulary is still used, and otherwise every offset is 0: the uncalibrated default
+(``CalibrationResult.note`` says why).
 """
 
 from __future__ import annotations
@@ -218,28 +219,47 @@ def _cached_calibration(doc: dict, key: dict) -> RelevancyCalibration | None:
 
 
 def run_calibration(run: Path, predictor, vocabulary: Sequence[str], negatives: Sequence[str], temperature: float,
-                    progress: Callable[[str], None] | None = None) -> CalibrationResult:
+                    progress: Callable[[str], None] | None = None, dataset: Path | None = None) -> CalibrationResult:
     """The relevancy calibration of ``run`` for ``vocabulary`` + ``negatives``: the cached one in
     ``RUN/relevancy_calibration.json`` when its key matches, else fitted on the train rooms the run's config
-    records (``train.data.dataset``, ``train.data.split``) and cached; offsets 0 when those rooms cannot be read."""
+    records (``train.data.dataset``, ``train.data.split``) and cached.
+
+    ``dataset``: where else the train rooms may be (the viewer's ``--dataset``), tried when the recorded path cannot
+    be read (a dataset moved, or recorded relative to another folder). When neither can be read, a cached calibration
+    of the same weights, vocabulary, competitors and temperature is still used (its rooms are not checked); else
+    every offset is 0 (uncalibrated), said in the note."""
     say = progress or (lambda _message: None)
     run = Path(run)
     data = read_json(run / CONFIG_NAME).get("train", {}).get("data", {})
-    dataset, split = data.get("dataset"), data.get("split") or "train"
-    if not dataset:
+    recorded, split = data.get("dataset"), data.get("split") or "train"
+    if not recorded:
         return CalibrationResult({}, None, f"{run}: no train dataset recorded; relevancy offsets 0 (uncalibrated)")
-    try:
-        scenes = tuple(shards.list_scenes(Path(dataset), split))
-    except (OSError, ValueError) as error:  # a moved, deleted or unreadable dataset: uncalibrated
-        return CalibrationResult({}, None, f"{dataset}: train rooms not readable ({str(error).splitlines()[0]}); "
-                                           f"relevancy offsets 0 (uncalibrated)")
-    if not scenes:
-        return CalibrationResult({}, None, f"{dataset}: no {split} rooms; relevancy offsets 0 (uncalibrated)")
+    places = [Path(recorded)] + ([Path(dataset)] if dataset is not None else [])
+    scenes, problems = (), []
+    for place in places:
+        try:
+            scenes = tuple(shards.list_scenes(place, split))
+        except (OSError, ValueError) as error:  # a moved, deleted or unreadable dataset: try the next place
+            problems.append(f"{place}: {str(error).splitlines()[0]}")
+            continue
+        if scenes:
+            dataset = place
+            break
+        problems.append(f"{place}: no {split} rooms")
     key = {"format": CALIBRATION_FORMAT, "competitors": list(competitors_of(vocabulary, negatives)),
            "names": list(vocabulary), "temperature": float(temperature),
-           "weights_sha256": weights_sha256(getattr(predictor, "checkpoint", None)),
-           "dataset": str(dataset), "split": split, "scenes": list(scenes)}
+           "weights_sha256": weights_sha256(getattr(predictor, "checkpoint", None))}
     path = run / CALIBRATION_NAME
+    if not scenes:  # the rooms cannot be read here: the cached fit of this model and vocabulary, if any
+        cached = _read_cached(path)
+        calibration = _cached_calibration(cached, key) if cached is not None else None
+        if calibration is not None:
+            return CalibrationResult(calibration.by_name(), calibration,
+                                     f"relevancy offsets of {len(calibration.by_name())} names from {path.name} "
+                                     f"(its {split} rooms not readable here: {'; '.join(problems)})")
+        return CalibrationResult({}, None, f"train rooms not readable ({'; '.join(problems)}); relevancy offsets 0 "
+                                           f"(uncalibrated)")
+    key.update({"dataset": str(dataset), "split": split, "scenes": list(scenes)})
     cached = _read_cached(path)
     calibration = _cached_calibration(cached, key) if cached is not None else None
     if calibration is not None:

@@ -73,7 +73,8 @@ def build_state(config: ViewConfig, predictor=None, progress: Callable[[str], No
     temperature = run_temperature(config.run)
     calibration = CalibrationResult({}, None, "relevancy offsets 0 (--no-calibrate)")
     if config.run is not None and config.calibrate:
-        calibration = run_calibration(config.run, predictor, vocabulary, config.negatives, temperature, say)
+        calibration = run_calibration(config.run, predictor, vocabulary, config.negatives, temperature, say,
+                                      dataset=config.dataset)
     elif config.run is None:
         calibration = CalibrationResult({}, None, "relevancy offsets 0 (no run folder)")
     say(f"view: {calibration.note}")

@@ -147,6 +147,12 @@ def test_run_calibration_fits_on_the_train_rooms_caches_and_falls_back(tmp_path)
     gone = run_calibration(run, predictor, vocabulary, CANONICAL_NEGATIVES, 0.07)
     assert gone.offsets == {} and gone.calibration is None and "uncalibrated" in gone.note
     assert "\n" not in gone.note
+    # ... unless the viewer's dataset holds them (a moved dataset), or a cached fit of the same model and names exists
+    moved = run_calibration(run, predictor, vocabulary, CANONICAL_NEGATIVES, 0.07, dataset=dataset)
+    assert moved.calibration is not None and moved.calibration.dataset == str(dataset) and predictor.encoded == 4
+    kept = run_calibration(run, predictor, vocabulary, CANONICAL_NEGATIVES, 0.07)
+    assert kept.calibration == moved.calibration and "not readable here" in kept.note and predictor.encoded == 4
+    assert "\n" not in kept.note
     (run / "config.json").write_text(json.dumps({"train": {}}))
     assert "no train dataset" in run_calibration(run, predictor, vocabulary, CANONICAL_NEGATIVES, 0.07).note
 
