@@ -250,22 +250,19 @@ def run_calibration(run: Path, predictor, vocabulary: Sequence[str], negatives: 
            "names": list(vocabulary), "temperature": float(temperature),
            "weights_sha256": weights_sha256(getattr(predictor, "checkpoint", None))}
     path = run / CALIBRATION_NAME
-    if not scenes:  # the rooms cannot be read here: the cached fit of this model and vocabulary, if any
-        cached = _read_cached(path)
-        calibration = _cached_calibration(cached, key) if cached is not None else None
-        if calibration is not None:
-            return CalibrationResult(calibration.by_name(), calibration,
-                                     f"relevancy offsets of {len(calibration.by_name())} names from {path.name} "
-                                     f"(its {split} rooms not readable here: {'; '.join(problems)})")
-        return CalibrationResult({}, None, f"train rooms not readable ({'; '.join(problems)}); relevancy offsets 0 "
-                                           f"(uncalibrated)")
-    key.update({"dataset": str(dataset), "split": split, "scenes": list(scenes)})
+    if scenes:
+        key.update({"dataset": str(dataset), "split": split, "scenes": list(scenes)})
+    # the cached fit of this model and vocabulary (and, where the rooms can be read, of these rooms)
     cached = _read_cached(path)
     calibration = _cached_calibration(cached, key) if cached is not None else None
     if calibration is not None:
+        where = (f"{len(scenes)} {split} rooms" if scenes
+                 else f"its {split} rooms not readable here: {'; '.join(problems)}")
         return CalibrationResult(calibration.by_name(), calibration,
-                                 f"relevancy offsets of {len(calibration.by_name())} names from {path.name} "
-                                 f"({len(scenes)} {split} rooms)")
+                                 f"relevancy offsets of {len(calibration.by_name())} names from {path.name} ({where})")
+    if not scenes:
+        return CalibrationResult({}, None, f"train rooms not readable ({'; '.join(problems)}); relevancy offsets 0 "
+                                           f"(uncalibrated)")
     names = read_class_names()
 
     def fields():

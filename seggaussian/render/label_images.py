@@ -24,6 +24,7 @@ from seggaussian.render.labelmaps import LABEL_MIN_ALPHA, check_labels, render_l
 from seggaussian.render.labelmaps_numba import walk_vote_kernel
 from seggaussian.render.parallel import run_parallel
 from seggaussian.render.projection_numba import project_gaussians_fast
+from seggaussian.render.rasterize_numba import _as_np
 from seggaussian.render.screen_cull import largest_scales, screen_candidates
 from seggaussian.render.tiles import bin_gaussians
 
@@ -124,7 +125,3 @@ def render_label_images(
         raise ValueError(f"render_label_images: backend must be auto, fast or reference, got {backend!r}")
     scene = prepare_label_scene(means, quats, log_scales, opacity_logits, semantic, instance, num_classes)
     return render_label_scene(scene, viewmat, K, width, height, top_k, min_alpha)
-
-
-def _as_np(x: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float32)
