@@ -19,7 +19,8 @@ labels. Five masks per query:
 - ``calibrated best``: the calibrated relevancy at its best threshold per query (oracle).
 
 Oracle thresholds are searched over the 401 quantiles of each query's scores in the room. Means are over queries,
-separately for the classes of the run's vocabulary and the others (names the run never saw in training).
+separately for the classes of the run's vocabulary and the others (names the run never saw in training); the gap of
+the calibrated default to the LERF oracle comes with a 95 % interval from a bootstrap over the rooms.
 
 A default must also leave a room alone when the queried thing is not there: every name of the run's vocabulary
 that no Gaussian of the room carries is queried too, and the share of the room's Gaussians each default highlights
@@ -39,6 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 #: Quantiles of a query's scores tried as its oracle threshold.
 ORACLE_QUANTILES = 401
 METHODS = ("LERF 0.5", "LERF best", "softmax 0.5", "calibrated", "calibrated best")
+#: Bootstrap draws of the gap's interval.
+BOOTSTRAP_RESAMPLES = 2000
 #: Defaults whose highlight of absent names is reported.
 DEFAULTS = ("LERF 0.5", "softmax 0.5", "calibrated")
 
@@ -112,8 +115,23 @@ def measure(run: Path, data: Path, splits, min_gaussians: int, progress) -> tupl
     return rows, record
 
 
+def gap_interval(rows: list[dict], resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> tuple[float, float]:
+    """95 % interval of the mean gap (LERF best - calibrated) over ``rows``, by a bootstrap over their rooms (a room's
+    queries are drawn together: they share one prediction)."""
+    rooms = list(dict.fromkeys((r["split"], r["scene"]) for r in rows))
+    gaps = [np.array([r["LERF best"] - r["calibrated"] for r in rows if (r["split"], r["scene"]) == room])
+            for room in rooms]
+    rng = np.random.default_rng(seed)
+    means = []
+    for _ in range(resamples):
+        draw = np.concatenate([gaps[i] for i in rng.integers(0, len(rooms), len(rooms))])
+        means.append(draw.mean())
+    return float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))
+
+
 def summary(rows: list[dict]) -> list[tuple]:
-    """Per run and vocabulary group: queries, mean IoU of each method, gap of the default to the LERF oracle."""
+    """Per run and vocabulary group: queries, mean IoU of each method, gap of the default to the LERF oracle and its
+    95 % interval (``gap_interval``)."""
     out = []
     for run in dict.fromkeys(r["run"] for r in rows):
         for group, flag in (("in vocabulary", True), ("not in vocabulary", False)):
@@ -122,7 +140,7 @@ def summary(rows: list[dict]) -> list[tuple]:
                 continue
             means = [float(np.mean([r[m] for r in sel])) for m in METHODS]
             out.append((run, group, len(sel), *means, means[METHODS.index("LERF best")]
-                        - means[METHODS.index("calibrated")]))
+                        - means[METHODS.index("calibrated")], *gap_interval(sel)))
     return out
 
 
@@ -152,11 +170,12 @@ def offsets_table(records: list[dict]) -> str:
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| run | queries | n | " + " | ".join(METHODS) + " | LERF best - calibrated |",
-             "|---|---|---|" + "---|" * (len(METHODS) + 1)]
+    lines = ["| run | queries | n | " + " | ".join(METHODS) + " | LERF best - calibrated | 95 % interval (rooms) |",
+             "|---|---|---|" + "---|" * (len(METHODS) + 2)]
     for run, group, n, *values in summary(rows):
-        lines.append(f"| {Path(run).name} | {group} | {n} | " + " | ".join(f"{v:.3f}" for v in values[:-1])
-                     + f" | {values[-1]:.4f} |")
+        means, gap, low, high = values[:-3], *values[-3:]
+        lines.append(f"| {Path(run).name} | {group} | {n} | " + " | ".join(f"{v:.3f}" for v in means)
+                     + f" | {gap:.4f} | {low:.4f} to {high:.4f} |")
     return "\n".join(lines)
 
 
@@ -213,7 +232,7 @@ def main() -> int:
                f"## Per query (classes of the run's vocabulary)\n\n{per_query_table(rows)}\n")
         with atomic_path(args.out, suffix=".md") as tmp:
             tmp.write_text(doc)
-    gaps = [s[-1] for s in summary(rows) if s[1] == "in vocabulary"]
+    gaps = [s[-3] for s in summary(rows) if s[1] == "in vocabulary"]
     print(f"relevancy: {len(rows)} queries ({sum(bool(r.get('absent')) for r in rows)} of absent names); in-vocabulary gap of the calibrated default to the per-query best "
           f"(LERF): {', '.join(f'{g:.4f}' for g in gaps)}")
     return 0

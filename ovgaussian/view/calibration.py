@@ -17,8 +17,8 @@ The viewer lowers the query's logit by ``d`` (``calibrated_relevancy(..., offset
 falls at each class's fitted threshold. The grid stops at ``OFFSET_MIN = -ln 2`` below (threshold 1/3: the query
 at least half as likely as all its competitors together): a lower bar takes neighbours of a class it has learnt to
 look for in rooms that do not hold it. This bound is the one constant not fitted on the train rooms: it was set after
-seeing names absent from the val and cross-domain rooms light up (``benchmarks/results/relevancy.md``). Above, the
-grid reaches ``ln 49`` (threshold 0.98).
+seeing names absent from the val and cross-domain rooms light up, and then tested on rooms made afterwards
+(``benchmarks/results/relevancy.md``, "Fresh rooms"). Above, the grid reaches ``ln 49`` (threshold 0.98).
 
 The fit is done once per run and vocabulary, on demand, and cached in the run folder (``CALIBRATION_NAME``,
 keyed by the weights' sha256, the competitors, the temperature, the train rooms and ``CALIBRATION_FORMAT``).
