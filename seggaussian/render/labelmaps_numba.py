@@ -5,13 +5,21 @@ IGNORE_LABEL a label of its own, ties to the front-most slot) over one pixel's v
 
 - ``vote_kernel``: label maps from stored blend weights (``compute_blend_weights``), with the soft per-class sums.
 - ``walk_vote_kernel``: the blend-weight walk of ``rasterize_numba`` (the same ``_blend_step``, the same order), its
-  top_k slots kept per tile and voted at the tile's end, so no ``[H, W, top_k]`` ids and weights are written. A pixel
-  stops once its top_k slots are filled and their weights sum to ``min_alpha`` or more: past that point the walk can
-  change nothing the vote reads (the slots are full, and the pixel's total alpha, those weights plus the residual
-  of the rest, is already at least ``min_alpha``, whatever non-negative residual follows). Below ``min_alpha`` the
-  walk goes on and sums the residual in the same order as the stored walk, so the threshold sees the same float.
-  The walk looks up each Gaussian's labels once, not once per pixel. The maps equal ``render_label_maps(compute_blend_weights(...))`` bit for bit
-  (tests/seggaussian/render).
+  top_k slots kept per tile (each slot's Gaussian and weight) and voted at the tile's end, so no ``[H, W, top_k]`` ids
+  and weights are written. A pixel stops walking once nothing behind can change its maps:
+
+  - its top_k slots are full and their weights sum to ``min_alpha`` or more (the vote reads only the slots, and the
+    pixel's total alpha, those weights plus the residual of the rest, is already at least ``min_alpha``, whatever
+    non-negative residual follows); or
+  - every slot so far holds the same semantic and the same instance label, and their weights sum to ``min_alpha`` or
+    more and exceed the pixel's transmittance, the most that all the Gaussians behind can still add to any other
+    label (with the margins ``_SETTLE_REL`` and ``_SETTLE_ABS``, which cover the float32 rounding of the walk): that
+    label wins both votes whatever follows. The inside of a surface stops here, a few Gaussians deep; pixels on a
+    boundary between labels take the first rule.
+
+  Below ``min_alpha`` the walk goes on and sums the residual in the same order as the stored walk, so the threshold
+  sees the same float. Only the rows of a tile that still hold an active pixel are blended. The maps equal
+  ``render_label_maps(compute_blend_weights(...))`` bit for bit (tests/seggaussian/render).
 """
 
 from __future__ import annotations
@@ -26,6 +34,10 @@ from seggaussian.render.rasterize_numba import (
 
 #: Pixels per parallel work item of ``vote_kernel`` (each item allocates its work arrays once).
 _VOTE_BLOCK = 512
+#: Margins of the walk's early stop on one label: its slots' sum must exceed ``transmittance * _SETTLE_REL +
+#: _SETTLE_ABS``. The weights still to come sum to the transmittance up to the rounding of at most ``top_k`` float32
+#: steps (relative error below 1e-5), and each label's sum rounds as often; 1e-4 and 1e-6 leave a wide berth.
+_SETTLE_REL, _SETTLE_ABS = np.float32(1.0 + 1e-4), np.float32(1e-6)
 
 
 @numba.njit(inline="always", cache=True, nogil=True)
@@ -57,12 +69,22 @@ def slot_vote(labels, weights, n, ignore, slot_label, slot_total, slot_of):
 
 
 @numba.njit(inline="always", cache=True, nogil=True)
-def _sum(weights, n):
-    """``weights[:n]`` summed in slot order (float32): a pixel's captured alpha."""
-    total = np.float32(0.0)
-    for k in range(n):
-        total += weights[k]
-    return total
+def _active_rows(active):
+    """``[lo, hi)`` (uint64): the tile's pixels from the first to the last row that holds an active pixel (empty when
+    none does); the rows outside it have nothing left to blend."""
+    lo, hi = _TILE, 0
+    for r in range(_TILE):
+        any_active = False
+        for c in range(_TILE):
+            if active[r * _TILE + c] != _ZERO:
+                any_active = True
+                break
+        if any_active:
+            lo = min(lo, r)
+            hi = r + 1
+    if hi == 0:
+        lo = 0
+    return np.uint64(lo * _TILE), np.uint64(hi * _TILE)
 
 
 @numba.njit(inline="always", cache=True, nogil=True)
@@ -110,6 +132,7 @@ def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, w
     """The blend-weight walk of ``rasterize_numba._weights_kernel`` voting at each tile's end (module docstring);
     writes ``sem_out``/``inst_out`` ``[H, W]`` (every pixel of the image)."""
     num_tiles = offsets.shape[0] - 1
+    uk = np.uint64(top_k)
     for t in prange(num_tiles):
         px = np.empty(_TILE_PIXELS, np.float32)
         py = np.empty(_TILE_PIXELS, np.float32)
@@ -118,37 +141,51 @@ def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, w
         tr = np.ones(_TILE_PIXELS, np.float32)
         active = np.ones(_TILE_PIXELS, np.float32)
         weight = np.zeros(_TILE_PIXELS, np.float32)
-        count = np.zeros(_TILE_PIXELS, np.int64)
-        sem = np.empty((_TILE_PIXELS, top_k), np.int64)
-        inst = np.empty((_TILE_PIXELS, top_k), np.int64)
-        weights = np.zeros((_TILE_PIXELS, top_k), np.float32)
+        count = np.zeros(_TILE_PIXELS, np.uint64)
+        slot_gid = np.empty(_TILE_PIXELS * top_k, np.int64)  # pixel i's slots at [i * top_k, i * top_k + count[i])
+        slot_weight = np.zeros(_TILE_PIXELS * top_k, np.float32)
+        captured = np.zeros(_TILE_PIXELS, np.float32)  # the slots' weights summed in slot order
         residual = np.zeros(_TILE_PIXELS, np.float32)
+        uniform = np.ones(_TILE_PIXELS, np.bool_)  # every slot so far holds the first slot's two labels
         for i in range(_TILE_PIXELS):  # pixels outside the image record nothing
             if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
                 active[i] = _ZERO
+        lo, hi = _active_rows(active)
         for k in range(start, end):
             if (k - start) % _DONE_CHECK_EVERY == 0 and k > start:
-                if active.sum() == _ZERO:
+                lo, hi = _active_rows(active)
+                if lo == hi:
                     break
             g = gids[k]
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
             op = opacities[g]
             i0, i1 = _row_range(rows, g, y0)
+            i0, i1 = max(i0, lo), min(i1, hi)  # rows with no active pixel blend nothing
             for i in range(i0, i1):
                 weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
                 active[i] = active[i] - stop
             g_sem, g_inst = semantic[g], instance[g]
             for i in range(i0, i1):
-                if weight[i] > _ZERO:
+                w = weight[i]
+                if w > _ZERO:
                     c = count[i]
-                    if c < top_k:
-                        sem[i, c], inst[i, c], weights[i, c] = g_sem, g_inst, weight[i]
-                        count[i] = c + 1
-                        if c + 1 == top_k and _sum(weights[i], top_k) >= min_alpha:
-                            active[i] = _ZERO  # the vote can no longer change
+                    if c < uk:
+                        first = i * uk
+                        slot_gid[first + c] = g
+                        slot_weight[first + c] = w
+                        count[i] = c + np.uint64(1)
+                        captured[i] += w
+                        if c > 0 and uniform[i]:
+                            f = slot_gid[first]
+                            uniform[i] = semantic[f] == g_sem and instance[f] == g_inst
+                        if captured[i] >= min_alpha and (
+                                c + np.uint64(1) == uk or (uniform[i] and captured[i] > tr[i] * _SETTLE_REL + _SETTLE_ABS)):
+                            active[i] = _ZERO  # nothing behind can change the maps (module docstring)
                     else:
-                        residual[i] += weight[i]
+                        residual[i] += w
+        sem = np.empty(top_k, np.int64)
+        inst = np.empty(top_k, np.int64)
         slot_label = np.empty(top_k, np.int64)
         slot_total = np.empty(top_k, np.float32)
         slot_of = np.empty(top_k, np.int64)
@@ -158,6 +195,10 @@ def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, w
             if x >= width or y >= height:
                 continue
             n = count[i]
-            total_alpha = _sum(weights[i], n) + residual[i]
-            sem_out[y, x], inst_out[y, x] = _labels_of(sem[i], inst[i], weights[i], n, total_alpha, min_alpha,
-                                                       ignore, slot_label, slot_total, slot_of)
+            first = np.uint64(i) * uk
+            for j in range(n):
+                f = slot_gid[first + j]
+                sem[j], inst[j] = semantic[f], instance[f]
+            sem_out[y, x], inst_out[y, x] = _labels_of(sem, inst, slot_weight[first:first + n], n,
+                                                       captured[i] + residual[i], min_alpha, ignore, slot_label,
+                                                       slot_total, slot_of)

@@ -43,6 +43,37 @@ def test_walk_vote_equals_blend_weights_then_vote(top_k, min_alpha):
         assert (fast.semantic != IGNORE_LABEL).any() and (fast.instance != IGNORE_LABEL).any()
 
 
+def surfaces(num, seed, opacity_logit):
+    """Gaussians on two parallel planes facing the camera at y = -0.3 and y = 0.4 (flat, overlapping), labelled by
+    region: the front plane's left and right halves and the back plane, each one class and one instance, with a few
+    Gaussians of other labels mixed in; so most pixels see one label a few Gaussians deep."""
+    g = torch.Generator().manual_seed(seed)
+    front = torch.rand(num, generator=g) < 0.6
+    means = torch.rand(num, 3, generator=g) * 2.0 - 1.0
+    means[:, 1] = torch.where(front, -0.3, 0.4) + torch.randn(num, generator=g) * 0.01
+    log_scales = torch.stack([torch.full((num,), -2.3), torch.full((num,), -5.0), torch.full((num,), -2.3)], 1)
+    log_scales = log_scales + torch.randn(num, 3, generator=g) * 0.2
+    semantic = torch.where(front, (means[:, 0] > 0).long(), torch.full((num,), 2))
+    instance = semantic * 10 + 1
+    stray = torch.rand(num, generator=g) < 0.03
+    semantic[stray] = 3
+    instance[torch.rand(num, generator=g) < 0.02] = IGNORE_LABEL
+    opacity = torch.full((num,), float(opacity_logit)) + torch.randn(num, generator=g) * 0.5
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(num, 1)
+    return {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": opacity}, semantic, instance
+
+
+@pytest.mark.parametrize("opacity_logit", [-2.0, 0.0, 3.0])
+@pytest.mark.parametrize("min_alpha", [0.1, 0.5, 0.95])
+def test_walk_vote_stops_inside_one_label_as_the_reference(opacity_logit, min_alpha):
+    # coherent labels: most pixels stop once one label's slots outweigh all that can follow (the early stop on one
+    # label), boundaries and strays take the full-slots rule; faint Gaussians (-2.0) settle deep, dense ones at once
+    scene, semantic, instance = surfaces(1500, 5, opacity_logit)
+    fast, ref = both(scene, semantic, instance, 4, 16, min_alpha, 64, 48)
+    assert torch.equal(fast.semantic, ref.semantic) and torch.equal(fast.instance, ref.instance)
+    assert len(torch.unique(fast.semantic)) >= 3
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_walk_vote_with_ties_and_all_ignore(seed):
     scene = random_scene(120, 40 + seed)
