@@ -18,7 +18,9 @@ IGNORE_LABEL a label of its own, ties to the front-most slot) over one pixel's v
     boundary between labels take the first rule.
 
   Below ``min_alpha`` the walk goes on and sums the residual in the same order as the stored walk, so the threshold
-  sees the same float. Only the rows of a tile that still hold an active pixel are blended. The maps equal
+  sees the same float. Only the rows of a tile that still hold an active pixel are blended. The walk reads its
+  Gaussians' data in chunks of ``_DONE_CHECK_EVERY``, gathered into small buffers first (``_gather_chunk``): the
+  lists visit the Gaussians in depth order, scattered over arrays larger than the cache. The maps equal
   ``render_label_maps(compute_blend_weights(...))`` bit for bit (tests/seggaussian/render).
 """
 
@@ -126,6 +128,25 @@ def vote_kernel(ids, weights, residual, semantic, instance, min_alpha, ignore, s
                                                  slot_label, slot_total, slot_of)
 
 
+@numba.njit(inline="always", **_JIT)
+def _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, semantic, instance, chunk, chunk_rows, chunk_labels):
+    """The data of the tile list's Gaussians ``c0:c1`` copied into the chunk buffers in list order (module
+    docstring): independent loads, so their cache misses overlap, where the walk would wait for each in turn."""
+    for k in range(c0, c1):
+        g = gids[k]
+        j = k - c0
+        chunk[j, 0] = means2d[g, 0]
+        chunk[j, 1] = means2d[g, 1]
+        chunk[j, 2] = conics[g, 0]
+        chunk[j, 3] = _TWO * conics[g, 1]
+        chunk[j, 4] = conics[g, 2]
+        chunk[j, 5] = opacities[g]
+        chunk_rows[j, 0] = rows[g, 0]
+        chunk_rows[j, 1] = rows[g, 1]
+        chunk_labels[j, 0] = semantic[g]
+        chunk_labels[j, 1] = instance[g]
+
+
 @numba.njit(parallel=True, **_JIT)
 def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, width, height, top_k, semantic,
                      instance, min_alpha, ignore, sem_out, inst_out):
@@ -151,39 +172,44 @@ def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, w
             if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
                 active[i] = _ZERO
         lo, hi = _active_rows(active)
-        for k in range(start, end):
-            if (k - start) % _DONE_CHECK_EVERY == 0 and k > start:
+        chunk = np.empty((_DONE_CHECK_EVERY, 6), np.float32)  # mx, my, conic a, 2 b, c, opacity
+        chunk_rows = np.empty((_DONE_CHECK_EVERY, 2), np.int32)
+        chunk_labels = np.empty((_DONE_CHECK_EVERY, 2), np.int64)
+        for c0 in range(start, end, _DONE_CHECK_EVERY):
+            if c0 > start:
                 lo, hi = _active_rows(active)
                 if lo == hi:
                     break
-            g = gids[k]
-            mx, my = means2d[g, 0], means2d[g, 1]
-            ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
-            op = opacities[g]
-            i0, i1 = _row_range(rows, g, y0)
-            i0, i1 = max(i0, lo), min(i1, hi)  # rows with no active pixel blend nothing
-            for i in range(i0, i1):
-                weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
-                active[i] = active[i] - stop
-            g_sem, g_inst = semantic[g], instance[g]
-            for i in range(i0, i1):
-                w = weight[i]
-                if w > _ZERO:
-                    c = count[i]
-                    if c < uk:
-                        first = i * uk
-                        slot_gid[first + c] = g
-                        slot_weight[first + c] = w
-                        count[i] = c + np.uint64(1)
-                        captured[i] += w
-                        if c > 0 and uniform[i]:
-                            f = slot_gid[first]
-                            uniform[i] = semantic[f] == g_sem and instance[f] == g_inst
-                        if captured[i] >= min_alpha and (
-                                c + np.uint64(1) == uk or (uniform[i] and captured[i] > tr[i] * _SETTLE_REL + _SETTLE_ABS)):
-                            active[i] = _ZERO  # nothing behind can change the maps (module docstring)
-                    else:
-                        residual[i] += w
+            c1 = min(end, c0 + _DONE_CHECK_EVERY)
+            _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, semantic, instance, chunk, chunk_rows,
+                          chunk_labels)
+            for j in range(c1 - c0):
+                g = gids[c0 + j]
+                mx, my, ca, cb2, cc, op = chunk[j, 0], chunk[j, 1], chunk[j, 2], chunk[j, 3], chunk[j, 4], chunk[j, 5]
+                i0, i1 = _row_range(chunk_rows, j, y0)
+                i0, i1 = max(i0, lo), min(i1, hi)  # rows with no active pixel blend nothing
+                for i in range(i0, i1):
+                    weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
+                    active[i] = active[i] - stop
+                g_sem, g_inst = chunk_labels[j, 0], chunk_labels[j, 1]
+                for i in range(i0, i1):
+                    w = weight[i]
+                    if w > _ZERO:
+                        c = count[i]
+                        if c < uk:
+                            first = i * uk
+                            slot_gid[first + c] = g
+                            slot_weight[first + c] = w
+                            count[i] = c + np.uint64(1)
+                            captured[i] += w
+                            if c > 0 and uniform[i]:
+                                f = slot_gid[first]
+                                uniform[i] = semantic[f] == g_sem and instance[f] == g_inst
+                            if captured[i] >= min_alpha and (c + np.uint64(1) == uk or (
+                                    uniform[i] and captured[i] > tr[i] * _SETTLE_REL + _SETTLE_ABS)):
+                                active[i] = _ZERO  # nothing behind can change the maps (module docstring)
+                        else:
+                            residual[i] += w
         sem = np.empty(top_k, np.int64)
         inst = np.empty(top_k, np.int64)
         slot_label = np.empty(top_k, np.int64)
