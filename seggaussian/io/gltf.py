@@ -41,6 +41,8 @@ Checked on reading (one-line ``SplatFormatError``s naming the file and field; th
 ``asset.version`` 2.x, ``extensionsRequired``, mode ``POINTS``, kernel ``ellipse``, colour space, projection
 ``perspective``, each accessor's type and component type, SH degrees complete without gaps, scales finite and >= 0,
 opacities in [0, 1], unit rotations (within ``UNIT_TOLERANCE``). Several splat primitives are read as one scene.
+A file of the extension's pre-ratification draft (``_SCALE``/``_ROTATION``, no kernel, as CesiumJS's older test
+tiles hold it) is refused as such.
 
 Writing: a GLB (``.glb``) or a ``.gltf`` whose one buffer is embedded as a base64 ``data:`` URI; one scene, one node
 (no transform), one mesh, one primitive, float attributes in one buffer view each (4-byte aligned), ``POSITION``
@@ -104,6 +106,9 @@ SPZ_BLOB_CORRECTION = "LDB"
 #: The frame glTF stores, as axis letters (``Gaussians`` hold RDF).
 GLTF_FRAME = "LUF"
 KERNEL = "ellipse"
+#: Attribute names of the extension's pre-ratification draft (no ``kernel``; colour and opacity in ``COLOR_0``): such a
+#: file is refused with its own message (``_check_primitive``).
+DRAFT_ATTRIBUTES = ("_SCALE", "_ROTATION")
 COLOR_SPACE = "srgb_rec709_display"
 PROJECTION = "perspective"
 SORTING = "cameraDistance"
@@ -170,6 +175,13 @@ def _check_primitive(doc: GltfDocument, field: str, primitive: dict) -> tuple[di
         raise doc.fail(f"{field}.extensions.{EXTENSION}", "expected a JSON object")
     if primitive.get("mode", 4) != POINTS_MODE:
         raise doc.fail(f"{field}.mode", f"{primitive.get('mode', 4)!r}; the extension requires POINTS (0)")
+    attributes = primitive.get("attributes")
+    legacy = sorted(set(attributes) & set(DRAFT_ATTRIBUTES)) if isinstance(attributes, dict) else []
+    if "kernel" not in ext and legacy:
+        raise doc.fail(f"{field}.attributes", f"{', '.join(legacy)} without a kernel: the extension's pre-ratification "
+                                              f"draft (as in CesiumJS's older test tiles), not read; the ratified one "
+                                              f"names them {PREFIX}SCALE and {PREFIX}ROTATION, with opacity in "
+                                              f"{PREFIX}OPACITY and colour in SH coefficients")
     checks = (("kernel", KERNEL, "the only kernel the extension defines"),
               ("colorSpace", COLOR_SPACE, "lin_rec709_display would need the sRGB curve applied to an SH sum; "
                                           "the one read here"),
@@ -183,7 +195,6 @@ def _check_primitive(doc: GltfDocument, field: str, primitive: dict) -> tuple[di
         raise doc.fail(f"{field}.extensions.{EXTENSION}.extensions",
                        f"{', '.join(sorted(map(str, nested)))} not supported (read: the base extension and "
                        f"{SPZ_EXTENSION})")
-    attributes = primitive.get("attributes")
     if not isinstance(attributes, dict):
         raise doc.fail(f"{field}.attributes", "expected a JSON object")
     spz = nested.get(SPZ_EXTENSION)

@@ -268,6 +268,9 @@ BREAKS = {
     "linear colour space": (None, {"extension": {"kernel": "ellipse", "colorSpace": "lin_rec709_display"}},
                             "colorSpace"),
     "unknown kernel": (None, {"extension": {"kernel": "box", "colorSpace": "srgb_rec709_display"}}, "kernel"),
+    # the draft before ratification, as CesiumJS's older test tiles hold it: _SCALE and _ROTATION, no kernel
+    "pre-ratification draft": (lambda a: a.update({"_SCALE": a.pop(f"{EXT}:SCALE"), "_ROTATION": a.pop(f"{EXT}:ROTATION")}),
+                               {"extension": {}}, "pre-ratification draft"),
     "unknown required extension": (None, {"required": ["EXT_meshopt_compression"]}, "extensionsRequired"),
     "mirroring node": (None, {"node": {"scale": [-1, 1, 1]}}, "reflection"),
     "shearing node": (None, {"node": {"scale": [1, 2, 1]}}, "not a uniform scale"),
