@@ -38,11 +38,10 @@ quaternions ``(w, -x, -y, z)``, SH coefficients times the parity of their basis 
 on reading when it is a similarity (translation, rotation, positive uniform scale); anything else is refused.
 
 Checked on reading (one-line ``SplatFormatError``s naming the file and field; the container by ``gltf_container``):
-``asset.version`` 2.x, ``extensionsRequired``, mode ``POINTS``, kernel ``ellipse``, colour space, projection
-``perspective``, each accessor's type and component type, SH degrees complete without gaps, scales finite and >= 0,
-opacities in [0, 1], unit rotations (within ``UNIT_TOLERANCE``). Several splat primitives are read as one scene.
-A file of the extension's pre-ratification draft (``_SCALE``/``_ROTATION``, no kernel, as CesiumJS's older test
-tiles hold it) is refused as such.
+``asset.version`` 2.x, ``extensionsRequired``, mode ``POINTS``, kernel ``ellipse`` (the pre-ratification draft's
+``_SCALE``/``_ROTATION`` without a kernel are refused as such), colour space, projection ``perspective``, each
+accessor's type and component type, SH degrees complete without gaps, scales finite and >= 0, opacities in [0, 1],
+unit rotations (within ``UNIT_TOLERANCE``). Several splat primitives are read as one scene.
 
 Writing: a GLB (``.glb``) or a ``.gltf`` whose one buffer is embedded as a base64 ``data:`` URI; one scene, one node
 (no transform), one mesh, one primitive, float attributes in one buffer view each (4-byte aligned), ``POSITION``
@@ -73,15 +72,8 @@ from seggaussian.io.gltf_container import (ARRAY_BUFFER, BYTE, FLOAT, GLB_MAGIC,
                                            load_buffers, looks_like_gltf, node_matrices, pack_glb, parse_glb,
                                            parse_json)
 from seggaussian.io.ply.writer import write_atomic
-from seggaussian.io.splat_common import (
-    SplatFormatError,
-    logit_from_unit,
-    read_file_bytes,
-    require_finite,
-    rgb_from_dc,
-    unit_from_logit,
-    unorm_to_byte,
-)
+from seggaussian.io.splat_common import (SplatFormatError, logit_from_unit, read_file_bytes, require_finite,
+                                         rgb_from_dc, unit_from_logit, unorm_to_byte)
 from seggaussian.io.spz import decode_spz, encode_spz, frame_signs
 
 __all__ = ["GLB_MAGIC", "EXTENSION", "SPZ_EXTENSION", "COMPRESSIONS", "GLTF_FRAME", "GltfSplat", "looks_like_gltf",
@@ -106,9 +98,6 @@ SPZ_BLOB_CORRECTION = "LDB"
 #: The frame glTF stores, as axis letters (``Gaussians`` hold RDF).
 GLTF_FRAME = "LUF"
 KERNEL = "ellipse"
-#: Attribute names of the extension's pre-ratification draft (no ``kernel``; colour and opacity in ``COLOR_0``): such a
-#: file is refused with its own message (``_check_primitive``).
-DRAFT_ATTRIBUTES = ("_SCALE", "_ROTATION")
 COLOR_SPACE = "srgb_rec709_display"
 PROJECTION = "perspective"
 SORTING = "cameraDistance"
@@ -176,12 +165,12 @@ def _check_primitive(doc: GltfDocument, field: str, primitive: dict) -> tuple[di
     if primitive.get("mode", 4) != POINTS_MODE:
         raise doc.fail(f"{field}.mode", f"{primitive.get('mode', 4)!r}; the extension requires POINTS (0)")
     attributes = primitive.get("attributes")
-    legacy = sorted(set(attributes) & set(DRAFT_ATTRIBUTES)) if isinstance(attributes, dict) else []
-    if "kernel" not in ext and legacy:
-        raise doc.fail(f"{field}.attributes", f"{', '.join(legacy)} without a kernel: the extension's pre-ratification "
-                                              f"draft (as in CesiumJS's older test tiles), not read; the ratified one "
-                                              f"names them {PREFIX}SCALE and {PREFIX}ROTATION, with opacity in "
-                                              f"{PREFIX}OPACITY and colour in SH coefficients")
+    if not isinstance(attributes, dict):
+        raise doc.fail(f"{field}.attributes", "expected a JSON object")
+    if "kernel" not in ext and {"_SCALE", "_ROTATION"} & set(attributes):  # as in CesiumJS's older test tiles
+        raise doc.fail(f"{field}.attributes", f"_SCALE/_ROTATION without a kernel: the extension's pre-ratification "
+                                              f"draft, not read (the ratified one names them {PREFIX}SCALE, "
+                                              f"{PREFIX}ROTATION)")
     checks = (("kernel", KERNEL, "the only kernel the extension defines"),
               ("colorSpace", COLOR_SPACE, "lin_rec709_display would need the sRGB curve applied to an SH sum; "
                                           "the one read here"),
@@ -195,8 +184,6 @@ def _check_primitive(doc: GltfDocument, field: str, primitive: dict) -> tuple[di
         raise doc.fail(f"{field}.extensions.{EXTENSION}.extensions",
                        f"{', '.join(sorted(map(str, nested)))} not supported (read: the base extension and "
                        f"{SPZ_EXTENSION})")
-    if not isinstance(attributes, dict):
-        raise doc.fail(f"{field}.attributes", "expected a JSON object")
     spz = nested.get(SPZ_EXTENSION)
     if spz is not None and not isinstance(spz, dict):
         raise doc.fail(f"{field}.extensions.{EXTENSION}.extensions.{SPZ_EXTENSION}", "expected a JSON object")
