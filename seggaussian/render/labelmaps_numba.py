@@ -19,8 +19,8 @@ IGNORE_LABEL a label of its own, ties to the front-most slot) over one pixel's v
 
   Below ``min_alpha`` the walk goes on and sums the residual in the same order as the stored walk, so the threshold
   sees the same float. Only the rows of a tile that still hold an active pixel are blended. The walk reads its
-  Gaussians' data in chunks of ``_DONE_CHECK_EVERY``, gathered into small buffers first (``_gather_chunk``): the
-  lists visit the Gaussians in depth order, scattered over arrays larger than the cache. The maps equal
+  Gaussians' data in chunks of ``_DONE_CHECK_EVERY``, gathered into small buffers first
+  (``rasterize_numba._gather_chunk``, as the rasterizer's forward walk does). The maps equal
   ``render_label_maps(compute_blend_weights(...))`` bit for bit (tests/seggaussian/render).
 """
 
@@ -31,7 +31,7 @@ import numpy as np
 from numba import prange
 
 from seggaussian.render.rasterize_numba import (
-    _DONE_CHECK_EVERY, _JIT, _TILE, _TILE_PIXELS, _TWO, _ZERO, _blend_step, _row_range, _tile_pixels,
+    _DONE_CHECK_EVERY, _JIT, _TILE, _TILE_PIXELS, _ZERO, _blend_step, _gather_chunk, _row_range, _tile_pixels,
 )
 
 #: Pixels per parallel work item of ``vote_kernel`` (each item allocates its work arrays once).
@@ -128,25 +128,6 @@ def vote_kernel(ids, weights, residual, semantic, instance, min_alpha, ignore, s
                                                  slot_label, slot_total, slot_of)
 
 
-@numba.njit(inline="always", **_JIT)
-def _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, semantic, instance, chunk, chunk_rows, chunk_labels):
-    """The data of the tile list's Gaussians ``c0:c1`` copied into the chunk buffers in list order (module
-    docstring): independent loads, so their cache misses overlap, where the walk would wait for each in turn."""
-    for k in range(c0, c1):
-        g = gids[k]
-        j = k - c0
-        chunk[j, 0] = means2d[g, 0]
-        chunk[j, 1] = means2d[g, 1]
-        chunk[j, 2] = conics[g, 0]
-        chunk[j, 3] = _TWO * conics[g, 1]
-        chunk[j, 4] = conics[g, 2]
-        chunk[j, 5] = opacities[g]
-        chunk_rows[j, 0] = rows[g, 0]
-        chunk_rows[j, 1] = rows[g, 1]
-        chunk_labels[j, 0] = semantic[g]
-        chunk_labels[j, 1] = instance[g]
-
-
 @numba.njit(parallel=True, **_JIT)
 def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, width, height, top_k, semantic,
                      instance, min_alpha, ignore, sem_out, inst_out):
@@ -181,8 +162,10 @@ def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, w
                 if lo == hi:
                     break
             c1 = min(end, c0 + _DONE_CHECK_EVERY)
-            _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, semantic, instance, chunk, chunk_rows,
-                          chunk_labels)
+            _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, chunk, chunk_rows)
+            for j in range(c1 - c0):
+                g = gids[c0 + j]
+                chunk_labels[j, 0], chunk_labels[j, 1] = semantic[g], instance[g]
             for j in range(c1 - c0):
                 g = gids[c0 + j]
                 mx, my, ca, cb2, cc, op = chunk[j, 0], chunk[j, 1], chunk[j, 2], chunk[j, 3], chunk[j, 4], chunk[j, 5]

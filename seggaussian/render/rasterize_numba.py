@@ -147,6 +147,25 @@ def _tile_pixels(t, tiles_x, px, py):
     return x0, y0
 
 
+@numba.njit(inline="always", **_JIT)
+def _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, chunk, chunk_rows):
+    """The geometry of a tile list's Gaussians ``c0:c1`` copied into small buffers in list order: ``chunk [c, 6]``
+    (mean x, y, conic a, doubled b, c, opacity) and ``chunk_rows [c, 2]``. The lists visit the Gaussians in depth
+    order, scattered over arrays larger than the cache; independent loads let those misses overlap, where the walk
+    would wait for each in turn (``labelmaps_numba`` gathers the same way)."""
+    for k in range(c0, c1):
+        g = gids[k]
+        j = k - c0
+        chunk[j, 0] = means2d[g, 0]
+        chunk[j, 1] = means2d[g, 1]
+        chunk[j, 2] = conics[g, 0]
+        chunk[j, 3] = _TWO * conics[g, 1]
+        chunk[j, 4] = conics[g, 2]
+        chunk[j, 5] = opacities[g]
+        chunk_rows[j, 0] = rows[g, 0]
+        chunk_rows[j, 1] = rows[g, 1]
+
+
 @numba.njit(parallel=True, **_JIT)
 def _forward_kernel(means2d, conics, opacities, colors, rows, offsets, gids, tiles_x, width, height, accum, trans,
                     stop_pos):
@@ -165,24 +184,29 @@ def _forward_kernel(means2d, conics, opacities, colors, rows, offsets, gids, til
         for i in range(_TILE_PIXELS):  # pixels outside the image do not keep the tile running
             if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
                 active[i] = _ZERO
-        for k in range(start, end):
-            if (k - start) % _DONE_CHECK_EVERY == 0 and k > start:
-                if active.sum() == _ZERO:
-                    break
-            g = gids[k]
-            mx, my = means2d[g, 0], means2d[g, 1]
-            ca, cb2, cc = conics[g, 0], _TWO * conics[g, 1], conics[g, 2]
-            op = opacities[g]
-            kl = _f32(k - start)
-            i0, i1 = _row_range(rows, g, y0)
-            for i in range(i0, i1):
-                weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
-                active[i] = active[i] - stop
-                stop_k[i] = stop_k[i] + stop * (kl - stop_k[i])
-            for ch in range(dim):
-                col = colors[g, ch]
+        chunk = np.empty((_DONE_CHECK_EVERY, 6), np.float32)  # mx, my, conic a, 2 b, c, opacity
+        chunk_rows = np.empty((_DONE_CHECK_EVERY, 2), np.int32)
+        chunk_colors = np.empty((_DONE_CHECK_EVERY, dim), np.float32)
+        for c0 in range(start, end, _DONE_CHECK_EVERY):
+            if c0 > start and active.sum() == _ZERO:
+                break
+            c1 = min(end, c0 + _DONE_CHECK_EVERY)
+            _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, chunk, chunk_rows)
+            for j in range(c1 - c0):
+                g = gids[c0 + j]
+                chunk_colors[j, :] = colors[g, :]
+            for j in range(c1 - c0):
+                mx, my, ca, cb2, cc, op = chunk[j, 0], chunk[j, 1], chunk[j, 2], chunk[j, 3], chunk[j, 4], chunk[j, 5]
+                kl = _f32(c0 + j - start)
+                i0, i1 = _row_range(chunk_rows, j, y0)
                 for i in range(i0, i1):
-                    acc[ch, i] += weight[i] * col
+                    weight[i], tr[i], stop = _blend_step(px[i] - mx, py[i] - my, ca, cb2, cc, op, tr[i], active[i])
+                    active[i] = active[i] - stop
+                    stop_k[i] = stop_k[i] + stop * (kl - stop_k[i])
+                for ch in range(dim):
+                    col = chunk_colors[j, ch]
+                    for i in range(i0, i1):
+                        acc[ch, i] += weight[i] * col
         for i in range(_TILE_PIXELS):
             x = x0 + i % _TILE
             y = y0 + i // _TILE
