@@ -31,7 +31,7 @@ import numpy as np
 from numba import prange
 
 from seggaussian.render.rasterize_numba import (
-    _DONE_CHECK_EVERY, _JIT, _TILE, _TILE_PIXELS, _ZERO, _blend_step, _gather_chunk, _row_range, _tile_pixels,
+    _DONE_CHECK_EVERY, _JIT, _TILE, _TILE_PIXELS, _ZERO, _blend_step, _gather_chunk, _row_range, _tile_start,
 )
 
 #: Pixels per parallel work item of ``vote_kernel`` (each item allocates its work arrays once).
@@ -136,12 +136,8 @@ def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, w
     num_tiles = offsets.shape[0] - 1
     uk = np.uint64(top_k)
     for t in prange(num_tiles):
-        px = np.empty(_TILE_PIXELS, np.float32)
-        py = np.empty(_TILE_PIXELS, np.float32)
-        x0, y0 = _tile_pixels(t, tiles_x, px, py)
+        x0, y0, px, py, tr, active = _tile_start(t, tiles_x, width, height)
         start, end = offsets[t], offsets[t + 1]
-        tr = np.ones(_TILE_PIXELS, np.float32)
-        active = np.ones(_TILE_PIXELS, np.float32)
         weight = np.zeros(_TILE_PIXELS, np.float32)
         count = np.zeros(_TILE_PIXELS, np.uint64)
         slot_gid = np.empty(_TILE_PIXELS * top_k, np.int64)  # pixel i's slots at [i * top_k, i * top_k + count[i])
@@ -149,9 +145,6 @@ def walk_vote_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, w
         captured = np.zeros(_TILE_PIXELS, np.float32)  # the slots' weights summed in slot order
         residual = np.zeros(_TILE_PIXELS, np.float32)
         uniform = np.ones(_TILE_PIXELS, np.bool_)  # every slot so far holds the first slot's two labels
-        for i in range(_TILE_PIXELS):  # pixels outside the image record nothing
-            if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
-                active[i] = _ZERO
         lo, hi = _active_rows(active)
         chunk = np.empty((_DONE_CHECK_EVERY, 6), np.float32)  # mx, my, conic a, 2 b, c, opacity
         chunk_rows = np.empty((_DONE_CHECK_EVERY, 2), np.int32)

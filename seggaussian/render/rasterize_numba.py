@@ -148,6 +148,21 @@ def _tile_pixels(t, tiles_x, px, py):
 
 
 @numba.njit(inline="always", **_JIT)
+def _tile_start(t, tiles_x, width, height):
+    """A forward walk's start on tile ``t``: origin ``(x0, y0)``, centres ``px``, ``py``, ``tr`` (ones), ``active``
+    (0 for pixels outside the image: they record nothing and do not keep the walk running)."""
+    px = np.empty(_TILE_PIXELS, np.float32)
+    py = np.empty(_TILE_PIXELS, np.float32)
+    x0, y0 = _tile_pixels(t, tiles_x, px, py)
+    tr = np.ones(_TILE_PIXELS, np.float32)
+    active = np.ones(_TILE_PIXELS, np.float32)
+    for i in range(_TILE_PIXELS):
+        if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
+            active[i] = _ZERO
+    return x0, y0, px, py, tr, active
+
+
+@numba.njit(inline="always", **_JIT)
 def _gather_chunk(gids, c0, c1, means2d, conics, opacities, rows, chunk, chunk_rows):
     """The geometry of a tile list's Gaussians ``c0:c1`` copied into small buffers in list order: ``chunk [c, 6]``
     (mean x, y, conic a, doubled b, c, opacity) and ``chunk_rows [c, 2]``. The lists visit the Gaussians in depth
@@ -172,18 +187,11 @@ def _forward_kernel(means2d, conics, opacities, colors, rows, offsets, gids, til
     num_tiles = offsets.shape[0] - 1
     dim = colors.shape[1]
     for t in prange(num_tiles):
-        px = np.empty(_TILE_PIXELS, np.float32)
-        py = np.empty(_TILE_PIXELS, np.float32)
-        x0, y0 = _tile_pixels(t, tiles_x, px, py)
+        x0, y0, px, py, tr, active = _tile_start(t, tiles_x, width, height)
         start, end = offsets[t], offsets[t + 1]
-        tr = np.ones(_TILE_PIXELS, np.float32)
-        active = np.ones(_TILE_PIXELS, np.float32)
         stop_k = np.full(_TILE_PIXELS, _f32(end - start), np.float32)
         weight = np.empty(_TILE_PIXELS, np.float32)
         acc = np.zeros((dim, _TILE_PIXELS), np.float32)
-        for i in range(_TILE_PIXELS):  # pixels outside the image do not keep the tile running
-            if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
-                active[i] = _ZERO
         chunk = np.empty((_DONE_CHECK_EVERY, 6), np.float32)  # mx, my, conic a, 2 b, c, opacity
         chunk_rows = np.empty((_DONE_CHECK_EVERY, 2), np.int32)
         chunk_colors = np.empty((_DONE_CHECK_EVERY, dim), np.float32)
@@ -384,17 +392,10 @@ def _weights_kernel(means2d, conics, opacities, rows, offsets, gids, tiles_x, wi
     num_tiles = offsets.shape[0] - 1
     top_k = ids.shape[2]
     for t in prange(num_tiles):
-        px = np.empty(_TILE_PIXELS, np.float32)
-        py = np.empty(_TILE_PIXELS, np.float32)
-        x0, y0 = _tile_pixels(t, tiles_x, px, py)
+        x0, y0, px, py, tr, active = _tile_start(t, tiles_x, width, height)
         start, end = offsets[t], offsets[t + 1]
-        tr = np.ones(_TILE_PIXELS, np.float32)
-        active = np.ones(_TILE_PIXELS, np.float32)
         weight = np.empty(_TILE_PIXELS, np.float32)
         count = np.zeros(_TILE_PIXELS, np.int64)
-        for i in range(_TILE_PIXELS):  # pixels outside the image record nothing
-            if x0 + i % _TILE >= width or y0 + i // _TILE >= height:
-                active[i] = _ZERO
         for k in range(start, end):
             if (k - start) % _DONE_CHECK_EVERY == 0 and k > start:
                 if active.sum() == _ZERO:
