@@ -106,7 +106,8 @@ def measure(work: Path, width: int, height: int, args) -> dict:
     cache = folder_bytes(dataset / ".build")
     shard_bytes = int(payload["bytes"])
     views = int(record["num_views"])
-    return {"size": f"{width}x{height}", "threads": args.threads, **scene, "gaussians": int(record["num_gaussians"]), "rendered_views": views,
+    return {"size": f"{width}x{height}", "threads": args.threads, **scene, "gaussians": int(record["num_gaussians"]),
+            "rendered_views": views,
             **build, "stages_cpu_s": stages, "discover_cpu_s": outside,
             "cpu_s_per_view": build["cpu_s"] / views, "shard_bytes": shard_bytes,
             "cache_bytes": sum(cache.values()), "cache_files": dict(sorted(cache.items(), key=lambda kv: -kv[1]))}

@@ -233,8 +233,9 @@ def main() -> int:
         with atomic_path(args.out, suffix=".md") as tmp:
             tmp.write_text(doc)
     gaps = [s[-3] for s in summary(rows) if s[1] == "in vocabulary"]
-    print(f"relevancy: {len(rows)} queries ({sum(bool(r.get('absent')) for r in rows)} of absent names); in-vocabulary gap of the calibrated default to the per-query best "
-          f"(LERF): {', '.join(f'{g:.4f}' for g in gaps)}")
+    absent = sum(bool(r.get("absent")) for r in rows)
+    print(f"relevancy: {len(rows)} queries ({absent} of absent names); in-vocabulary gap of the calibrated default to "
+          f"the per-query best (LERF): {', '.join(f'{g:.4f}' for g in gaps)}")
     return 0
 
 

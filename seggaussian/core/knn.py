@@ -20,9 +20,9 @@ def nearest_neighbours(cand_points: np.ndarray, backend: str) -> KnnQuery:
     ``query(x [Q, 3], k) -> (distances [Q, k] float64 ascending, indices [Q, k] int64)``.
 
     ``backend`` (``TransferConfig.backend``): ``scipy`` (cKDTree, on as many threads as torch's intra-op count, which
-    ``seggaussian.util.threads.cap_threads`` caps in a scene worker; the answer is the same on any count) or ``open3d`` (its NNS index;
-    it returns squared distances, square-rooted here). With no candidate every distance is inf and every
-    index -1."""
+    ``seggaussian.util.threads.cap_threads`` caps in a scene worker; the answer is the same on any count) or
+    ``open3d`` (its NNS index; it returns squared distances, square-rooted here). With no candidate every distance is
+    inf and every index -1."""
     cand_points = np.ascontiguousarray(cand_points, dtype=np.float64)
     if backend not in KNN_BACKENDS:
         raise ValueError(f"transfer: backend must be 'scipy' or 'open3d', got {backend!r}")

@@ -1,7 +1,8 @@
 """views stage: per selected view, the RGB image and the label maps rendered through the blend weights -> ``views.parquet``.
 
 Label maps come from the one rasterizer (``seggaussian.render``): per-pixel blend weights of the labelled
-Gaussians, voted on inside the walk (``render_label_images``), the ignore label counted as a label of its own; anonymized pixels (ScanNet++ masks) are ignore.
+Gaussians, voted on inside the walk (``render_label_images``), the ignore label counted as a label of its own;
+anonymized pixels (ScanNet++ masks) are ignore.
 """
 
 from __future__ import annotations
