@@ -30,8 +30,9 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 
-from ovgaussian.data.augmentation import (RENDITION_PROBABILITY, SPLAT_AUGMENT_PROBABILITY, augment_gaussians,
-                                          rendition, sample_augmentation, splat_statistics)
+from ovgaussian.data.augmentation import (OFF_SURFACE_PROBABILITY, RENDITION_PROBABILITY, SPLAT_AUGMENT_PROBABILITY,
+                                          augment_gaussians, off_surface, rendition, sample_augmentation,
+                                          splat_statistics)
 from ovgaussian.data.cache_budget import folder_bytes
 from ovgaussian.data.scene_source import ScanResult, SceneSource, scan_scenes
 from ovgaussian.text.teacher import sample_patch_features
@@ -310,6 +311,9 @@ class TrainingData:
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels, IGNORE_LABEL)
         if self.config.rendition_augment and rng.random() < RENDITION_PROBABILITY:
             means, quats, log_scales, opacity_logits, sh_dc, labels = rendition(
+                rng, means, quats, log_scales, opacity_logits, sh_dc, labels)
+        if self.config.off_surface_augment and rng.random() < OFF_SURFACE_PROBABILITY:
+            means, quats, log_scales, opacity_logits, sh_dc, labels = off_surface(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels)
         loss_rows = None
         wanted = self.config.loss_gaussians

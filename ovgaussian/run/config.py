@@ -46,6 +46,10 @@ class DataConfig:
     """Show each scene, with probability 1/2 per sample, as another splat of the same room would give it
     (``ovgaussian.data.augmentation.rendition``): a random share of its Gaussians split in two as 3DGS splits, every
     Gaussian moved within its own extent, sizes shifted and the opacity spread remapped, labels carried along."""
+    off_surface_augment: bool = False
+    """Give each scene, with probability 1/2 per sample, Gaussians off its surfaces as a photometric fit leaves them
+    (``ovgaussian.data.augmentation.off_surface``): a share of its Gaussians copied and moved a few centimetres in a
+    random direction, with their source's label."""
     renditions: tuple[Path, ...] = ()
     """Other datasets of the same rooms, each another splat of them (``seggaussian build --gaussians scan|oracle`` or
     ``--ply-dir`` splats from the same raw tree, split the same way): each training sample draws its splat

@@ -286,3 +286,74 @@ def test_the_training_data_draws_renditions_only_when_asked():
         assert all(len(x.labels) == len(x.means) == len(x.opacity_logits) for x in samples)
         grew = sum(len(x.means) > n for x in samples)
         assert (grew > 0) if flag else (grew == 0)
+
+
+def test_surface_normals_of_planes_and_a_sphere():
+    """The normal of a centre is its neighbourhood's axis of least spread: the plane's own normal on a tilted plane,
+    the radius on a sphere (checked against the analytic normal, sign free)."""
+    from ovgaussian.data.augmentation import surface_normals
+
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(-1, 1, (3000, 2))
+    normal = np.array([1.0, 2.0, 2.0]) / 3.0
+    u = np.cross(normal, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    plane = uv[:, :1] * u + uv[:, 1:] * v
+    assert np.abs(surface_normals(plane) @ normal).min() > 0.999
+    sphere = rng.normal(size=(4000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    assert np.median(np.abs(np.sum(surface_normals(sphere) * sphere, axis=1))) > 0.99
+    assert surface_normals(plane[:1]).shape == (1, 3)  # fewer centres than neighbours: all of them
+
+
+def test_off_surface_copies_move_along_the_normal_and_keep_their_source():
+    """The first N rows are the scene unchanged; each appended copy is some row's shape, colour, opacity and label,
+    moved along that row's surface normal only (on a plane: off it, not along it), to both sides; seeded."""
+    from ovgaussian.data.augmentation import OFF_SURFACE_SHARE, off_surface
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    means = np.c_[rng.uniform(0, 2, (n, 2)), np.zeros(n)].astype(np.float32)
+    quats = rng.normal(size=(n, 4)).astype(np.float32)
+    log_scales = rng.normal(-3, 0.3, (n, 3)).astype(np.float32)
+    opacity = rng.normal(0, 1, n).astype(np.float32)
+    colour = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    labels = rng.integers(0, 9, n)
+    args = (means, quats, log_scales, opacity, colour, labels)
+    out = off_surface(np.random.default_rng(1), *args)
+    again = off_surface(np.random.default_rng(1), *args)
+    for a, b in zip(out, again):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(out, args):
+        np.testing.assert_array_equal(a[:n], b)
+    k = len(out.means) - n
+    assert OFF_SURFACE_SHARE[0] * n - 1 <= k <= OFF_SURFACE_SHARE[1] * n + 1
+    moved = out.means[n:]
+    source = {tuple(np.round(r, 5)) for r in np.c_[means[:, :2], log_scales, opacity, colour, labels]}
+    assert all(tuple(np.round(r, 5)) in source
+               for r in np.c_[moved[:, :2], out.log_scales[n:], out.opacity_logits[n:], out.sh_dc[n:], out.labels[n:]])
+    assert (moved[:, 2] > 0.005).sum() > k // 4 and (moved[:, 2] < -0.005).sum() > k // 4
+    assert np.abs(moved[:, 2]).max() < 0.5
+    empty = off_surface(np.random.default_rng(0), *(a[:0] for a in args))
+    assert all(len(a) == 0 for a in empty)
+
+
+def test_the_training_data_moves_gaussians_off_surfaces_only_when_asked():
+    """The trainer's data path applies it (opt-in): some samples then hold more Gaussians than the scene, each with
+    a label; without it every sample holds the scene's Gaussians."""
+    from ovgaussian.data.scene_source import InMemorySource
+    from ovgaussian.data.training_data import TrainingData
+    from ovgaussian.run.config import DataConfig
+    from ovgaussian.text.vocabulary import training_vocabulary
+    from test_train import make_scene
+
+    scene = make_scene(0)
+    n = len(scene.gaussians.means)
+    for flag in (False, True):
+        data = TrainingData(InMemorySource([scene]), DataConfig(off_surface_augment=flag, pixels_per_view=64),
+                            training_vocabulary(20))
+        samples = [data.sample(scene.scene_id, np.random.default_rng(s)) for s in range(8)]
+        assert all(len(x.labels) == len(x.means) == len(x.opacity_logits) for x in samples)
+        grew = sum(len(x.means) > n for x in samples)
+        assert (grew > 0) if flag else (grew == 0)
