@@ -255,18 +255,20 @@ def surface_normals(means: np.ndarray, neighbours: int = OFF_SURFACE_NEIGHBOURS)
 
 
 def off_surface(rng: np.random.Generator, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
-                opacity_logits: np.ndarray, sh_dc: np.ndarray, labels: np.ndarray) -> SplatStatistics:
+                opacity_logits: np.ndarray, sh_dc: np.ndarray, labels: np.ndarray,
+                normals: np.ndarray | None = None) -> SplatStatistics:
     """The scene with Gaussians off its surfaces, as a photometric fit leaves them (thick shells in front of and
     behind its surfaces), drawn from ``rng``: a share of the Gaussians is copied and each copy moved a half-normal
     distance along its surface's normal (:func:`surface_normals`) to a random side, with its source's shape, colour,
     opacity and label (the nearest surface's, as the label transfer gives it). Copies are appended, so rows ``i < N``
-    are unchanged and pixel blend weights computed on the stored Gaussians still index the right rows."""
+    are unchanged and pixel blend weights computed on the stored Gaussians still index the right rows. ``normals``
+    ``[N, 3]``: the :func:`surface_normals` of ``means`` when known (the trainer keeps them per scene)."""
     n = means.shape[0]
     k = int(round(rng.uniform(*OFF_SURFACE_SHARE) * n)) if n > 1 else 0
     if not k:
         return SplatStatistics(means, quats, log_scales, opacity_logits, sh_dc, labels)
     rows = np.sort(rng.choice(n, size=k, replace=False))
-    normals = surface_normals(means)[rows]
+    normals = (surface_normals(means) if normals is None else np.asarray(normals, np.float64))[rows]
     distance = rng.normal(0.0, rng.uniform(*OFF_SURFACE_SIGMA), k)  # the sign picks the side
     moved = means[rows].astype(np.float64) + normals * distance[:, None]
     return SplatStatistics(

@@ -32,7 +32,7 @@ import torch
 
 from ovgaussian.data.augmentation import (OFF_SURFACE_PROBABILITY, RENDITION_PROBABILITY, SPLAT_AUGMENT_PROBABILITY,
                                           augment_gaussians, off_surface, rendition, sample_augmentation,
-                                          splat_statistics)
+                                          splat_statistics, surface_normals)
 from ovgaussian.data.cache_budget import folder_bytes
 from ovgaussian.data.scene_source import ScanResult, SceneSource, scan_scenes
 from ovgaussian.text.teacher import sample_patch_features
@@ -196,6 +196,7 @@ class TrainingData:
         self.scan = scan if scan is not None else scan_scenes(source, vocabulary)
         self._scenes: OrderedDict[tuple[int, str], tuple[PreparedScene, object, GeometryTensors]] = OrderedDict()
         self._views: OrderedDict[tuple[int, str, str], PreparedView] = OrderedDict()
+        self._normals: OrderedDict[tuple[int, str], np.ndarray] = OrderedDict()  # off_surface's, stored frame
         self.blend_computations = 0  # calls of the pixel blend function (one per sample)
         self.cache_budget_bytes = cache_budget_bytes
         self._cache_bytes: int | None = None  # bytes under cache_dir, counted on first use
@@ -222,6 +223,16 @@ class TrainingData:
 
     def prepared_scene(self, scene_id: str, rendition: int = 0) -> PreparedScene:
         return self._record_and_scene(scene_id, rendition)[0]
+
+    def _stored_normals(self, scene_id: str, rendition: int, means: np.ndarray) -> np.ndarray:
+        """``[N, 3]`` surface normals of a prepared scene's means (``augmentation.surface_normals``), kept as long
+        as its scene."""
+        key = (rendition, scene_id)
+        if key not in self._normals:
+            self._normals[key] = surface_normals(means)
+            while len(self._normals) > max(1, self.config.scene_cache_size) * len(self.sources):
+                self._normals.popitem(last=False)
+        return self._normals[key]
 
     # views ----------------------------------------------------------------------------------
     def pixel_blend_weights(self, scene_id: str, view: PreparedView, pixels: "torch.Tensor", rendition: int = 0):
@@ -306,15 +317,22 @@ class TrainingData:
         if view.teacher is not None:
             teacher = sample_patch_features(view.teacher, pixels, (h, w))
         opacity_logits, sh_dc, labels = scene.opacity_logits, scene.sh_dc, scene.labels
+        remade = False  # whether the Gaussians are other than the stored ones under the similarity
         if self.config.splat_augment and rng.random() < SPLAT_AUGMENT_PROBABILITY:
             means, quats, log_scales, opacity_logits, sh_dc, labels = splat_statistics(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels, IGNORE_LABEL)
+            remade = True
         if self.config.rendition_augment and rng.random() < RENDITION_PROBABILITY:
             means, quats, log_scales, opacity_logits, sh_dc, labels = rendition(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels)
+            remade = True
         if self.config.off_surface_augment and rng.random() < OFF_SURFACE_PROBABILITY:
+            normals = None
+            if not remade:  # the stored Gaussians' normals, turned with the similarity
+                normals = self._stored_normals(scene_id, drawn, scene.means) @ augmentation.linear.T
+                normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
             means, quats, log_scales, opacity_logits, sh_dc, labels = off_surface(
-                rng, means, quats, log_scales, opacity_logits, sh_dc, labels)
+                rng, means, quats, log_scales, opacity_logits, sh_dc, labels, normals)
         loss_rows = None
         wanted = self.config.loss_gaussians
         if wanted is not None and wanted < len(labels):  # drawn last: without it a run draws as before, bitwise

@@ -357,3 +357,18 @@ def test_the_training_data_moves_gaussians_off_surfaces_only_when_asked():
         assert all(len(x.labels) == len(x.means) == len(x.opacity_logits) for x in samples)
         grew = sum(len(x.means) > n for x in samples)
         assert (grew > 0) if flag else (grew == 0)
+
+
+def test_surface_normals_turn_with_the_training_similarity():
+    """The trainer keeps each scene's normals and turns them with the sample's similarity (scale, rotation about z,
+    mirrors) instead of recomputing them: the same axes as the normals of the moved centres, sign free."""
+    from ovgaussian.data.augmentation import Augmentation, augment_gaussians, surface_normals
+
+    rng = np.random.default_rng(11)
+    means = rng.normal(size=(2500, 3)) * [1.0, 0.6, 0.3]
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(means), 1))
+    aug = Augmentation(1.07, 0.8, np.array([-1.0, 1.0, 1.0]))
+    moved, _, _ = augment_gaussians(means, quats, np.zeros((len(means), 3)), aug)
+    turned = surface_normals(means) @ aug.linear.T
+    turned /= np.linalg.norm(turned, axis=1, keepdims=True)
+    assert np.abs(np.sum(turned * surface_normals(moved), axis=1)).min() > 0.999
