@@ -48,6 +48,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
                default=TrainConfig.pool_weighting, show_default=True)
 @config_option(TrainConfig, "devoxelize", "--devoxelize", type=click.Choice(["nearest", "trilinear"]),
                default=TrainConfig.devoxelize, show_default=True)
+@config_option(TrainConfig, "surface_radius", "--surface-radius", type=click.FloatRange(min=0),
+               default=TrainConfig.surface_radius, show_default=True, metavar="METRES")
 @config_option(TrainConfig, "grid_anchor", "--grid-anchor", type=click.Choice(["min", "lattice"]),
                default=TrainConfig.grid_anchor, show_default=True)
 @config_option(TrainConfig, "voxel_geometry", "--voxel-geometry/--no-voxel-geometry",
@@ -81,7 +83,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resume, no_adapter, no_3dt_align,
             no_vs_align, num_classes, text_encoder, clip_model, model_preset, pixels_per_view, loss_gaussians,
             voxel_size,
-            use_coordinates, input_encoding, pool_weighting, devoxelize, grid_anchor, voxel_geometry, class_balance, lovasz_weight,
+            use_coordinates, input_encoding, pool_weighting, devoxelize, grid_anchor, surface_radius, voxel_geometry,
+            class_balance, lovasz_weight,
             opacity_power, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
             splat_augment, rendition_augment, off_surface_augment, renditions, verify, keep_checkpoints, threads, loader_workers, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
@@ -94,7 +97,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
         resume="auto" if resume == "auto" else resume is not None,
         model_preset=model_preset, use_adapter=not no_adapter, progress=progress and not as_json,
         voxel_size=voxel_size, use_coordinates=use_coordinates, input_encoding=input_encoding,
-        pool_weighting=pool_weighting, devoxelize=devoxelize, grid_anchor=grid_anchor, voxel_geometry=voxel_geometry,
+        pool_weighting=pool_weighting, devoxelize=devoxelize, grid_anchor=grid_anchor, surface_radius=surface_radius,
+        voxel_geometry=voxel_geometry,
         keep_checkpoints=keep_checkpoints, threads=threads, loader_workers=loader_workers,
         data=DataConfig(dataset=dataset, num_classes=int(num_classes), pixels_per_view=pixels_per_view,
                         loss_gaussians=loss_gaussians,

@@ -35,6 +35,7 @@ from ovgaussian.data.augmentation import (OFF_SURFACE_PROBABILITY, RENDITION_PRO
                                           splat_statistics, surface_normals)
 from ovgaussian.data.cache_budget import folder_bytes
 from ovgaussian.data.scene_source import ScanResult, SceneSource, scan_scenes
+from ovgaussian.model.surface import surface_positions
 from ovgaussian.text.teacher import sample_patch_features
 from ovgaussian.run.config import DataConfig
 from ovgaussian.text.vocabulary import Vocabulary, map_labels
@@ -187,8 +188,10 @@ class TrainingData:
     def __init__(self, source: SceneSource, config: DataConfig, vocabulary: Vocabulary, *,
                  cache_dir: Path | None = None, teacher: "DenseTeacher | None" = None,
                  pixel_blend_function: Callable | None = None, scan: ScanResult | None = None,
-                 cache_budget_bytes: int | None = None, renditions: Sequence[SceneSource] = ()):
+                 cache_budget_bytes: int | None = None, renditions: Sequence[SceneSource] = (),
+                 surface_radius: float = 0.0):
         self.config, self.vocabulary = config, vocabulary
+        self.surface_radius = float(surface_radius)  # > 0: the network's positions on the splat's surface
         self.sources = (source, *renditions)  # rendition 0 is the dataset itself
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.teacher = teacher
@@ -215,7 +218,11 @@ class TrainingData:
         record = self.sources[rendition].read_scene(scene_id)
         if hasattr(record, "_replace"):  # keep only what later steps need: the train views, no instance maps
             record = record._replace(views=[v._replace(instance=None) for v in record.views if v.role == "train"])
-        entry = (prepare_scene(record, self.vocabulary), record, geometry_tensors(record.gaussians))
+        scene = prepare_scene(record, self.vocabulary)
+        if self.surface_radius > 0:  # as the predictor places them: in the scene's own frame, then recentred
+            placed = surface_positions(record.gaussians.means, record.gaussians.opacities(), self.surface_radius)
+            scene = scene._replace(means=(placed - scene.centre).astype(np.float32))
+        entry = (scene, record, geometry_tensors(record.gaussians))
         self._scenes[key] = entry
         while len(self._scenes) > max(1, self.config.scene_cache_size) * len(self.sources):
             self._scenes.popitem(last=False)
@@ -333,6 +340,10 @@ class TrainingData:
                 normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
             means, quats, log_scales, opacity_logits, sh_dc, labels = off_surface(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels, normals)
+            remade = True
+        if remade and self.surface_radius > 0:  # the remade splat placed on its own surface, as the predictor would
+            opacity = 1.0 / (1.0 + np.exp(-opacity_logits.astype(np.float64)))
+            means = surface_positions(means, opacity, self.surface_radius).astype(np.float32)
         loss_rows = None
         wanted = self.config.loss_gaussians
         if wanted is not None and wanted < len(labels):  # drawn last: without it a run draws as before, bitwise

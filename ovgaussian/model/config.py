@@ -39,6 +39,10 @@ class OVGaussianNetConfig:
     (one floater outside the room then moves every voxel boundary); ``lattice`` = on multiples of 16 voxels (the
     coarsest level's stride) in the frame of the positions given (``predict`` and ``bench`` recentre a scene by a
     multiple of it, so two splats of one room share every level's grid)."""
+    surface_radius: float = 0.0
+    """Reach (metres) of the projection that places each Gaussian on its splat's own surface before voxelizing
+    (``ovgaussian.model.surface``: the thick shells a photometric fit leaves about its surfaces collapse onto them; a
+    thin surface barely moves); 0 voxelizes the centres as they are."""
     use_coordinates: bool = False
     """Append 3 normalized coordinates (position minus scene centre, divided by the scene's
     half-extent, so in [-1, 1]) to the 11 attributes: backbone and adapter see 14 inputs."""
@@ -95,6 +99,8 @@ class OVGaussianNetConfig:
             raise ValueError(f"input_encoding must be 'raw', 'robust' or 'invariant', got {self.input_encoding!r}")
         if self.pool_weighting not in ("mean", "opacity"):
             raise ValueError(f"pool_weighting must be 'mean' or 'opacity', got {self.pool_weighting!r}")
+        if not self.surface_radius >= 0:
+            raise ValueError(f"surface_radius must be >= 0, got {self.surface_radius}")
         if self.grid_anchor not in ("min", "lattice"):
             raise ValueError(f"grid_anchor must be 'min' or 'lattice', got {self.grid_anchor!r}")
         if self.devoxelize not in ("nearest", "trilinear"):

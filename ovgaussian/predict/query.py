@@ -25,6 +25,7 @@ from ovgaussian.openvocab.class_offsets import offsets_checkpoints, offsets_fain
 from ovgaussian.run.checkpoint import load_trained_model, weights_sha256
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.model.network import gaussian_attributes
+from ovgaussian.model.surface import surface_positions
 from ovgaussian.predict.config import PredictConfig
 from ovgaussian.predict.ensemble import EnsemblePredictor
 from ovgaussian.predict.faint_blend import faint_blend
@@ -80,11 +81,15 @@ class ModelPredictor:
         if not np.isfinite(means64).all():
             raise ValueError("Gaussians.means holds NaN/Inf")
         centre = 0.5 * (means64.min(axis=0) + means64.max(axis=0))  # as ovgaussian.data.training_data.prepare_scene
+        placed = means64  # the positions the network voxelizes: on the splat's surface when the run says so
+        if self.model.config.surface_radius > 0:
+            placed = surface_positions(means64, np.asarray(gaussians.opacities(), np.float64),
+                                       self.model.config.surface_radius)
         lattice = self.model.grid_lattice
         if lattice is not None:  # a multiple of the grid's lattice: the voxels stay where the scene's frame has them
             step = lattice * self.model.config.voxel_size
             centre = np.round(centre / step) * step
-        means = torch.from_numpy((means64 - centre).astype(np.float32)).to(self.device)
+        means = torch.from_numpy((placed - centre).astype(np.float32)).to(self.device)
         attributes = gaussian_attributes(gaussians).to(self.device)
         batch_index = torch.zeros(n, dtype=torch.int64, device=self.device)
         with torch.no_grad():

@@ -113,7 +113,8 @@ def make_model_config(config: TrainConfig, text_width: int) -> OVGaussianNetConf
     fields = dict(embedding_width=int(text_width), use_adapter=config.use_adapter, seed=config.seed,
                   use_coordinates=config.use_coordinates, input_encoding=config.input_encoding,
                   pool_weighting=config.pool_weighting, devoxelize=config.devoxelize,
-                  voxel_geometry=config.voxel_geometry, grid_anchor=config.grid_anchor)
+                  voxel_geometry=config.voxel_geometry, grid_anchor=config.grid_anchor,
+                  surface_radius=config.surface_radius)
     if config.voxel_size is not None:
         fields["voxel_size"] = float(config.voxel_size)
     if config.model_preset == "slim":
@@ -438,7 +439,8 @@ def train_in_process_group(
     steps_per_epoch = len(scan.usable) // batch_scenes
     data = TrainingData(source, config.data, vocabulary, cache_dir=cache_dir, teacher=teacher,
                         pixel_blend_function=pixel_blend_function, scan=scan,
-                        cache_budget_bytes=run_cache_budget(source), renditions=renditions)
+                        cache_budget_bytes=run_cache_budget(source), renditions=renditions,
+                        surface_radius=model_config.surface_radius)
 
     start_epoch, global_step, last_checkpoint = 0, 0, None
     if saved is not None:
