@@ -35,7 +35,6 @@ from ovgaussian.data.augmentation import (OFF_SURFACE_PROBABILITY, RENDITION_PRO
                                           splat_statistics, surface_normals)
 from ovgaussian.data.cache_budget import folder_bytes
 from ovgaussian.data.scene_source import ScanResult, SceneSource, scan_scenes
-from ovgaussian.model.surface import surface_positions
 from ovgaussian.text.teacher import sample_patch_features
 from ovgaussian.run.config import DataConfig
 from ovgaussian.text.vocabulary import Vocabulary, map_labels
@@ -171,10 +170,6 @@ def geometry_tensors(gaussians) -> GeometryTensors:
                              for name in ("means", "quats", "log_scales", "opacity_logits")))
 
 
-#: Bytes of placed positions (``surface_radius``) the training data keeps: a 3 M-Gaussian scene takes 36 MB.
-PLACED_CACHE_BYTES = 512 * 2**20
-
-
 class TrainingData:
     """Scenes of a split, prepared and cached for training.
 
@@ -192,10 +187,8 @@ class TrainingData:
     def __init__(self, source: SceneSource, config: DataConfig, vocabulary: Vocabulary, *,
                  cache_dir: Path | None = None, teacher: "DenseTeacher | None" = None,
                  pixel_blend_function: Callable | None = None, scan: ScanResult | None = None,
-                 cache_budget_bytes: int | None = None, renditions: Sequence[SceneSource] = (),
-                 surface_radius: float = 0.0):
+                 cache_budget_bytes: int | None = None, renditions: Sequence[SceneSource] = ()):
         self.config, self.vocabulary = config, vocabulary
-        self.surface_radius = float(surface_radius)  # > 0: the network's positions on the splat's surface
         self.sources = (source, *renditions)  # rendition 0 is the dataset itself
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.teacher = teacher
@@ -204,7 +197,6 @@ class TrainingData:
         self._scenes: OrderedDict[tuple[int, str], tuple[PreparedScene, object, GeometryTensors]] = OrderedDict()
         self._views: OrderedDict[tuple[int, str, str], PreparedView] = OrderedDict()
         self._normals: OrderedDict[tuple[int, str], np.ndarray] = OrderedDict()  # off_surface's, stored frame
-        self._placed: OrderedDict[tuple[int, str], np.ndarray] = OrderedDict()  # surface_positions, recentred
         self.blend_computations = 0  # calls of the pixel blend function (one per sample)
         self.cache_budget_bytes = cache_budget_bytes
         self._cache_bytes: int | None = None  # bytes under cache_dir, counted on first use
@@ -223,10 +215,7 @@ class TrainingData:
         record = self.sources[rendition].read_scene(scene_id)
         if hasattr(record, "_replace"):  # keep only what later steps need: the train views, no instance maps
             record = record._replace(views=[v._replace(instance=None) for v in record.views if v.role == "train"])
-        scene = prepare_scene(record, self.vocabulary)
-        if self.surface_radius > 0:
-            scene = scene._replace(means=self._placed_means(key, record.gaussians, scene.centre))
-        entry = (scene, record, geometry_tensors(record.gaussians))
+        entry = (prepare_scene(record, self.vocabulary), record, geometry_tensors(record.gaussians))
         self._scenes[key] = entry
         while len(self._scenes) > max(1, self.config.scene_cache_size) * len(self.sources):
             self._scenes.popitem(last=False)
@@ -234,19 +223,6 @@ class TrainingData:
 
     def prepared_scene(self, scene_id: str, rendition: int = 0) -> PreparedScene:
         return self._record_and_scene(scene_id, rendition)[0]
-
-    def _placed_means(self, key: tuple[int, str], gaussians, centre: np.ndarray) -> np.ndarray:
-        """``[N, 3]`` float32 recentred positions of a scene's Gaussians on its own surface, placed as the predictor
-        places them (in the scene's own frame); kept apart from the scene cache, up to ``PLACED_CACHE_BYTES``, since
-        placing costs more than reading a scene again."""
-        if key in self._placed:
-            self._placed.move_to_end(key)
-            return self._placed[key]
-        placed = surface_positions(gaussians.means, gaussians.opacities(), self.surface_radius)
-        self._placed[key] = (placed - centre).astype(np.float32)
-        while len(self._placed) > 1 and sum(a.nbytes for a in self._placed.values()) > PLACED_CACHE_BYTES:
-            self._placed.popitem(last=False)
-        return self._placed[key]
 
     def _stored_normals(self, scene_id: str, rendition: int, means: np.ndarray) -> np.ndarray:
         """``[N, 3]`` surface normals of a prepared scene's means (``augmentation.surface_normals``), kept as long
@@ -357,10 +333,6 @@ class TrainingData:
                 normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
             means, quats, log_scales, opacity_logits, sh_dc, labels = off_surface(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels, normals)
-            remade = True
-        if remade and self.surface_radius > 0:  # the remade splat placed on its own surface, as the predictor would
-            opacity = 1.0 / (1.0 + np.exp(-opacity_logits.astype(np.float64)))
-            means = surface_positions(means, opacity, self.surface_radius).astype(np.float32)
         loss_rows = None
         wanted = self.config.loss_gaussians
         if wanted is not None and wanted < len(labels):  # drawn last: without it a run draws as before, bitwise

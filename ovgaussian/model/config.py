@@ -40,9 +40,10 @@ class OVGaussianNetConfig:
     coarsest level's stride) in the frame of the positions given (``predict`` and ``bench`` recentre a scene by a
     multiple of it, so two splats of one room share every level's grid)."""
     surface_radius: float = 0.0
-    """Reach (metres) of the projection that places each Gaussian on its splat's own surface before voxelizing
-    (``ovgaussian.model.surface``: the thick shells a photometric fit leaves about its surfaces collapse onto them; a
-    thin surface barely moves); 0 voxelizes the centres as they are."""
+    """Reach (metres) of the projection that places each Gaussian on its splat's own surface before the network
+    voxelizes a splat it labels (predict, bench, the viewer: ``ovgaussian.model.surface``; the thick shells a
+    photometric fit leaves about its surfaces collapse onto them, a thin surface barely moves); training shows the
+    splats as they are. 0 voxelizes the centres as they are."""
     use_coordinates: bool = False
     """Append 3 normalized coordinates (position minus scene centre, divided by the scene's
     half-extent, so in [-1, 1]) to the 11 attributes: backbone and adapter see 14 inputs."""

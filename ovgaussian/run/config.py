@@ -204,9 +204,11 @@ class TrainConfig:
     frame: floaters move nothing). ``min`` stays the default until ``lattice`` is measured on the benchmark profile
     (benchmarks/results/renditions.md)."""
     surface_radius: float = 0.0
-    """Place each Gaussian on its splat's own surface before voxelizing, with this reach in metres (a
-    moving-least-squares projection, ``ovgaussian.model.surface``): the thick shells a fit without depth leaves
-    about its surfaces collapse onto them, in training and wherever the run is used; 0: the centres as they are."""
+    """Wherever the run labels a splat (predict, bench, the viewer), place each Gaussian on the splat's own surface
+    first, with this reach in metres (a moving-least-squares projection, ``ovgaussian.model.surface``): the thick
+    shells a fit without depth leaves about its surfaces collapse onto them. Training shows its splats as they are:
+    with ``--off-surface-augment`` it learns the shells the projection leaves (placing the training splats too measured
+    worse, benchmarks/results/renditions.md). 0: the centres as they are."""
     voxel_geometry: bool = False
     """Also give the backbone how the Gaussians' centres lie in each voxel (their mean offset and covariance: a
     surface's orientation, which a fitted splat's own rotations do not carry); off: the pooled attributes alone."""

@@ -439,8 +439,7 @@ def train_in_process_group(
     steps_per_epoch = len(scan.usable) // batch_scenes
     data = TrainingData(source, config.data, vocabulary, cache_dir=cache_dir, teacher=teacher,
                         pixel_blend_function=pixel_blend_function, scan=scan,
-                        cache_budget_bytes=run_cache_budget(source), renditions=renditions,
-                        surface_radius=model_config.surface_radius)
+                        cache_budget_bytes=run_cache_budget(source), renditions=renditions)
 
     start_epoch, global_step, last_checkpoint = 0, 0, None
     if saved is not None:

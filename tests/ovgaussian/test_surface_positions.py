@@ -1,6 +1,6 @@
 """ovgaussian.model.surface: the projection that places a splat's Gaussians on its own surface, against its
 point-by-point reference, on degenerate inputs, and for what it is for (a thick shell collapses, a thin surface stays,
-the count of Gaussians does not matter); and that training and prediction place a scene alike."""
+the count of Gaussians does not matter); and that the predictor places a scene so."""
 
 from __future__ import annotations
 
@@ -86,16 +86,13 @@ def test_the_count_of_gaussians_on_a_surface_does_not_move_it():
         assert np.median(np.abs(placed[:half, 2][interior])) < 0.006
 
 
-def test_prediction_and_training_place_a_scene_alike():
+def test_the_predictor_places_a_scene_on_its_surface():
     """A run with ``surface_radius`` voxelizes the placed positions: the predictor's vectors are those of the network
-    fed the projection directly, and the trainer's prepared scene holds the same positions (recentred)."""
-    from ovgaussian.data.scene_source import InMemorySource
-    from ovgaussian.data.training_data import TrainingData
+    fed the projection directly (recentred as the predictor recentres)."""
     from ovgaussian.model.config import OVGaussianNetConfig
     from ovgaussian.model.network import OVGaussianNet, gaussian_attributes
     from ovgaussian.predict.query import ModelPredictor
-    from ovgaussian.run.config import DataConfig, TextConfig
-    from ovgaussian.text.vocabulary import training_vocabulary
+    from ovgaussian.run.config import TextConfig
     from test_train import make_scene
 
     scene = make_scene(0)
@@ -108,7 +105,3 @@ def test_prediction_and_training_place_a_scene_alike():
         direct = net(torch.from_numpy((placed - centre).astype(np.float32)), gaussian_attributes(g),
                      torch.zeros(len(g), dtype=torch.int64)).numpy()
     np.testing.assert_allclose(ModelPredictor(net, TextConfig()).encode_gaussians(g), direct, atol=1e-6)
-    data = TrainingData(InMemorySource([scene]), DataConfig(pixels_per_view=64), training_vocabulary(20),
-                        surface_radius=0.15)
-    np.testing.assert_allclose(data.prepared_scene(scene.scene_id).means, (placed - centre).astype(np.float32),
-                               atol=1e-6)
