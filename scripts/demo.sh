@@ -5,7 +5,7 @@
 # renditions of the same rooms that need no fit (a scan turned into splats, oracle Gaussians sampled on the mesh),
 # moves a share of its Gaussians off their surfaces as a fit without depth leaves them, and the run places a splat's
 # Gaussians on its own surface before labelling it: one model for splats made other ways (benchmarks/results/renditions.md).
-# About 5 minutes on a quiet 2-core AMD EPYC Zen 4 machine, 9 on a Zen 3 one (BENCHMARKS.md, "Build and main job");
+# About 11 minutes on a quiet 2-core Intel Xeon (family 6 model 207) (BENCHMARKS.md, "Build and main job");
 # every knob can be overridden from the environment.
 # Prints the Table-1 row of the trained run next to two non-learned baselines scored by the same code.
 set -euo pipefail
