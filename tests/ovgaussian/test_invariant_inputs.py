@@ -268,9 +268,11 @@ def test_rendition_keeps_rows_labels_and_the_room():
     assert all(len(a) == 0 for a in empty)
 
 
-def test_the_training_data_draws_renditions_only_when_asked():
-    """The trainer's data path applies it (opt-in): some samples then hold more Gaussians than the scene (appended
-    children), with a label for each; without it every sample holds the scene's Gaussians."""
+@pytest.mark.parametrize("augment", ["rendition_augment", "off_surface_augment"])
+def test_the_training_data_remakes_splats_only_when_asked(augment):
+    """The trainer's data path applies the rendition and off-surface augments (opt-in): some samples then hold more
+    Gaussians than the scene (appended children or copies), with a label for each; without it every sample holds the
+    scene's Gaussians."""
     from ovgaussian.data.scene_source import InMemorySource
     from ovgaussian.data.training_data import TrainingData
     from ovgaussian.run.config import DataConfig
@@ -280,7 +282,7 @@ def test_the_training_data_draws_renditions_only_when_asked():
     scene = make_scene(0)
     n = len(scene.gaussians.means)
     for flag in (False, True):
-        data = TrainingData(InMemorySource([scene]), DataConfig(rendition_augment=flag, pixels_per_view=64),
+        data = TrainingData(InMemorySource([scene]), DataConfig(**{augment: flag}, pixels_per_view=64),
                             training_vocabulary(20))
         samples = [data.sample(scene.scene_id, np.random.default_rng(s)) for s in range(8)]
         assert all(len(x.labels) == len(x.means) == len(x.opacity_logits) for x in samples)
@@ -337,26 +339,6 @@ def test_off_surface_copies_move_along_the_normal_and_keep_their_source():
     assert np.abs(moved[:, 2]).max() < 0.5
     empty = off_surface(np.random.default_rng(0), *(a[:0] for a in args))
     assert all(len(a) == 0 for a in empty)
-
-
-def test_the_training_data_moves_gaussians_off_surfaces_only_when_asked():
-    """The trainer's data path applies it (opt-in): some samples then hold more Gaussians than the scene, each with
-    a label; without it every sample holds the scene's Gaussians."""
-    from ovgaussian.data.scene_source import InMemorySource
-    from ovgaussian.data.training_data import TrainingData
-    from ovgaussian.run.config import DataConfig
-    from ovgaussian.text.vocabulary import training_vocabulary
-    from test_train import make_scene
-
-    scene = make_scene(0)
-    n = len(scene.gaussians.means)
-    for flag in (False, True):
-        data = TrainingData(InMemorySource([scene]), DataConfig(off_surface_augment=flag, pixels_per_view=64),
-                            training_vocabulary(20))
-        samples = [data.sample(scene.scene_id, np.random.default_rng(s)) for s in range(8)]
-        assert all(len(x.labels) == len(x.means) == len(x.opacity_logits) for x in samples)
-        grew = sum(len(x.means) > n for x in samples)
-        assert (grew > 0) if flag else (grew == 0)
 
 
 def test_surface_normals_turn_with_the_training_similarity():
