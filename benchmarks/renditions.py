@@ -101,6 +101,21 @@ def score(data: Path, run_dir: Path, metric: str, report: Path) -> float | None:
     return None if value is None else 100.0 * float(value)
 
 
+def report_interval(report: Path, base: Path, metric: str) -> dict:
+    """The 95 % bootstrap intervals over rooms of one cell (from its ``ovgaussian bench`` report): the mIoU's, and
+    the paired ratio to the ``base`` report's (the run on its own rendition: the same rooms, one draw for both)."""
+    from ovgaussian.bench.bootstrap import bootstrap_ratio
+
+    cell, own = json.loads(report.read_text()), json.loads(base.read_text())
+    entry = cell["metrics"]["3d"][metric.upper()]
+    names = cell["vocabulary"]["names"]
+    classes = [names.index(n) for n in entry["classes"]]
+    key = f"{entry['split']}_3d"
+    ratio = bootstrap_ratio(np.asarray(cell["scene_confusion"][key]), np.asarray(own["scene_confusion"][key]), classes)
+    return {"miou_ci95": entry.get("ci95"), "rooms": entry["num_scenes"],
+            "ratio_to_own": ratio.value, "ratio_ci95": None if ratio.low is None else [ratio.low, ratio.high]}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--raw", type=Path, required=True, help="raw tree the dataset was built from (seggaussian synth)")
@@ -135,6 +150,13 @@ def main() -> int:
                 report.parent.mkdir(parents=True, exist_ok=True)
                 table["scores"].setdefault(run_name, {}).setdefault(name, {})[metric] = score(
                     data, Path(run_dir), metric, report)
+    for run_name in runs:  # intervals over rooms, and each rendition's ratio to the run's own fit
+        for name in datasets:
+            for metric in ("csa", "cda"):
+                report = work / "reports" / f"{run_name}-{name}-{metric}.json"
+                base = work / "reports" / f"{run_name}-own-{metric}.json"
+                table.setdefault("intervals", {}).setdefault(run_name, {}).setdefault(name, {})[metric] = (
+                    report_interval(report, base, metric))
     names = list(datasets)
     lines = ["| run | " + " | ".join(f"{n} CSA / CDA" for n in names) + " |",
              "|---|" + "---:|" * len(names)]
@@ -143,6 +165,19 @@ def main() -> int:
         for n in names:
             s = table["scores"][run_name][n]
             cells.append(" / ".join("-" if s[m] is None else f"{s[m]:.1f}" for m in ("csa", "cda")))
+        lines.append(f"| {run_name} | " + " | ".join(cells) + " |")
+    lines += ["", "Ratio to the own fit, 95 % interval over rooms (paired bootstrap), CSA / CDA:", "",
+              "| run | " + " | ".join(names[1:]) + " |", "|---|" + "---:|" * (len(names) - 1)]
+    for run_name in runs:
+        cells = []
+        for n in names[1:]:
+            parts = []
+            for m in ("csa", "cda"):
+                cell = table["intervals"][run_name][n][m]
+                ci = cell["ratio_ci95"]
+                value = "-" if cell["ratio_to_own"] is None else f"{cell['ratio_to_own']:.2f}"
+                parts.append(value + ("" if ci is None else f" [{ci[0]:.2f}, {ci[1]:.2f}]"))
+            cells.append(" / ".join(parts))
         lines.append(f"| {run_name} | " + " | ".join(cells) + " |")
     counts = " ; ".join(f"{n}: " + ", ".join(f"{c:,}" for c in table["gaussians"][n].values()) for n in names)
     print("\n".join(lines))
