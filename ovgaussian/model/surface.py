@@ -32,7 +32,13 @@ SURFACE_KERNEL = 0.5
 def _supports(means: np.ndarray, opacity: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(support points [S, 3], their opacity sums [S], each centre's cell [N])``."""
     cells = np.floor(means / SURFACE_CELL).astype(np.int64)
-    _, cell_of = np.unique(cells, axis=0, return_inverse=True)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:  # one int64 key a cell, in the rows' order
+        keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+        _, cell_of = np.unique(keys, return_inverse=True)
+    else:
+        _, cell_of = np.unique(cells, axis=0, return_inverse=True)
     cell_of = cell_of.reshape(-1)
     mass = np.bincount(cell_of, weights=opacity)
     points = np.stack([np.bincount(cell_of, weights=opacity * means[:, j]) for j in range(3)], axis=1)
@@ -59,12 +65,14 @@ def surface_positions(means: np.ndarray,  # [N, 3] metres
     weight = np.clip(np.asarray(opacity, dtype=np.float64).reshape(-1), 0.0, 1.0)
     if radius <= 0.0 or len(moved) == 0:
         return moved
+    import torch
     from scipy.spatial import cKDTree
 
     for _ in range(SURFACE_ITERATIONS):
         points, mass, cell_of = _supports(moved, weight)
         k = min(SURFACE_NEIGHBOURS, len(points))
-        distance, index = cKDTree(points).query(points, k=k, distance_upper_bound=radius)
+        distance, index = cKDTree(points).query(points, k=k, distance_upper_bound=radius,
+                                                workers=max(1, torch.get_num_threads()))  # the same on any count
         distance, index = distance.reshape(len(points), k), index.reshape(len(points), k)
         found = np.isfinite(distance)
         index = np.where(found, index, 0)

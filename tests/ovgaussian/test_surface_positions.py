@@ -28,6 +28,17 @@ def test_fast_projection_is_the_reference(radius):
                                surface_positions_reference(means, opacity, radius), atol=1e-12)
 
 
+def test_cells_of_a_splat_spread_over_kilometres():
+    """Two rooms 200 km apart: the cells no longer fit one int64 key each and are found row by row; the projection
+    is still the reference's."""
+    rng = np.random.default_rng(4)
+    room = _shell(rng, 150, 0.03)
+    means = np.concatenate([room, room + [2.0e5, 2.0e5, 2.0e5]])
+    opacity = rng.uniform(0.1, 1, len(means))
+    np.testing.assert_allclose(surface_positions(means, opacity, 0.15),
+                               surface_positions_reference(means, opacity, 0.15), atol=1e-9)
+
+
 @pytest.mark.parametrize("case", ["empty", "one", "same point", "no opacity", "radius 0", "line"])
 def test_degenerate_inputs(case):
     rng = np.random.default_rng(0)
