@@ -14,7 +14,9 @@ from typing import NamedTuple
 import numpy as np
 
 from ovgaussian.run.config import DataConfig
+from ovgaussian.model.surface import weighted_plane
 from seggaussian.core.constants import QUAT_NORM_EPS, SH_C0
+from seggaussian.core.knn import nearest_neighbours
 from seggaussian.core.rotations import quats_to_rotmats, rotmats_to_quats
 
 
@@ -241,17 +243,12 @@ OFF_SURFACE_NEIGHBOURS = 16
 
 
 def surface_normals(means: np.ndarray, neighbours: int = OFF_SURFACE_NEIGHBOURS) -> np.ndarray:  # [N, 3] float64
-    """``[N, 3]`` unit normal of the surface around each centre of ``means [N, 3]``: the eigenvector of least
-    eigenvalue of the covariance of its ``neighbours`` nearest centres (itself included), sign arbitrary."""
-    from scipy.spatial import cKDTree
-
+    """``[N, 3]`` unit normal of the surface around each centre of ``means [N, 3]``: the least-spread axis
+    (``weighted_plane``, weights 1) of its ``neighbours`` nearest centres (itself included), sign arbitrary."""
     pts = means.astype(np.float64)
     k = min(neighbours, len(pts))
-    _, index = cKDTree(pts).query(pts, k=k)
-    near = pts[np.reshape(index, (len(pts), k))]
-    centred = near - near.mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
-    return vectors[:, :, 0]
+    _, index = nearest_neighbours(pts, "scipy")(pts, k)
+    return weighted_plane(pts[index], np.ones(index.shape))[1]
 
 
 def off_surface(rng: np.random.Generator, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,

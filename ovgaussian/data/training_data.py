@@ -196,7 +196,7 @@ class TrainingData:
         self.scan = scan if scan is not None else scan_scenes(source, vocabulary)
         self._scenes: OrderedDict[tuple[int, str], tuple[PreparedScene, object, GeometryTensors]] = OrderedDict()
         self._views: OrderedDict[tuple[int, str, str], PreparedView] = OrderedDict()
-        self._normals: OrderedDict[tuple[int, str], np.ndarray] = OrderedDict()  # off_surface's, stored frame
+        self._normals: dict[tuple[int, str], np.ndarray] = {}  # off_surface's, stored frame, per cached scene
         self.blend_computations = 0  # calls of the pixel blend function (one per sample)
         self.cache_budget_bytes = cache_budget_bytes
         self._cache_bytes: int | None = None  # bytes under cache_dir, counted on first use
@@ -218,7 +218,8 @@ class TrainingData:
         entry = (prepare_scene(record, self.vocabulary), record, geometry_tensors(record.gaussians))
         self._scenes[key] = entry
         while len(self._scenes) > max(1, self.config.scene_cache_size) * len(self.sources):
-            self._scenes.popitem(last=False)
+            evicted, _ = self._scenes.popitem(last=False)
+            self._normals.pop(evicted, None)
         return entry
 
     def prepared_scene(self, scene_id: str, rendition: int = 0) -> PreparedScene:
@@ -226,12 +227,10 @@ class TrainingData:
 
     def _stored_normals(self, scene_id: str, rendition: int, means: np.ndarray) -> np.ndarray:
         """``[N, 3]`` surface normals of a prepared scene's means (``augmentation.surface_normals``), kept as long
-        as its scene."""
+        as its scene is (dropped when the scene cache lets it go)."""
         key = (rendition, scene_id)
         if key not in self._normals:
             self._normals[key] = surface_normals(means)
-            while len(self._normals) > max(1, self.config.scene_cache_size) * len(self.sources):
-                self._normals.popitem(last=False)
         return self._normals[key]
 
     # views ----------------------------------------------------------------------------------

@@ -45,8 +45,9 @@ def _supports(means: np.ndarray, opacity: np.ndarray) -> tuple[np.ndarray, np.nd
     return points / np.maximum(mass, 1e-300)[:, None], mass, cell_of
 
 
-def _plane(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted centroid ``[..., 3]`` and unit normal ``[..., 3]`` (least-spread axis) of ``points [..., K, 3]``."""
+def weighted_plane(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted centroid ``[..., 3]`` and unit normal ``[..., 3]`` (least-spread axis, sign arbitrary) of
+    ``points [..., K, 3]`` with ``weights [..., K]`` (the off-surface augment's normals use it with weights 1)."""
     total = np.maximum(weights.sum(axis=-1, keepdims=True), 1e-300)
     centroid = (weights[..., None] * points).sum(axis=-2) / total
     offsets = points - centroid[..., None, :]
@@ -77,7 +78,7 @@ def surface_positions(means: np.ndarray,  # [N, 3] metres
         found = np.isfinite(distance)
         index = np.where(found, index, 0)
         kernel = np.exp(-(np.where(found, distance, 0.0) / (SURFACE_KERNEL * radius)) ** 2)
-        centroid, normal = _plane(points[index], np.where(found, mass[index] * kernel, 0.0))
+        centroid, normal = weighted_plane(points[index], np.where(found, mass[index] * kernel, 0.0))
         enough = (found & (mass[index] > 0)).sum(axis=1) >= SURFACE_MIN_SUPPORT
         centroid, normal, enough = centroid[cell_of], normal[cell_of], enough[cell_of]
         height = np.sum((moved - centroid) * normal, axis=1)

@@ -83,8 +83,7 @@ class ModelPredictor:
         centre = 0.5 * (means64.min(axis=0) + means64.max(axis=0))  # as ovgaussian.data.training_data.prepare_scene
         placed = means64  # the positions the network voxelizes: on the splat's surface when the run says so
         if self.model.config.surface_radius > 0:
-            placed = surface_positions(means64, np.asarray(gaussians.opacities(), np.float64),
-                                       self.model.config.surface_radius)
+            placed = surface_positions(means64, gaussians.opacities(), self.model.config.surface_radius)
         lattice = self.model.grid_lattice
         if lattice is not None:  # a multiple of the grid's lattice: the voxels stay where the scene's frame has them
             step = lattice * self.model.config.voxel_size
