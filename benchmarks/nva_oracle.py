@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO))
 from ovgaussian.bench.baselines import GroundTruthPredictor  # noqa: E402
 from ovgaussian.bench.evaluate import run_bench  # noqa: E402
 from ovgaussian.bench.config import BenchConfig  # noqa: E402
-from ovgaussian.suite.profile import report_unseen_share  # noqa: E402
+from ovgaussian.suite.report import report_unseen_share  # noqa: E402
 
 
 def _pct(value: float | None) -> float | None:

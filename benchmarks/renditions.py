@@ -55,27 +55,17 @@ def scene_gaussians(data: Path, scene_id: str):
 
 
 def write_split_splats(data: Path, scenes: list[str], out: Path, seed: int) -> None:
-    """``out/<scene>.ply``: the dataset's Gaussians of each scene, every one split in two (3DGS's split; kept when
-    present, so the split datasets of several runs' benches are the same)."""
-    from ovgaussian.data.augmentation import drawn_positions
-    from seggaussian.core.gaussians import Gaussians
-    from seggaussian.core.rotations import quats_to_rotmats
+    """``out/<scene>.ply``: the dataset's Gaussians of each scene, every one split in two (3DGS's split,
+    ``ovgaussian.suite.zoo.split_splat``; kept when present, so the split datasets of several runs' benches are the
+    same)."""
+    from ovgaussian.suite.zoo import split_splat
     from seggaussian.io.ply.writer import write_gaussians_ply
 
     out.mkdir(parents=True, exist_ok=True)
     for scene_id in scenes:
-        if (out / f"{scene_id}.ply").exists():  # kept: the rendition datasets' build caches stay valid
-            continue
-        rng = np.random.default_rng([seed, scenes.index(scene_id)])
-        g = scene_gaussians(data, scene_id)
-        quats = g.quats / np.linalg.norm(g.quats, axis=1, keepdims=True)
-        rot = quats_to_rotmats(quats.astype(np.float64))
-        scales = np.exp(g.log_scales.astype(np.float64))
-        children = [drawn_positions(rng, g.means, rot, scales) for _ in range(2)]
-        split = Gaussians.from_arrays(np.concatenate(children), np.tile(g.quats, (2, 1)),
-                                      np.tile(g.log_scales - np.log(1.6), (2, 1)), np.tile(g.opacity_logits, 2),
-                                      np.tile(g.sh, (2, 1, 1)))
-        write_gaussians_ply(out / f"{scene_id}.ply", split)
+        if not (out / f"{scene_id}.ply").exists():  # kept: the rendition datasets' build caches stay valid
+            rng = np.random.default_rng([seed, scenes.index(scene_id)])
+            write_gaussians_ply(out / f"{scene_id}.ply", split_splat(scene_gaussians(data, scene_id), rng))
 
 
 def write_default_fits(raw: Path, scenes: list[str], out: Path, seconds: float) -> None:

@@ -11,8 +11,10 @@ folder made with other settings is refused, see :func:`check_settings`):
 3. ``ovgaussian bench`` of every Table-1 row and of every ablation run, in the same queue as the trainings: a row
    starts once the runs it scores are done, while other runs may still train; each metric with its 95 %
    percentile bootstrap interval over scenes (``ovgaussian.bench.bootstrap``);
-4. ``table1.md``, ``ablation.md``, ``classes.md`` (per-class 3D IoU on the val rooms), the checks of issue #16
-   and ``suite.json`` with the CPU and wall time of every stage, this invocation's and every earlier one's
+4. ``table1.md``, ``ablation.md``, ``classes.md`` (per-class 3D IoU on the val rooms) and the checks of issues #16
+   and #27 (``ovgaussian.suite.report``); with ``SuiteConfig.zoo``, ``zoo.md``, ``zoo.json`` and the checks of the
+   splat zoo of issue #54 (``ovgaussian.suite.zoo``: its renditions are built and its runs trained in the same
+   queue); ``suite.json`` with the CPU and wall time of every stage, this invocation's and every earlier one's
    (``history``).
 """
 
@@ -26,30 +28,26 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable, NamedTuple, Sequence
-
-import numpy as np
+from typing import Callable, NamedTuple
 
 from ovgaussian.bench.evaluate import run_bench
 from ovgaussian.bench.config import BenchConfig, TABLE1_COLUMNS
-from ovgaussian.bench.bootstrap import Interval, bootstrap_ratio, overlaps
 from ovgaussian.run.checkpoint import latest_checkpoint
-from ovgaussian.metrics import UnseenShare, unseen_share
-from ovgaussian.suite.config import ABLATION_ROWS, RUNS, TABLE1_ROWS, RunSpec, SuiteConfig, Table1Row
+from ovgaussian.suite.config import (ABLATION_ROWS, RUNS, TABLE1_ROWS, ZOO_RENDITIONS, ZOO_RUNS, RunSpec, SuiteConfig,
+                                     Table1Row)
+from ovgaussian.suite import zoo as Z
+from ovgaussian.suite.report import (ABLATION_COLUMNS, checks, control_checks, control_pairs, format_ablation,
+                                     format_checks, format_classes, format_table1, interval_of)
 from ovgaussian.train.loop import train
 from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConfig, config_to_dict
 from seggaussian import shards
 from seggaussian.util.atomic import write_json_atomic, write_text_atomic
 from seggaussian.util.threads import cap_threads
 from seggaussian.pipeline.dataset import build_dataset
-from seggaussian.pipeline.config import BuildConfig, SplitConfig
+from seggaussian.pipeline.config import BuildConfig
 from seggaussian.labels.config import OracleConfig
 from seggaussian.sources.synthetic.generate import SynthConfig, synthesize
 
-#: The metrics the full model must win against both baselines (issue #16: every non-OVA metric).
-NON_OVA_COLUMNS = (("3d", "CSA"), ("3d", "CDA"), ("2d", "CSA"), ("2d", "NVA"), ("2d", "CDA"))
-#: Columns of the ablation table (the paper's Table 2).
-ABLATION_COLUMNS = (("3d", "CSA"), ("2d", "CSA"), ("2d", "NVA"))
 #: Least scenes per split the profile must have (issue #16).
 MIN_SCENES = {"train": 40, "val": 10, "xval": 8}
 
@@ -69,6 +67,7 @@ class SuiteReport(NamedTuple):
         out: the profile folder.
         reports: ``{row label: bench JSON payload}`` of Table 1 and ``{run name: payload}`` of the ablation.
         table1, ablation, classes: the markdown tables.
+        zoo: the splat zoo's tables (empty without ``SuiteConfig.zoo``).
         checks: ``{check: (passed, detail)}``.
         times: one StageTime per stage (stages of one step overlap when ``SuiteConfig.jobs`` > 1).
         wall, cpu: seconds of the whole profile (CPU of this process and its worker processes).
@@ -79,6 +78,7 @@ class SuiteReport(NamedTuple):
     table1: str
     ablation: str
     classes: str
+    zoo: str
     checks: dict
     times: tuple[StageTime, ...]
     wall: float
@@ -171,7 +171,7 @@ def build_data(config: SuiteConfig) -> SuiteData:
         synthesize(raw / "scannetpp", config.scenes, config.seed, "scannetpp", synth, jobs=config.jobs)
     if not (raw / "replica").is_dir():
         synthesize(raw / "replica", config.replica_scenes, config.seed, "replica", synth, jobs=config.jobs)
-    split = SplitConfig(ratios=(*config.val_ratio, config.replica_scenes), seed=config.seed)
+    split = Z.split_config(config)
     oracle = config.out / "dataset-oracle" if config.splats == "fit" else config.out / "dataset"
     build_dataset(BuildConfig(
         source="synthetic", root=raw, out=oracle, jobs=config.jobs, gaussians="oracle", seed=config.seed,
@@ -195,16 +195,17 @@ def run_dir(config: SuiteConfig, name: str) -> Path:
     return config.out / "runs" / name
 
 
-def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConfig:
-    """The TrainConfig of one run of the profile."""
+def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path, renditions: tuple[Path, ...] = ()) -> TrainConfig:
+    """The TrainConfig of one run of the profile (``renditions``: the datasets of ``spec.also_trains_on``)."""
     return TrainConfig(
         out=run_dir(config, spec.name), epochs=config.epochs, batch_scenes=config.batch_scenes,
         seed=config.seed + spec.seed_offset, model_preset=config.model_preset, use_adapter=spec.use_adapter,
         voxel_size=config.voxel_size, use_coordinates=config.use_coordinates,
-        voxel_geometry=config.voxel_geometry, progress=False,
+        voxel_geometry=config.voxel_geometry, surface_radius=spec.surface_radius, progress=False,
         data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
                         holdout_classes=spec.holdout_classes, loss_gaussians=config.loss_gaussians,
-                        scene_cache_size=config.scene_cache_size),
+                        scene_cache_size=config.scene_cache_size, renditions=tuple(renditions),
+                        off_surface_augment=spec.off_surface_augment),
         loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
                         class_balance=config.class_balance, lovasz_weight=config.lovasz_weight,
                         opacity_power=config.opacity_power, unlabelled_as_unseen=spec.unlabelled_as_unseen),
@@ -212,9 +213,9 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path) -> TrainConf
     )
 
 
-def train_run(config: SuiteConfig, spec: RunSpec, dataset: Path) -> Path:
+def train_run(config: SuiteConfig, spec: RunSpec, dataset: Path, renditions: tuple[Path, ...] = ()) -> Path:
     """Train one run (resumed when interrupted, reused when finished)."""
-    run_config = train_config(config, spec, dataset)
+    run_config = train_config(config, spec, dataset, renditions)
     run = run_config.out
     done = run / "suite-done.json"
     if done.is_file() and json.loads(done.read_text()).get("epochs") == config.epochs:
@@ -252,204 +253,6 @@ def bench_row(config: SuiteConfig, bench: BenchConfig, report_path: Path) -> dic
     return payload
 
 
-# --- tables and checks --------------------------------------------------------------------------------
-
-
-def interval_of(payload: dict, dim: str, metric: str) -> Interval:
-    """The metric's value and 95 % interval from a bench payload."""
-    m = payload["metrics"].get(dim, {}).get(metric)
-    if m is None:
-        return Interval(None, None, None, 0, 0)
-    ci = m.get("ci95") or [None, None]
-    return Interval(m["miou"], ci[0], ci[1], 0, 0)
-
-
-def _cell(interval: Interval) -> str:
-    if interval.value is None:
-        return "-"
-    if interval.low is None:
-        return f"{100 * interval.value:.1f}"
-    return f"{100 * interval.value:.1f} [{100 * interval.low:.1f}, {100 * interval.high:.1f}]"
-
-
-def format_table1(reports: dict) -> str:
-    """Table 1 (mIoU %, 95 % interval over scenes in brackets)."""
-    head = "| method | " + " | ".join(f"{d.upper()} {m}" for d, m in TABLE1_COLUMNS) + " |"
-    lines = [head, "|---|" + "---:|" * len(TABLE1_COLUMNS)]
-    for label, payload in reports.items():
-        lines.append(f"| {label} | " + " | ".join(_cell(interval_of(payload, d, m)) for d, m in TABLE1_COLUMNS) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def format_ablation(run_reports: dict, vs_available: bool) -> str:
-    """The paper's Table 2 rows at K = 20 on this profile, the paper's values beside them."""
-    head = ("| V-S align | 3D-T align | adapter | run | " + " | ".join(f"{d.upper()} {m}" for d, m in ABLATION_COLUMNS)
-            + " | paper " + " | paper ".join(f"{d.upper()} {m}" for d, m in ABLATION_COLUMNS) + " |")
-    lines = [head, "|---|---|---|---|" + "---:|" * (2 * len(ABLATION_COLUMNS))]
-    for row in ABLATION_ROWS:
-        vs = "x" if row.vs_align and vs_available else ("(off: no CLIP)" if row.vs_align else "")
-        payload = run_reports.get(row.run)
-        cells = ["-"] * len(ABLATION_COLUMNS) if payload is None else [
-            _cell(interval_of(payload, d, m)) for d, m in ABLATION_COLUMNS]
-        lines.append(f"| {vs} | {'x' if row.t3d_align else ''} | {'x' if row.adapter else ''} | {row.run} | "
-                     + " | ".join(cells) + " | " + " | ".join(f"{v:.2f}" for v in row.paper) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def format_classes(reports: dict, dim: str = "3d", metric: str = "CSA") -> str:
-    """Per-class IoU (%) of every Table-1 row on the metric's set."""
-    labels = list(reports)
-    first = reports[labels[0]]["metrics"][dim][metric]
-    names = list(first["per_class_iou"])
-    lines = ["| class | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
-    for name in names:
-        cells = []
-        for label in labels:
-            v = reports[label]["metrics"][dim][metric]["per_class_iou"].get(name)
-            cells.append("-" if v is None else f"{100 * v:.1f}")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def present_seen_classes(payload: dict, dim: str = "3d") -> list[str]:
-    """Seen classes present in the val ground truth (a confusion row with samples)."""
-    counts = np.asarray(payload["confusion"][f"val_{dim}"])
-    names, unseen = payload["vocabulary"]["names"], set(payload["vocabulary"]["unseen"])
-    return [n for i, n in enumerate(names) if counts[i].sum() > 0 and n not in unseen]
-
-
-def report_unseen_share(payload: dict) -> UnseenShare | None:
-    """``ovgaussian.metrics.unseen_share`` of a bench report's NVA confusion matrix; None without NVA."""
-    counts = payload["confusion"].get("train_2d")
-    if counts is None:
-        return None
-    names = payload["vocabulary"]["names"]
-    return unseen_share(np.asarray(counts), [names.index(n) for n in payload["vocabulary"]["unseen"]])
-
-
-def nva_unseen_share(payload: dict) -> str:
-    """What the unseen classes decide of a report's NVA (:func:`report_unseen_share`), as a sentence."""
-    share = report_unseen_share(payload)
-    if share is None:
-        return "no NVA confusion"
-    if share.unseen_right is None or share.seen_only is None:
-        return "no class scored"
-    ious = payload["metrics"].get("2d", {}).get("NVA", {}).get("per_class_iou", {})
-    unseen = ", ".join(f"{n} {'-' if ious.get(n) is None else f'{100 * ious[n]:.1f}'}"
-                       for n in payload["vocabulary"]["unseen"])
-    return (f"with every unseen pixel right it would be {100 * share.unseen_right:.1f}; "
-            f"the seen classes score {100 * share.seen_only:.1f} with the unseen pixels left out; "
-            f"unseen classes' IoU: {unseen}")
-
-
-def checks(reports: dict, full_label: str, baseline_labels: tuple[str, ...], run_reports: dict,
-           stacking_labels: tuple[str, ...] = (), method_labels: tuple[str, ...] = ()) -> dict:
-    """The model-quality checks of issue #16: ``{name: (passed, detail)}``. ``stacking_labels``: the Table-1
-    rows scored with calibrated stacking (OVA > 0 in 3D and 2D, gamma recorded in the report).
-    ``method_labels``: the open-vocabulary method rows; NVA >= 60 holds when the full model or one of them reaches
-    it, and the detail names each row's NVA and what its unseen classes decide."""
-    out = {}
-    for label in stacking_labels:
-        payload = reports[label]
-        gamma = (payload.get("predictor") or {}).get("stacking", {}).get("gamma")
-        ova = {dim: interval_of(payload, dim, "OVA") for dim in ("3d", "2d")}
-        out[f"OVA > 0 in 3D and 2D with calibrated stacking ({label}), gamma recorded"] = (
-            gamma is not None and all(i.value is not None and i.value > 0 for i in ova.values()),
-            f"gamma {gamma}; " + "; ".join(f"{d.upper()} OVA {_cell(i)}" for d, i in ova.items()))
-    full = reports[full_label]
-    for dim, metric in NON_OVA_COLUMNS:
-        mine = interval_of(full, dim, metric)
-        details, passed = [], mine.value is not None
-        for label in baseline_labels:
-            other = interval_of(reports[label], dim, metric)
-            separate = overlaps(mine, other) is False
-            passed = passed and other.value is not None and mine.value > other.value and separate
-            details.append(f"{label}: {_cell(other)}")
-        out[f"full beats both baselines on {dim.upper()} {metric}, intervals apart"] = (
-            bool(passed), f"full {_cell(mine)} vs " + "; ".join(details))
-    nva_rows = [full_label] + [label for label in method_labels if label != full_label]
-    reaching = [label for label in nva_rows if (interval_of(reports[label], "2d", "NVA").value or 0.0) >= 0.60]
-    out["NVA >= 60"] = (bool(reaching),
-                        (f"reached by {', '.join(reaching)}" if reaching else "reached by no row") + "; "
-                        + "; ".join(f"{label}: NVA {_cell(interval_of(reports[label], '2d', 'NVA'))}, "
-                                    + nva_unseen_share(reports[label]) for label in nva_rows))
-    for dim in ("3d", "2d"):
-        ious = full["metrics"][dim]["CSA"]["per_class_iou"]
-        zero = [n for n in present_seen_classes(full, dim) if not (ious.get(n) or 0.0) > 0.0]
-        out[f"every seen class of the val rooms above 0 IoU ({dim.upper()})"] = (
-            not zero, "zero: " + ", ".join(zero) if zero else f"{len(present_seen_classes(full, dim))} classes > 0")
-    order = []
-    for dim, metric in ABLATION_COLUMNS:
-        values = [interval_of(run_reports[r.run], dim, metric).value if r.run in run_reports else None
-                  for r in ABLATION_ROWS]
-        if None in values:
-            continue
-        rising = all(b >= a for a, b in zip(values, values[1:]))
-        order.append(f"{dim.upper()} {metric} {'rises' if rising else 'does not rise'} down the rows "
-                     f"({', '.join(f'{100 * v:.1f}' for v in values)})")
-    if order:
-        out["ablation rows order as the paper's"] = (all("does not" not in o for o in order), "; ".join(order))
-    return out
-
-
-#: Issue #27: the full model's 3D CSA on fitted splats is at least this share of what it reaches on oracle Gaussians.
-FIT_TO_ORACLE_MIN_SHARE = 0.9
-
-
-def paired_csa_ratio(fitted: dict, control: dict) -> Interval | None:
-    """3D CSA of ``fitted`` over ``control`` (bench payloads) with its paired bootstrap interval over the val rooms
-    (``bootstrap_ratio``), or None when the two did not score the same rooms in the same order or hold no per-room
-    matrices (a report of an older bench)."""
-    rooms = [payload.get("dataset", {}).get("scenes", {}).get("val") for payload in (fitted, control)]
-    mats = [payload.get("scene_confusion", {}).get("val_3d") for payload in (fitted, control)]
-    if not rooms[0] or rooms[0] != rooms[1] or any(m is None or len(m) != len(rooms[0]) for m in mats):
-        return None
-    top, bottom = (np.asarray(m, dtype=np.int64) for m in mats)
-    return bootstrap_ratio(top, bottom) if top.shape == bottom.shape else None
-
-
-def control_checks(reports: dict, pairs: Sequence[tuple[str, str]], splats: str, recipe: str | None = None) -> dict:
-    """The 90 % check of issue #27: a method on fitted splats against its control (the same method trained and
-    scored on the rooms' oracle Gaussians), its 3D CSA on the splats at least ``FIT_TO_ORACLE_MIN_SHARE`` of the
-    control's. ``pairs``: ``(fitted, control)`` Table-1 labels; the pair whose fitted row is ``recipe`` (the
-    profile's method for fitted splats) decides, else the first (the full model's). The detail gives every pair, each
-    ratio with its paired 95 % interval over the val rooms (``paired_csa_ratio``); the rule reads the ratio alone."""
-    if splats != "fit" or not pairs:
-        return {}
-
-    def share(pair: tuple[str, str]) -> tuple[bool, str]:
-        fitted, oracle = (interval_of(reports[label], "3d", "CSA") for label in pair)
-        mine, control = fitted.value, oracle.value
-        ok = mine is not None and bool(control) and mine >= FIT_TO_ORACLE_MIN_SHARE * control
-        ratio = f"{100 * mine / control:.1f} %" if mine is not None and control else "-"
-        paired = paired_csa_ratio(reports[pair[0]], reports[pair[1]])
-        if paired is not None and paired.low is not None:
-            ratio += (f" (paired 95 % interval over the {paired.scenes} val rooms: {100 * paired.low:.1f}-"
-                      f"{100 * paired.high:.1f} %)")
-        return ok, f"{pair[0]}: fitted {_cell(fitted)} vs oracle {_cell(oracle)}: {ratio}"
-
-    decisive = next((pair for pair in pairs if pair[0] == recipe), pairs[0])
-    ok, detail = share(decisive)
-    others = [share(pair)[1] for pair in pairs if pair != decisive]
-    name = f"3D CSA on fitted splats >= {100 * FIT_TO_ORACLE_MIN_SHARE:.0f} % of the oracle control ({decisive[0]})"
-    return {name: (ok, detail + ("; the other methods: " + "; ".join(others) if others else ""))}
-
-
-def control_pairs(rows: Sequence[Table1Row], trained_on: dict[str, str]) -> list[tuple[str, str]]:
-    """``(fitted, control)`` labels: each row trained and scored on oracle Gaussians, with the row of the full
-    run on the splats that has the same bench options and as many ensemble members, in the rows' order."""
-    pairs = []
-    for control in rows:
-        if control.scored_on != "oracle" or trained_on.get(control.run) != "oracle":
-            continue
-        fitted = next((r.label for r in rows if r.run == "full" and r.scored_on == "splats"
-                       and r.options == control.options and r.stacking_run is None
-                       and len(r.ensemble) == len(control.ensemble)), None)
-        if fitted is not None:
-            pairs.append((fitted, control.label))
-    return pairs
-
-
 def invocation_history(summary_path: Path) -> list[dict]:
     """The ``times`` and ``total`` of every earlier invocation on this folder, oldest first, from its
     ``suite.json``: a rerun reuses finished stages in seconds, and its own times must not replace the record of
@@ -463,20 +266,16 @@ def invocation_history(summary_path: Path) -> list[dict]:
     return [{"times": previous["times"], "total": previous["total"]}] if "times" in previous else []
 
 
-def format_checks(result: dict) -> str:
-    return "\n".join(f"- [{'x' if ok else ' '}] {name}: {detail}" for name, (ok, detail) in result.items()) + "\n"
-
-
 # --- the profile --------------------------------------------------------------------------------------
 
 
 #: The settings a profile folder was made with (written on its first run, compared on every later one).
 SETTINGS_NAME = "suite-settings.json"
 #: SuiteConfig fields that change no result: where it is written, the progress display, processes at a time, and
-#: whether the ensemble rows are scored too (they add runs and rows, and change none that exist).
-SETTINGS_IGNORED = ("out", "progress", "jobs", "ensemble")
+#: whether the ensemble rows and the splat zoo are scored too (they add runs and rows, and change none that exist).
+SETTINGS_IGNORED = ("out", "progress", "jobs", "ensemble", "zoo")
 #: SuiteConfig fields added after profile folders were first made, with the value every folder made before had.
-SETTINGS_ADDED = {"lovasz_weight": 0.0, "voxel_geometry": False, "opacity_power": 0.0}
+SETTINGS_ADDED = {"lovasz_weight": 0.0, "voxel_geometry": False, "opacity_power": 0.0, "zoo_fit_iterations": 500}
 
 
 def check_settings(config: SuiteConfig) -> None:
@@ -531,18 +330,34 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
         times.append(StageTime(name, time.perf_counter() - t0, _cpu_seconds() - c0))
         return value
 
+    if config.zoo and config.splats != "fit":
+        raise ValueError("bench-suite --zoo: the splat zoo compares renditions of fitted rooms; it needs --splats fit")
     data = stage("data: synth + fit + build + split", build_data, config)
     dataset = data.splats
+    datasets = Z.zoo_datasets(config, data.splats, data.oracle)
     sizes = split_sizes(dataset)
     rows = table1_rows(config)
     needed = {name for row in rows for name in row_runs(row)}
     if config.ablation:
         needed |= {row.run for row in ABLATION_ROWS}
-    specs = [spec for spec in RUNS if spec.name in needed]
+    if config.zoo:
+        needed |= {Z.RECIPE_RUN} | {r.matched_run for r in ZOO_RENDITIONS}
+    specs = [spec for spec in RUNS + ZOO_RUNS if spec.name in needed]
     runs = {spec.name: run_dir(config, spec.name) for spec in specs}
-    # one queue: the trainings first (longest first), then each bench row as soon as the runs it scores are done
-    tasks = [Task(f"train: {spec.name}", train_run,
-                  (config, spec, data.oracle if spec.trained_on == "oracle" else dataset)) for spec in specs]
+    # one queue: the zoo's renditions, the trainings (longest first), then each bench row as soon as the runs it
+    # scores (and the rendition it scores them on) are done
+    built = tuple(r.name for r in ZOO_RENDITIONS if config.zoo and r.name not in ("splats", "oracle"))
+    # the default-preset fits, the longest task of the zoo, in one slice of the rooms per process, then assembled
+    slices = max(1, config.jobs) if "default-fit" in built else 0
+    tasks = [Task(f"zoo: fit default-fit {i + 1}/{slices}", Z.build_rendition,
+                  (config, "default-fit", data.splats, data.oracle, slices, i)) for i in range(slices if slices > 1 else 0)]
+    fitted = tuple(task.name for task in tasks)
+    tasks += [Task(f"zoo: build {name}", Z.build_rendition, (config, name, data.splats, data.oracle),
+                   fitted if name == "default-fit" else ()) for name in built]
+    tasks += [Task(f"train: {spec.name}", train_run,
+                   (config, spec, datasets[spec.trained_on], tuple(datasets[r] for r in spec.also_trains_on)),
+                   tuple(f"zoo: build {r}" for r in (spec.trained_on, *spec.also_trains_on) if r in built))
+              for spec in specs]
     reports_dir = out / "reports"
     tasks += [Task(f"bench: {row.label}", bench_row,
                    (config, bench_config(config, data.oracle if row.scored_on == "oracle" else dataset, row),
@@ -558,11 +373,20 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
                    (config, bench_config(config, dataset, run=runs[name], metrics=("CSA", "NVA")),
                     reports_dir / f"ablation-{name}.json"), (f"train: {name}",))
               for name in ablation_only]
+    zoo_scorers = [(r, scorer) for r in ZOO_RENDITIONS for scorer in Z.ZOO_SCORERS] if config.zoo else []
+    for r, scorer in zoo_scorers:
+        run = {"recipe": Z.RECIPE_RUN, "matched": r.matched_run}.get(scorer)
+        bench = replace(bench_config(config, datasets[r.name], run=None if run is None else runs[run],
+                                     metrics=tuple(m for _, m, _ in Z.ZOO_METRICS)),
+                        dims=("3d",), predictor="model" if run else scorer)
+        tasks.append(Task(f"bench: zoo {r.name} {scorer}", bench_row,
+                          (config, bench, reports_dir / f"zoo-{r.name}-{scorer}.json"),
+                          tuple(f"train: {n}" for n in [run] if n) + tuple(f"zoo: build {n}" for n in [r.name] if n in built)))
     values, task_times = run_tasks(tasks, config.jobs, stamped)
     times += task_times
-    values = values[len(specs):]  # the trainings' values are their run folders, known beforehand
-    reports = {row.label: payload for row, payload in zip(rows, values)}
-    extra = dict(zip(ablation_only, values[len(rows):]))
+    by_task = {task.name: value for task, value in zip(tasks, values)}
+    reports = {row.label: by_task[f"bench: {row.label}"] for row in rows}
+    extra = {name: by_task[f"bench: ablation {name}"] for name in ablation_only}
     run_reports = {name: reports[plain_rows[name]] if name in plain_rows else extra[name] for name in ablation_runs}
 
     full_label = plain_rows["full"]
@@ -578,6 +402,17 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
                        and r.scored_on == "splats")),
         **control_checks(reports, control_pairs(rows, {s.name: s.trained_on for s in RUNS if s.name in runs}),
                          config.splats, next((r.label for r in rows if r.fit_recipe), None))}
+    zoo_table = ""
+    if config.zoo:
+        zoo_reports: dict = {}
+        for r, scorer in zoo_scorers:
+            zoo_reports.setdefault(r.name, {})[scorer] = by_task[f"bench: zoo {r.name} {scorer}"]
+        cells = Z.zoo_cells(zoo_reports)
+        gaussians = {r.name: Z.scored_gaussians(datasets[r.name]) for r in ZOO_RENDITIONS}
+        zoo_table = Z.format_zoo(cells, gaussians)
+        result.update(Z.zoo_checks(cells, gaussians))
+        Z.write_zoo_summary(out / "zoo.json", cells, gaussians)
+        write_text_atomic(out / "zoo.md", zoo_table)
     wall, cpu = time.perf_counter() - started[0], _cpu_seconds() - started[1]
     invocation = {"times": [t._asdict() for t in times],
                   "total": {"wall_s": wall, "cpu_s": cpu, "load_average_start": load_at_start,
@@ -586,8 +421,9 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     summary = {
         "config": config_to_dict(config),
         "splits": sizes,
-        "runs": {name: config_to_dict(train_config(config, spec, data.oracle if spec.trained_on == "oracle" else dataset))
-                 for spec in RUNS for name in [spec.name] if name in runs},
+        "runs": {spec.name: config_to_dict(train_config(config, spec, datasets[spec.trained_on],
+                                                        tuple(datasets[r] for r in spec.also_trains_on)))
+                 for spec in specs},
         "table1": {label: {f"{d}_{m}": list(interval_of(p, d, m)[:3]) for d, m in TABLE1_COLUMNS}
                    for label, p in reports.items()},
         "ablation": {name: {f"{d}_{m}": list(interval_of(p, d, m)[:3]) for d, m in ABLATION_COLUMNS}
@@ -602,4 +438,4 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] | None = None) -> 
     write_text_atomic(out / "classes.md", classes)
     write_text_atomic(out / "checks.md", format_checks(result))
     return SuiteReport(out, {**reports, **{f"ablation {k}": v for k, v in run_reports.items()}}, table1, ablation,
-                       classes, result, tuple(times), wall, cpu)
+                       classes, zoo_table, result, tuple(times), wall, cpu)

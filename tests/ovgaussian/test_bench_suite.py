@@ -11,6 +11,7 @@ import pytest
 
 from ovgaussian.metrics import scores_from_confusion
 from ovgaussian.suite import profile as S
+from ovgaussian.suite import report as R
 from ovgaussian.suite.config import ABLATION_ROWS, RUNS, TABLE1_ROWS, SuiteConfig, Table1Row
 
 NAMES = ["wall", "chair", "sofa"]
@@ -39,24 +40,24 @@ def test_checks_need_intervals_apart_from_both_baselines():
                "full": payload({k: (0.7 if k == ("2d", "NVA") else 0.5) for k in ALL})}
     runs = {"text-2d-only": payload({k: 0.3 for k in ALL}), "no-adapter": payload({k: 0.4 for k in ALL}),
             "full": reports["full"]}
-    result = S.checks(reports, "full", ("majority", "colour"), runs)
+    result = R.checks(reports, "full", ("majority", "colour"), runs)
     assert all(ok for ok, _ in result.values()), result
     close = dict(reports, colour=payload({**base, ("2d", "CDA"): 0.47}))  # intervals overlap on 2D CDA
-    result = S.checks(close, "full", ("majority", "colour"), runs)
+    result = R.checks(close, "full", ("majority", "colour"), runs)
     assert not result["full beats both baselines on 2D CDA, intervals apart"][0]
     assert result["full beats both baselines on 3D CSA, intervals apart"][0]
     zero = dict(reports, full=payload({k: 0.5 for k in ALL}, chair_iou=0.0))
-    result = S.checks(zero, "full", ("majority", "colour"), runs)
+    result = R.checks(zero, "full", ("majority", "colour"), runs)
     assert result["every seen class of the val rooms above 0 IoU (3D)"] == (False, "zero: chair")
     assert not result["NVA >= 60"][0]
     swapped = dict(runs, **{"no-adapter": payload({k: 0.6 for k in ALL})})
-    assert not S.checks(reports, "full", ("majority", "colour"), swapped)["ablation rows order as the paper's"][0]
+    assert not R.checks(reports, "full", ("majority", "colour"), swapped)["ablation rows order as the paper's"][0]
 
 
 def test_the_nva_check_says_what_the_unseen_classes_decide():
     # train_2d: wall 50 right, chair 5 right, all 7 sofa (unseen) pixels predicted wall.
     reports = {"full": payload({k: 0.5 for k in ALL})}
-    ok, detail = S.checks(reports, "full", (), {})["NVA >= 60"]
+    ok, detail = R.checks(reports, "full", (), {})["NVA >= 60"]
     assert not ok
     assert "with every unseen pixel right it would be 100.0" in detail
     assert "the seen classes score 100.0 with the unseen pixels left out" in detail
@@ -64,28 +65,28 @@ def test_the_nva_check_says_what_the_unseen_classes_decide():
     counts = np.array(wrong_chair["confusion"]["train_2d"])
     counts[1, 1], counts[1, 0] = 0, 5  # chair never right: seen classes (50/55 + 0) / 2
     wrong_chair["confusion"]["train_2d"] = counts.tolist()
-    assert f"seen classes score {100 * 50 / 55 / 2:.1f}" in S.nva_unseen_share(wrong_chair)
-    assert "unseen classes' IoU: sofa 0.0" in S.nva_unseen_share(wrong_chair)
+    assert f"seen classes score {100 * 50 / 55 / 2:.1f}" in R.nva_unseen_share(wrong_chair)
+    assert "unseen classes' IoU: sofa 0.0" in R.nva_unseen_share(wrong_chair)
 
 
 def test_nva_is_reached_by_the_full_model_or_a_named_method_row():
     reports = {"full": payload({k: 0.5 for k in ALL}), "stacked": payload({k: 0.55 for k in ALL}),
                "transductive": payload({k: 0.62 for k in ALL}), "colour": payload({k: 0.9 for k in ALL})}
-    ok, detail = S.checks(reports, "full", (), {}, (), ("stacked", "transductive"))["NVA >= 60"]
+    ok, detail = R.checks(reports, "full", (), {}, (), ("stacked", "transductive"))["NVA >= 60"]
     assert ok and detail.startswith("reached by transductive;")
     assert "full: NVA 50.0 [48.0, 52.0]" in detail and "stacked: NVA 55.0" in detail
     # a baseline reaching 60 counts for nothing; without the method row the check fails
-    ok, detail = S.checks(reports, "full", ("colour",), {}, (), ("stacked",))["NVA >= 60"]
+    ok, detail = R.checks(reports, "full", ("colour",), {}, (), ("stacked",))["NVA >= 60"]
     assert not ok and detail.startswith("reached by no row;") and "transductive" not in detail
 
 
 def test_tables_show_values_and_intervals():
     reports = {"full": payload({k: 0.5 for k in ALL})}
-    table = S.format_table1(reports)
+    table = R.format_table1(reports)
     assert "| full | 50.0 [48.0, 52.0] |" in table and table.count("\n") == 3
-    ablation = S.format_ablation({"full": reports["full"]}, vs_available=False)
+    ablation = R.format_ablation({"full": reports["full"]}, vs_available=False)
     assert "(off: no CLIP)" in ablation and "43.84" in ablation and ablation.count("| - |") >= 3
-    classes = S.format_classes(reports)
+    classes = R.format_classes(reports)
     assert "| chair | 30.0 |" in classes
 
 
@@ -165,12 +166,12 @@ def test_calibrated_stacking_row_uses_the_calibration_run_and_is_checked_for_ova
     stacked["predictor"] = {"stacking": {"gamma": 0.3}}
     reports = {"full": payload(base), "stacked": stacked}
     name = "OVA > 0 in 3D and 2D with calibrated stacking (stacked), gamma recorded"
-    assert S.checks(reports, "full", (), {}, ("stacked",))[name][0]
+    assert R.checks(reports, "full", (), {}, ("stacked",))[name][0]
     no_gamma = dict(reports, stacked={**stacked, "predictor": {}})
-    assert not S.checks(no_gamma, "full", (), {}, ("stacked",))[name][0]
+    assert not R.checks(no_gamma, "full", (), {}, ("stacked",))[name][0]
     zero_2d = payload({**base, ("3d", "OVA"): 0.05, ("2d", "OVA"): 0.0})
     zero_2d["predictor"] = stacked["predictor"]
-    assert not S.checks(dict(reports, stacked=zero_2d), "full", (), {}, ("stacked",))[name][0]
+    assert not R.checks(dict(reports, stacked=zero_2d), "full", (), {}, ("stacked",))[name][0]
 
 
 def test_tasks_give_their_values_in_order_with_one_or_two_processes():
@@ -254,7 +255,7 @@ def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the
     assert S.table1_rows(replace(ensemble, splats="oracle")) == tuple(r for r in TABLE1_ROWS if r.scored_on == "splats")
     assert S.table1_rows(ensemble) == TABLE1_ROWS
     assert S.table1_rows(SuiteConfig()) == tuple(r for r in TABLE1_ROWS if not r.ensemble)  # the default: no ensemble
-    pairs = S.control_pairs(TABLE1_ROWS, trained)
+    pairs = R.control_pairs(TABLE1_ROWS, trained)
     assert pairs == [("OVGaussian (full)", "control: full trained and scored on oracle Gaussians"),
                      ("full + class offsets", "control + class offsets"),
                      ("full, 2 training seeds (ensemble)", "control, 2 training seeds (ensemble)"),
@@ -264,20 +265,20 @@ def test_the_control_row_is_a_run_trained_and_scored_on_oracle_gaussians_and_the
                "full + offsets": payload({k: 0.40 for k in ALL}), "control + offsets": payload({k: 0.50 for k in ALL})}
     both = [("full", "control"), ("full + offsets", "control + offsets")]
     # without a recipe the full model's pair decides; the other pair is in the detail
-    ((name, (ok, detail)),) = S.control_checks(reports, both, "fit").items()
+    ((name, (ok, detail)),) = R.control_checks(reports, both, "fit").items()
     assert ok and name.endswith("(full)") and "full: fitted 45.0 [43.0, 47.0] vs oracle 48.0" in detail
     assert "93.8 %" in detail and "the other methods: full + offsets: fitted 40.0" in detail and "80.0 %" in detail
     # the recipe's pair decides, whatever the others give
-    ((name, (ok, detail)),) = S.control_checks(reports, both, "fit", recipe="full + offsets").items()
+    ((name, (ok, detail)),) = R.control_checks(reports, both, "fit", recipe="full + offsets").items()
     assert not ok and name.endswith("(full + offsets)") and detail.startswith("full + offsets: fitted 40.0")
     reports["full + offsets"] = payload({k: 0.46 for k in ALL})
     reports["full"] = payload({k: 0.40 for k in ALL})
-    ((name, (ok, detail)),) = S.control_checks(reports, both, "fit", recipe="full + offsets").items()
+    ((name, (ok, detail)),) = R.control_checks(reports, both, "fit", recipe="full + offsets").items()
     assert ok and "92.0 %" in detail and "full: fitted 40.0" in detail
-    assert not list(S.control_checks(reports, both, "fit").values())[0][0]  # 40 / 48: the full pair alone fails
-    assert S.control_checks(reports, both, "fit", recipe="missing") == S.control_checks(reports, both, "fit")
-    assert S.control_checks(reports, [("full", "control")], "oracle") == {}  # an oracle profile has no such check
-    assert S.control_checks(reports, [], "fit") == {}
+    assert not list(R.control_checks(reports, both, "fit").values())[0][0]  # 40 / 48: the full pair alone fails
+    assert R.control_checks(reports, both, "fit", recipe="missing") == R.control_checks(reports, both, "fit")
+    assert R.control_checks(reports, [("full", "control")], "oracle") == {}  # an oracle profile has no such check
+    assert R.control_checks(reports, [], "fit") == {}
     assert SuiteConfig().splats == "fit" and not SuiteConfig().ablation
 
 
@@ -299,17 +300,17 @@ def test_the_check_gives_the_ratio_with_its_interval_paired_over_the_same_val_ro
 
     top, bottom = scores_from_confusion(fitted.sum(0)).miou, scores_from_confusion(control.sum(0)).miou
     reports = {"full": with_rooms(top, fitted, rooms), "control": with_rooms(bottom, control, rooms)}
-    interval = S.paired_csa_ratio(reports["full"], reports["control"])
+    interval = R.paired_csa_ratio(reports["full"], reports["control"])
     assert interval.value == pytest.approx(top / bottom) and interval.scenes == 6
     assert interval.low <= interval.value <= interval.high
-    ((_, (_, detail)),) = S.control_checks(reports, [("full", "control")], "fit").items()
+    ((_, (_, detail)),) = R.control_checks(reports, [("full", "control")], "fit").items()
     assert f"paired 95 % interval over the 6 val rooms: {100 * interval.low:.1f}-{100 * interval.high:.1f} %" in detail
     # other rooms, or another order, or no per-room matrices: no paired interval, the ratio alone
     reports["control"] = with_rooms(bottom, control, rooms[::-1])
-    assert S.paired_csa_ratio(reports["full"], reports["control"]) is None
-    ((_, (_, detail)),) = S.control_checks(reports, [("full", "control")], "fit").items()
+    assert R.paired_csa_ratio(reports["full"], reports["control"]) is None
+    ((_, (_, detail)),) = R.control_checks(reports, [("full", "control")], "fit").items()
     assert "paired" not in detail and f"{100 * top / bottom:.1f} %" in detail
-    assert S.paired_csa_ratio(payload({key: 0.4 for key in ALL}), reports["control"]) is None
+    assert R.paired_csa_ratio(payload({key: 0.4 for key in ALL}), reports["control"]) is None
 
 
 def test_ensemble_rows_score_the_run_with_its_other_seeds_and_are_opt_out():
@@ -330,7 +331,7 @@ def test_ensemble_rows_score_the_run_with_its_other_seeds_and_are_opt_out():
     assert plain.ensemble_runs == ()
     without = S.table1_rows(replace(config, ensemble=False))
     assert without == tuple(r for r in TABLE1_ROWS if not r.ensemble)
-    assert [p for p in S.control_pairs(without, {s.name: s.trained_on for s in RUNS})
+    assert [p for p in R.control_pairs(without, {s.name: s.trained_on for s in RUNS})
             if "seeds" in p[0]] == []
 
 
