@@ -163,20 +163,21 @@ def zoo_cells(reports: dict) -> dict:
     return cells
 
 
-def _pct(interval: Interval | None) -> str:
+def _shown(interval: Interval | None, scale: float, digits: int) -> str:
+    """``value [low, high]`` times ``scale``; ``-`` without a value."""
     if interval is None or interval.value is None:
         return "-"
-    if interval.low is None:
-        return f"{100 * interval.value:.1f}"
-    return f"{100 * interval.value:.1f} [{100 * interval.low:.1f}, {100 * interval.high:.1f}]"
+    value = f"{scale * interval.value:.{digits}f}"
+    return value if interval.low is None else (
+        f"{value} [{scale * interval.low:.{digits}f}, {scale * interval.high:.{digits}f}]")
+
+
+def _pct(interval: Interval | None) -> str:
+    return _shown(interval, 100.0, 1)
 
 
 def _times(interval: Interval | None) -> str:
-    if interval is None or interval.value is None:
-        return "-"
-    if interval.low is None:
-        return f"{interval.value:.2f}"
-    return f"{interval.value:.2f} [{interval.low:.2f}, {interval.high:.2f}]"
+    return _shown(interval, 1.0, 2)
 
 
 def format_zoo(cells: dict, gaussians: dict[str, list[int]], renditions: tuple[ZooRendition, ...] = ZOO_RENDITIONS
