@@ -28,7 +28,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence
 
 from ovgaussian.bench.evaluate import run_bench
 from ovgaussian.bench.config import BenchConfig, TABLE1_COLUMNS
@@ -111,12 +111,20 @@ def _timed(task: Task, threads: int | None) -> tuple[object, float, float]:
     return value, time.perf_counter() - t0, own.ru_utime + own.ru_stime - c0
 
 
+def first_ready(tasks: Sequence[Task], waiting: Sequence[int], done: set[str]) -> int | None:
+    """The first of the ``waiting`` task indices (in list order) whose ``after`` tasks are all ``done``; None when
+    none is ready."""
+    return next((i for i in sorted(waiting) if all(name in done for name in tasks[i].after)), None)
+
+
 def run_tasks(tasks: list[Task], jobs: int, say: Callable[[str], None]) -> tuple[list, list[StageTime]]:
     """Values and times of the tasks, in ``tasks`` order. A task's ``after`` names earlier tasks only (ValueError
     otherwise). ``jobs`` > 1: that many spawned processes run them at once, each with ``cpu_count // jobs`` torch
     and numba threads (one training per core costs less CPU than one training on two cores:
-    benchmarks/results/bench_suite.md); a task is queued, in list order, once the tasks it comes after are done,
-    so a bench row starts while other runs still train. ``jobs`` 1: one after the other here."""
+    benchmarks/results/bench_suite.md); whenever a process is free it starts the first task in list order whose
+    ``after`` tasks are done (:func:`first_ready`), so the list order is the priority: a bench row starts while
+    other runs still train, and a task that becomes ready late (a training after its data) does not wait behind
+    the cheaper tasks listed after it. ``jobs`` 1: one after the other here."""
     index = {task.name: i for i, task in enumerate(tasks)}
     for i, task in enumerate(tasks):
         bad = [name for name in task.after if index.get(name, i) >= i]
@@ -131,16 +139,17 @@ def run_tasks(tasks: list[Task], jobs: int, say: Callable[[str], None]) -> tuple
         threads = max(1, (os.cpu_count() or 1) // jobs)
         # spawn: numba's threading layer and torch's threads do not survive fork
         with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            waiting, running = list(range(len(tasks))), {}
+            waiting, running, done = list(range(len(tasks))), {}, set()
             while waiting or running:
-                for i in [i for i in waiting if all(results[index[n]] is not None for n in tasks[i].after)]:
-                    say(f"{tasks[i].name} (queued)")
+                while len(running) < jobs and (i := first_ready(tasks, waiting, done)) is not None:
+                    say(f"{tasks[i].name} (started)")
                     running[pool.submit(_timed, tasks[i], threads)] = i
                     waiting.remove(i)
                 finished, _ = wait(running, return_when=FIRST_COMPLETED)
                 for future in finished:
                     i = running.pop(future)
                     results[i] = future.result()
+                    done.add(tasks[i].name)
                     say(f"{tasks[i].name}: done, {results[i][1]:.0f} s wall, {results[i][2]:.0f} s CPU")
     return [r[0] for r in results], [StageTime(t.name, r[1], r[2]) for t, r in zip(tasks, results)]
 

@@ -206,6 +206,22 @@ def test_a_task_starts_only_after_the_tasks_it_comes_after():
         S.run_tasks([S.Task("a", time.time, (), ("missing",))], 1, lambda m: None)
 
 
+def test_a_free_process_starts_the_first_ready_task_in_list_order():
+    tasks = [S.Task("fit", len, ((),)), S.Task("cheap", len, ((),)), S.Task("train", len, ((),), ("fit",)),
+             S.Task("bench", len, ((),), ("train",)), S.Task("other", len, ((),))]
+    assert S.first_ready(tasks, [1, 2, 3, 4], set()) == 1  # train waits for fit
+    assert S.first_ready(tasks, [2, 3, 4], {"cheap"}) == 4
+    assert S.first_ready(tasks, [2, 3, 4], {"cheap", "fit"}) == 2  # once ready, train goes before what follows it
+    assert S.first_ready(tasks, [4, 3, 2], {"fit", "train"}) == 2  # list order, not the order of ``waiting``
+    assert S.first_ready(tasks, [3], {"fit"}) is None
+    said = []
+    values, _ = S.run_tasks(tasks, 2, said.append)
+    assert values == [0] * 5
+    started = [m.removesuffix(" (started)") for m in said if m.endswith("(started)")]
+    assert started.index("train") > started.index("fit") and started.index("bench") > started.index("train")
+    assert sorted(started) == sorted(t.name for t in tasks)
+
+
 def test_a_profile_folder_refuses_other_settings_and_accepts_its_own(tmp_path):
     from ovgaussian.suite.profile import SETTINGS_NAME, check_settings
 
