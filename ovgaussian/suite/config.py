@@ -51,6 +51,10 @@ class RunSpec:
     surface_radius: float = 0.0
     """The run places a labelled splat's Gaussians on its own surface first, with this reach in metres
     (``TrainConfig.surface_radius``)."""
+    epochs_factor: int = 1
+    """This run trains ``SuiteConfig.epochs`` times this many epochs: the splat zoo's recipe, whose samples are drawn
+    among three renditions, trains twice the steps of a model trained on one (what 30 and 60 epochs gave:
+    benchmarks/results/bench_suite.md, "The splat zoo")."""
     unlabelled_as_unseen: bool = False
     """Transductive zero-shot: the unlabelled parts of the training rooms supervised as 'one of the unseen
     classes' (``LossConfig.unlabelled_as_unseen``)."""
@@ -123,11 +127,11 @@ RUNS = (
 )
 
 #: The runs of the splat zoo (``SuiteConfig.zoo``): the recipe for splats made any way (trained across the profile's
-#: fits, a scan and oracle Gaussians of the same rooms, with fit-like shells added, and placing a splat's Gaussians
-#: on its own surface where it labels one: benchmarks/results/renditions.md), and the models trained on one
-#: rendition alone that the profile does not train already.
+#: fits, a scan and oracle Gaussians of the same rooms, with fit-like shells added, for twice the epochs, and placing
+#: a splat's Gaussians on its own surface where it labels one: benchmarks/results/renditions.md), and the models
+#: trained on one rendition alone that the profile does not train already.
 ZOO_RUNS = (
-    RunSpec("zoo", also_trains_on=("scan", "oracle"), off_surface_augment=True, surface_radius=0.15),
+    RunSpec("zoo", also_trains_on=("scan", "oracle"), off_surface_augment=True, surface_radius=0.15, epochs_factor=2),
     RunSpec("matched-default-fit", trained_on="default-fit"),
     RunSpec("matched-scan", trained_on="scan"),
     RunSpec("matched-split", trained_on="split"),

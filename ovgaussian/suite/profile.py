@@ -207,7 +207,7 @@ def run_dir(config: SuiteConfig, name: str) -> Path:
 def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path, renditions: tuple[Path, ...] = ()) -> TrainConfig:
     """The TrainConfig of one run of the profile (``renditions``: the datasets of ``spec.also_trains_on``)."""
     return TrainConfig(
-        out=run_dir(config, spec.name), epochs=config.epochs, batch_scenes=config.batch_scenes,
+        out=run_dir(config, spec.name), epochs=config.epochs * spec.epochs_factor, batch_scenes=config.batch_scenes,
         seed=config.seed + spec.seed_offset, model_preset=config.model_preset, use_adapter=spec.use_adapter,
         voxel_size=config.voxel_size, use_coordinates=config.use_coordinates,
         voxel_geometry=config.voxel_geometry, surface_radius=spec.surface_radius, progress=False,
@@ -227,10 +227,10 @@ def train_run(config: SuiteConfig, spec: RunSpec, dataset: Path, renditions: tup
     run_config = train_config(config, spec, dataset, renditions)
     run = run_config.out
     done = run / "suite-done.json"
-    if done.is_file() and json.loads(done.read_text()).get("epochs") == config.epochs:
+    if done.is_file() and json.loads(done.read_text()).get("epochs") == run_config.epochs:
         return run
     train(replace(run_config, resume=latest_checkpoint(run) is not None))
-    write_json_atomic(done, {"epochs": config.epochs})
+    write_json_atomic(done, {"epochs": run_config.epochs})
     return run
 
 

@@ -144,9 +144,10 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
         c = configs[name]
         assert c.data.dataset == Path(f"/tmp/profile/zoo/{r}") and not c.data.renditions
         assert not c.data.off_surface_augment and c.surface_radius == 0.0
-    for c in configs.values():
-        assert (c.epochs, c.optim.lr, c.data.pixels_per_view, c.voxel_size, c.loss.lovasz_weight) == (
-            full.epochs, full.optim.lr, full.data.pixels_per_view, full.voxel_size, full.loss.lovasz_weight)
+    for name, c in configs.items():
+        assert (c.optim.lr, c.data.pixels_per_view, c.voxel_size, c.loss.lovasz_weight) == (
+            full.optim.lr, full.data.pixels_per_view, full.voxel_size, full.loss.lovasz_weight)
+        assert c.epochs == (2 if name == "zoo" else 1) * full.epochs == (2 if name == "zoo" else 1) * config.epochs
     names = {spec.name for spec in RUNS + ZOO_RUNS}
     assert {r.matched_run for r in ZOO_RENDITIONS} <= names and len(names) == len(RUNS) + len(ZOO_RUNS)
     assert [r.name for r in ZOO_RENDITIONS if not r.recipe_trains] == ["default-fit", "split"]
@@ -261,3 +262,16 @@ def test_the_split_and_scan_renditions_are_datasets_of_the_same_rooms_split_and_
     stamps = [p.stat().st_mtime_ns for p in kept]
     Z.build_rendition(config, "split", base, base)  # a rebuild keeps the split splats (its build cache holds)
     assert [p.stat().st_mtime_ns for p in kept] == stamps and len(kept) == len(manifest)
+
+
+def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(S, "train", lambda c: calls.append(c.epochs))
+    config = SuiteConfig(out=tmp_path, epochs=3)
+    recipe = ZOO_RUNS[0]
+    S.train_run(config, recipe, tmp_path / "d")
+    S.train_run(config, recipe, tmp_path / "d")  # finished at 2 x 3 epochs: reused
+    assert calls == [6]
+    S.train_run(SuiteConfig(out=tmp_path, epochs=6), ZOO_RUNS[1], tmp_path / "d")  # another run: trains
+    S.train_run(SuiteConfig(out=tmp_path, epochs=4), recipe, tmp_path / "d")  # 8 epochs now: trains again
+    assert calls == [6, 6, 8]
