@@ -284,7 +284,7 @@ SETTINGS_NAME = "suite-settings.json"
 #: whether the ensemble rows and the splat zoo are scored too (they add runs and rows, and change none that exist).
 SETTINGS_IGNORED = ("out", "progress", "jobs", "ensemble", "zoo")
 #: SuiteConfig fields added after profile folders were first made, with the value every folder made before had.
-SETTINGS_ADDED = {"lovasz_weight": 0.0, "voxel_geometry": False, "opacity_power": 0.0, "zoo_fit_iterations": 500}
+SETTINGS_ADDED = {"lovasz_weight": 0.0, "voxel_geometry": False, "opacity_power": 0.0, "zoo_fit_iterations": 600}
 
 
 def check_settings(config: SuiteConfig) -> None:
