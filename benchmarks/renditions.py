@@ -93,17 +93,16 @@ def score(data: Path, run_dir: Path, metric: str, report: Path) -> float | None:
 
 def report_interval(report: Path, base: Path, metric: str) -> dict:
     """The 95 % bootstrap intervals over rooms of one cell (from its ``ovgaussian bench`` report): the mIoU's, and
-    the paired ratio to the ``base`` report's (the run on its own rendition: the same rooms, one draw for both)."""
-    from ovgaussian.bench.bootstrap import bootstrap_ratio
+    the paired ratio to the ``base`` report's (the run on its own rendition: the same rooms, one draw for both;
+    ``ovgaussian.suite.zoo.paired_ratio``)."""
+    from ovgaussian.suite.zoo import paired_ratio
 
     cell, own = json.loads(report.read_text()), json.loads(base.read_text())
     entry = cell["metrics"]["3d"][metric.upper()]
-    names = cell["vocabulary"]["names"]
-    classes = [names.index(n) for n in entry["classes"]]
-    key = f"{entry['split']}_3d"
-    ratio = bootstrap_ratio(np.asarray(cell["scene_confusion"][key]), np.asarray(own["scene_confusion"][key]), classes)
+    ratio = paired_ratio(cell, own, "3d", metric.upper())
     return {"miou_ci95": entry.get("ci95"), "rooms": entry["num_scenes"],
-            "ratio_to_own": ratio.value, "ratio_ci95": None if ratio.low is None else [ratio.low, ratio.high]}
+            "ratio_to_own": None if ratio is None else ratio.value,
+            "ratio_ci95": None if ratio is None or ratio.low is None else [ratio.low, ratio.high]}
 
 
 def main() -> int:
