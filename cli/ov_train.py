@@ -69,6 +69,7 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(DataConfig, "splat_augment", "--splat-augment", is_flag=True)
 @config_option(DataConfig, "rendition_augment", "--rendition-augment", is_flag=True)
 @config_option(DataConfig, "off_surface_augment", "--off-surface-augment", is_flag=True)
+@config_option(DataConfig, "colour_augment", "--colour-augment", is_flag=True)
 @config_option(DataConfig, "renditions", "--rendition-data", "renditions", multiple=True,
                type=click.Path(path_type=Path, file_okay=False, exists=True), metavar="DATASET")
 @config_option(DataConfig, "verify", "--verify", is_flag=True)
@@ -86,7 +87,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
             use_coordinates, input_encoding, pool_weighting, devoxelize, grid_anchor, surface_radius, voxel_geometry,
             class_balance, lovasz_weight,
             opacity_power, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
-            splat_augment, rendition_augment, off_surface_augment, renditions, verify, keep_checkpoints, threads,
+            splat_augment, rendition_augment, off_surface_augment, colour_augment, renditions, verify, keep_checkpoints, threads,
             loader_workers, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
@@ -105,7 +106,7 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
                         loss_gaussians=loss_gaussians,
                         holdout_classes=tuple(n.strip() for n in holdout_classes.split(",") if n.strip()),
                         splat_augment=splat_augment, rendition_augment=rendition_augment,
-                        off_surface_augment=off_surface_augment,
+                        off_surface_augment=off_surface_augment, colour_augment=colour_augment,
                         renditions=tuple(renditions), verify=verify),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),

@@ -273,3 +273,50 @@ def off_surface(rng: np.random.Generator, means: np.ndarray, quats: np.ndarray, 
         np.concatenate([log_scales, log_scales[rows]]), np.concatenate([opacity_logits, opacity_logits[rows]]),
         np.concatenate([sh_dc, sh_dc[rows]]), np.concatenate([labels, labels[rows]]),
     )
+
+
+#: ``DataConfig.colour_augment``: probability that a training sample's colours are recoloured.
+COLOUR_AUGMENT_PROBABILITY = 0.5
+#: A recoloured sample's hue turn (radians about the grey axis of RGB), drawn uniformly from this range.
+COLOUR_HUE_TURN = (-np.pi, np.pi)
+#: Its saturation factor (the chroma, colour minus its grey, scaled), drawn uniformly from this range.
+COLOUR_SATURATION = (0.5, 1.5)
+#: Its brightness gain (every channel scaled), drawn uniformly from this range.
+COLOUR_GAIN = (0.8, 1.2)
+
+
+def colour_matrix(hue_turn: float, saturation: float, gain: float) -> np.ndarray:  # [3, 3] float64
+    """The linear map of RGB that turns the chroma by ``hue_turn`` radians about the grey axis ``(1, 1, 1)``,
+    scales it by ``saturation`` and then every channel by ``gain``: ``gain (G + saturation R (I - G))`` with ``G``
+    the projection on the grey axis and ``R`` the rotation (Rodrigues). Greys keep their level times ``gain``."""
+    axis = np.full(3, 1.0 / np.sqrt(3.0))
+    cross = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    rotation = np.eye(3) + np.sin(hue_turn) * cross + (1.0 - np.cos(hue_turn)) * (cross @ cross)
+    grey = np.outer(axis, axis)
+    return gain * (grey + saturation * rotation @ (np.eye(3) - grey))
+
+
+def recolour(rng: np.random.Generator, sh_dc: np.ndarray) -> np.ndarray:  # [N, 3] float32
+    """``sh_dc [N, 3]`` (colour = 0.5 + SH_C0 sh_dc) of a scene whose colours all went through one
+    :func:`colour_matrix` drawn from ``rng`` (hue, saturation, gain in ``COLOUR_*``): another palette of the same
+    room, as cross-domain rooms have (other floors, walls and furniture colours), with every colour contrast of the
+    scene kept in order. The network clamps colours to [0, 1]; nothing is clamped here."""
+    matrix = colour_matrix(rng.uniform(*COLOUR_HUE_TURN), rng.uniform(*COLOUR_SATURATION), rng.uniform(*COLOUR_GAIN))
+    rgb = 0.5 + SH_C0 * sh_dc.astype(np.float64)
+    return ((rgb @ matrix.T - 0.5) / SH_C0).astype(np.float32)
+
+
+def recolour_reference(rgb: np.ndarray, hue_turn: float, saturation: float, gain: float) -> np.ndarray:
+    """:func:`colour_matrix` applied colour by colour, in the terms of its definition (slow, obviously correct):
+    each colour split into its grey ``m (1, 1, 1)`` and chroma ``c``; ``c`` turned about the unit grey axis ``k`` by
+    Rodrigues' formula ``c cos t + (k x c) sin t + k (k . c)(1 - cos t)``, scaled by ``saturation``, the grey added
+    back, the sum scaled by ``gain``."""
+    k = np.full(3, 1.0 / np.sqrt(3.0))
+    out = np.empty((len(rgb), 3))
+    for i, colour in enumerate(np.asarray(rgb, np.float64)):
+        grey = np.full(3, colour.mean())
+        chroma = colour - grey
+        turned = (chroma * np.cos(hue_turn) + np.cross(k, chroma) * np.sin(hue_turn)
+                  + k * np.dot(k, chroma) * (1.0 - np.cos(hue_turn)))
+        out[i] = gain * (grey + saturation * turned)
+    return out

@@ -30,9 +30,9 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 
-from ovgaussian.data.augmentation import (OFF_SURFACE_PROBABILITY, RENDITION_PROBABILITY, SPLAT_AUGMENT_PROBABILITY,
-                                          augment_gaussians, off_surface, rendition, sample_augmentation,
-                                          splat_statistics, surface_normals)
+from ovgaussian.data.augmentation import (COLOUR_AUGMENT_PROBABILITY, OFF_SURFACE_PROBABILITY, RENDITION_PROBABILITY,
+                                          SPLAT_AUGMENT_PROBABILITY, augment_gaussians, off_surface, recolour,
+                                          rendition, sample_augmentation, splat_statistics, surface_normals)
 from ovgaussian.data.cache_budget import folder_bytes
 from ovgaussian.data.scene_source import ScanResult, SceneSource, scan_scenes
 from ovgaussian.text.teacher import sample_patch_features
@@ -332,6 +332,8 @@ class TrainingData:
                 normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
             means, quats, log_scales, opacity_logits, sh_dc, labels = off_surface(
                 rng, means, quats, log_scales, opacity_logits, sh_dc, labels, normals)
+        if self.config.colour_augment and rng.random() < COLOUR_AUGMENT_PROBABILITY:
+            sh_dc = recolour(rng, sh_dc)
         loss_rows = None
         wanted = self.config.loss_gaussians
         if wanted is not None and wanted < len(labels):  # drawn last: without it a run draws as before, bitwise

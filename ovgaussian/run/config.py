@@ -50,6 +50,10 @@ class DataConfig:
     """Give each scene, with probability 1/2 per sample, Gaussians off its surfaces as a photometric fit leaves them
     (``ovgaussian.data.augmentation.off_surface``): a share of its Gaussians copied and moved a few centimetres in a
     random direction, with their source's label."""
+    colour_augment: bool = False
+    """Recolour each scene, with probability 1/2 per sample (``ovgaussian.data.augmentation.recolour``): one random
+    hue turn about the grey axis, saturation factor and brightness gain for all its Gaussians, so that no class is
+    told by its palette alone (cross-domain rooms paint floors, walls and furniture otherwise). Labels unchanged."""
     renditions: tuple[Path, ...] = ()
     """Other datasets of the same rooms, each another splat of them (``seggaussian build --gaussians scan|oracle`` or
     ``--ply-dir`` splats from the same raw tree, split the same way): each training sample draws its splat

@@ -37,14 +37,33 @@ def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabul
     }
 
 
+def changed_settings(saved: dict, config: TrainConfig, free: tuple[str, ...] = RESUMABLE_FIELDS) -> list[str]:
+    """The TrainConfig fields (sorted, nested ones by dotted name: ``data.renditions``) on which ``config`` differs from a run folder's
+    config.json ``saved``, less ``free``. Through the config type: a field added since the run was saved compares
+    at its default."""
+    old = _dotted(config_to_dict(config_from_dict(TrainConfig, saved["train"])), free)
+    new = _dotted(config_to_dict(config), free)
+    return sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+
+
+def _dotted(tree: dict, free: tuple[str, ...], prefix: str = "") -> dict:
+    """``{"data.dataset": ..., "epochs": ...}``: the leaves of a nested config dict by dotted name, top-level
+    ``free`` fields left out."""
+    out = {}
+    for key, value in tree.items():
+        if not prefix and key in free:
+            continue
+        if isinstance(value, dict):
+            out.update(_dotted(value, free, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def check_resumable(saved: dict, config: TrainConfig, scan, path: Path) -> None:
     """CheckpointError when the run folder was trained with other settings or other data."""
-    # through the config type: a field added since the run was saved compares at its default
-    old = {k: v for k, v in config_to_dict(config_from_dict(TrainConfig, saved["train"])).items()
-           if k not in RESUMABLE_FIELDS}
-    new = {k: v for k, v in config_to_dict(config).items() if k not in RESUMABLE_FIELDS}
-    if old != new:
-        diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    diff = changed_settings(saved, config)
+    if diff:
         raise CheckpointError(f"{path}: --resume with different settings ({', '.join(diff)}); use a new --out")
     if saved["data"]["fingerprint"] != scan.fingerprint:
         raise CheckpointError(f"{path}: --resume on different data (fingerprint changed); use a new --out")

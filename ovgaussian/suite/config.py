@@ -48,6 +48,8 @@ class RunSpec:
     splat zoo's recipe."""
     off_surface_augment: bool = False
     """Copies of a share of the Gaussians moved off their surfaces (``DataConfig.off_surface_augment``)."""
+    colour_augment: bool = False
+    """Scenes recoloured by a random hue turn, saturation and gain (``DataConfig.colour_augment``)."""
     surface_radius: float = 0.0
     """The run places a labelled splat's Gaussians on its own surface first, with this reach in metres
     (``TrainConfig.surface_radius``)."""

@@ -32,7 +32,8 @@ from typing import Callable, NamedTuple, Sequence
 
 from ovgaussian.bench.evaluate import run_bench
 from ovgaussian.bench.config import BenchConfig, TABLE1_COLUMNS
-from ovgaussian.run.checkpoint import latest_checkpoint
+from ovgaussian.run.checkpoint import CONFIG_NAME, latest_checkpoint, weights_sha256
+from ovgaussian.run.folder import changed_settings
 from ovgaussian.suite.config import (ABLATION_ROWS, RUNS, TABLE1_ROWS, ZOO_RENDITIONS, ZOO_RUNS, RunSpec, SuiteConfig,
                                      Table1Row)
 from ovgaussian.suite import zoo as Z
@@ -214,7 +215,7 @@ def train_config(config: SuiteConfig, spec: RunSpec, dataset: Path, renditions: 
         data=DataConfig(dataset=dataset, num_classes=config.num_classes, pixels_per_view=config.pixels_per_view,
                         holdout_classes=spec.holdout_classes, loss_gaussians=config.loss_gaussians,
                         scene_cache_size=config.scene_cache_size, renditions=tuple(renditions),
-                        off_surface_augment=spec.off_surface_augment),
+                        off_surface_augment=spec.off_surface_augment, colour_augment=spec.colour_augment),
         loss=LossConfig(no_3dt_align=spec.no_3dt_align, no_vs_align=spec.no_vs_align,
                         class_balance=config.class_balance, lovasz_weight=config.lovasz_weight,
                         opacity_power=config.opacity_power, unlabelled_as_unseen=spec.unlabelled_as_unseen),
@@ -228,6 +229,11 @@ def train_run(config: SuiteConfig, spec: RunSpec, dataset: Path, renditions: tup
     run = run_config.out
     done = run / "suite-done.json"
     if done.is_file() and json.loads(done.read_text()).get("epochs") == run_config.epochs:
+        # a recipe changed in the code since (the folder's settings are checked by check_settings) is not reused
+        changed = changed_settings(json.loads((run / CONFIG_NAME).read_text()), run_config)
+        if changed:
+            raise ValueError(f"{run}: finished with another recipe than this version's run {spec.name!r} "
+                             f"({', '.join(changed)}); use a new --out, or remove that run folder to retrain it")
         return run
     train(replace(run_config, resume=latest_checkpoint(run) is not None))
     write_json_atomic(done, {"epochs": run_config.epochs})
@@ -253,10 +259,24 @@ def bench_config(config: SuiteConfig, dataset: Path, row: Table1Row | None = Non
     return BenchConfig(**fields)
 
 
+def scored_weights(bench: BenchConfig) -> list[str | None]:
+    """sha256 of the weights a model row scores now: its run's latest checkpoint, then each ensemble member's."""
+    return [weights_sha256(latest_checkpoint(run)) for run in (bench.run, *bench.ensemble_runs)]
+
+
+def recorded_weights(payload: dict) -> list[str | None]:
+    """sha256 of the weights a bench report scored, in :func:`scored_weights`' order."""
+    predictor = payload.get("predictor", {})
+    return [predictor.get("checkpoint_sha256")] + [m.get("checkpoint_sha256") for m in predictor.get("ensemble", [])]
+
+
 def bench_row(config: SuiteConfig, bench: BenchConfig, report_path: Path) -> dict:
-    """The bench JSON payload of one row (reused when its report exists)."""
+    """The bench JSON payload of one row: reused when its report exists and, for a model, scored the weights its
+    runs hold now (a run retrained since is scored again)."""
     if report_path.is_file():
-        return json.loads(report_path.read_text())
+        payload = json.loads(report_path.read_text())
+        if bench.predictor != "model" or recorded_weights(payload) == scored_weights(bench):
+            return payload
     payload = run_bench(bench).payload
     write_json_atomic(report_path, payload)
     return payload

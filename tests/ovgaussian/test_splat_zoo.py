@@ -264,9 +264,20 @@ def test_the_split_and_scan_renditions_are_datasets_of_the_same_rooms_split_and_
     assert [p.stat().st_mtime_ns for p in kept] == stamps and len(kept) == len(manifest)
 
 
-def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs(tmp_path, monkeypatch):
+def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs_and_recipe(tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    from ovgaussian.run.config import config_to_dict
+    from seggaussian.util.atomic import write_json_atomic
+
     calls = []
-    monkeypatch.setattr(S, "train", lambda c: calls.append(c.epochs))
+
+    def fake_train(c):  # what train records of a run: its config.json
+        calls.append(c.epochs)
+        c.out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(c.out / "config.json", {"train": config_to_dict(c)})
+
+    monkeypatch.setattr(S, "train", fake_train)
     config = SuiteConfig(out=tmp_path, epochs=3)
     recipe = ZOO_RUNS[0]
     S.train_run(config, recipe, tmp_path / "d")
@@ -275,3 +286,34 @@ def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs(tmp_path, mon
     S.train_run(SuiteConfig(out=tmp_path, epochs=6), ZOO_RUNS[1], tmp_path / "d")  # another run: trains
     S.train_run(SuiteConfig(out=tmp_path, epochs=4), recipe, tmp_path / "d")  # 8 epochs now: trains again
     assert calls == [6, 6, 8]
+    # the recipe changed in the code since the run finished: refused, naming what changed, not reused silently
+    with pytest.raises(ValueError, match=r"runs/zoo: finished with another recipe .*data\.colour_augment"):
+        S.train_run(SuiteConfig(out=tmp_path, epochs=4), replace(recipe, colour_augment=True), tmp_path / "d")
+    assert calls == [6, 6, 8]
+
+
+def test_a_bench_report_is_reused_only_for_the_weights_it_scored(tmp_path, monkeypatch):
+    from ovgaussian.bench.config import BenchConfig
+
+    run = tmp_path / "run"
+    folder = run / "checkpoints" / "epoch-0001"
+    folder.mkdir(parents=True)
+    (folder / "model.safetensors").write_bytes(b"weights one")
+    monkeypatch.setattr(S, "latest_checkpoint", lambda r: folder)
+    scored = []
+
+    def fake_bench(bench):
+        scored.append(bench.predictor)
+        return type("Report", (), {"payload": {"predictor": {"checkpoint_sha256": S.weights_sha256(folder)}}})()
+
+    monkeypatch.setattr(S, "run_bench", fake_bench)
+    bench = BenchConfig(dataset=tmp_path, run=run)
+    path = tmp_path / "row.json"
+    first = S.bench_row(SuiteConfig(out=tmp_path), bench, path)
+    assert S.bench_row(SuiteConfig(out=tmp_path), bench, path) == first and len(scored) == 1  # same weights: reused
+    (folder / "model.safetensors").write_bytes(b"weights two")  # the run retrained
+    again = S.bench_row(SuiteConfig(out=tmp_path), bench, path)
+    assert len(scored) == 2 and again != first
+    baseline = BenchConfig(dataset=tmp_path, predictor="majority")
+    S.bench_row(SuiteConfig(out=tmp_path), baseline, path)  # a baseline's report: reused as it is
+    assert len(scored) == 2
