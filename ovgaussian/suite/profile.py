@@ -30,7 +30,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable, NamedTuple, Sequence
 
-from ovgaussian.bench.evaluate import run_bench
+from ovgaussian.bench.evaluate import dataset_fingerprint, run_bench
 from ovgaussian.bench.config import BenchConfig, TABLE1_COLUMNS
 from ovgaussian.run.checkpoint import CONFIG_NAME, latest_checkpoint, weights_sha256
 from ovgaussian.run.folder import changed_settings
@@ -271,11 +271,13 @@ def recorded_weights(payload: dict) -> list[str | None]:
 
 
 def bench_row(config: SuiteConfig, bench: BenchConfig, report_path: Path) -> dict:
-    """The bench JSON payload of one row: reused when its report exists and, for a model, scored the weights its
-    runs hold now (a run retrained since is scored again)."""
+    """The bench JSON payload of one row: reused when its report exists, scored the dataset as it is now and, for a
+    model, the weights its runs hold now (a dataset rebuilt or a run retrained since is scored again)."""
     if report_path.is_file():
         payload = json.loads(report_path.read_text())
-        if bench.predictor != "model" or recorded_weights(payload) == scored_weights(bench):
+        fingerprint = dataset_fingerprint(bench.dataset)
+        same_data = all(payload.get("dataset", {}).get(k) == v for k, v in fingerprint.items())
+        if same_data and (bench.predictor != "model" or recorded_weights(payload) == scored_weights(bench)):
             return payload
     payload = run_bench(bench).payload
     write_json_atomic(report_path, payload)

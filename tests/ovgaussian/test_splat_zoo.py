@@ -304,7 +304,9 @@ def test_a_bench_report_is_reused_only_for_the_weights_it_scored(tmp_path, monke
 
     def fake_bench(bench):
         scored.append(bench.predictor)
-        return type("Report", (), {"payload": {"predictor": {"checkpoint_sha256": S.weights_sha256(folder)}}})()
+        payload = {"predictor": {"checkpoint_sha256": S.weights_sha256(folder)},
+                   "dataset": S.dataset_fingerprint(bench.dataset)}
+        return type("Report", (), {"payload": payload})()
 
     monkeypatch.setattr(S, "run_bench", fake_bench)
     bench = BenchConfig(dataset=tmp_path, run=run)
@@ -314,6 +316,11 @@ def test_a_bench_report_is_reused_only_for_the_weights_it_scored(tmp_path, monke
     (folder / "model.safetensors").write_bytes(b"weights two")  # the run retrained
     again = S.bench_row(SuiteConfig(out=tmp_path), bench, path)
     assert len(scored) == 2 and again != first
-    baseline = BenchConfig(dataset=tmp_path, predictor="majority")
-    S.bench_row(SuiteConfig(out=tmp_path), baseline, path)  # a baseline's report: reused as it is
-    assert len(scored) == 2
+    baseline, baseline_path = BenchConfig(dataset=tmp_path, predictor="majority"), tmp_path / "baseline.json"
+    S.bench_row(SuiteConfig(out=tmp_path), baseline, baseline_path)
+    S.bench_row(SuiteConfig(out=tmp_path), baseline, baseline_path)  # a baseline on the same data: reused
+    assert scored == ["model", "model", "majority"]
+    (tmp_path / "manifest.json").write_text("{}")  # the dataset rebuilt: every report of it is scored again
+    S.bench_row(SuiteConfig(out=tmp_path), bench, path)
+    S.bench_row(SuiteConfig(out=tmp_path), baseline, baseline_path)
+    assert scored == ["model", "model", "majority", "model", "majority"]
