@@ -129,11 +129,12 @@ RUNS = (
 )
 
 #: The runs of the splat zoo (``SuiteConfig.zoo``): the recipe for splats made any way (trained across the profile's
-#: fits, a scan and oracle Gaussians of the same rooms, with fit-like shells added, for twice the epochs, and placing
-#: a splat's Gaussians on its own surface where it labels one: benchmarks/results/renditions.md), and the models
-#: trained on one rendition alone that the profile does not train already.
+#: fits, a scan and oracle Gaussians of the same rooms, with fit-like shells added, recoloured, for twice the epochs,
+#: and placing a splat's Gaussians on its own surface where it labels one: benchmarks/results/renditions.md and
+#: bench_suite.md), and the models trained on one rendition alone that the profile does not train already.
 ZOO_RUNS = (
-    RunSpec("zoo", also_trains_on=("scan", "oracle"), off_surface_augment=True, surface_radius=0.15, epochs_factor=2),
+    RunSpec("zoo", also_trains_on=("scan", "oracle"), off_surface_augment=True, surface_radius=0.15, epochs_factor=2,
+            colour_augment=True),
     RunSpec("matched-default-fit", trained_on="default-fit"),
     RunSpec("matched-scan", trained_on="scan"),
     RunSpec("matched-split", trained_on="split"),

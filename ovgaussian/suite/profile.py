@@ -228,15 +228,19 @@ def train_run(config: SuiteConfig, spec: RunSpec, dataset: Path, renditions: tup
     run_config = train_config(config, spec, dataset, renditions)
     run = run_config.out
     done = run / "suite-done.json"
-    if done.is_file() and json.loads(done.read_text()).get("epochs") == run_config.epochs:
-        # a recipe changed in the code since (the folder's settings are checked by check_settings) is not reused
+    data = {str(path): dataset_fingerprint(path) for path in (dataset, *renditions)}
+    record = json.loads(done.read_text()) if done.is_file() else {}
+    if record.get("epochs") == run_config.epochs:
+        # a recipe changed in the code since (the folder's settings are checked by check_settings), or data rebuilt
+        # since (a record without "data" was written before it was kept), is not reused
         changed = changed_settings(json.loads((run / CONFIG_NAME).read_text()), run_config)
+        changed += ["its training data"] if record.get("data", data) != data else []
         if changed:
-            raise ValueError(f"{run}: finished with another recipe than this version's run {spec.name!r} "
+            raise ValueError(f"{run}: finished with another recipe or data than this version's run {spec.name!r} "
                              f"({', '.join(changed)}); use a new --out, or remove that run folder to retrain it")
         return run
     train(replace(run_config, resume=latest_checkpoint(run) is not None))
-    write_json_atomic(done, {"epochs": run_config.epochs})
+    write_json_atomic(done, {"epochs": run_config.epochs, "data": data})
     return run
 
 

@@ -140,10 +140,11 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     recipe = configs["zoo"]
     assert recipe.data.renditions == (Path("/tmp/profile/zoo/scan"), Path("/tmp/o"))
     assert recipe.data.dataset == Path("/tmp/d") and recipe.data.off_surface_augment and recipe.surface_radius == 0.15
+    assert recipe.data.colour_augment
     for name, r in (("matched-default-fit", "default-fit"), ("matched-scan", "scan"), ("matched-split", "split")):
         c = configs[name]
         assert c.data.dataset == Path(f"/tmp/profile/zoo/{r}") and not c.data.renditions
-        assert not c.data.off_surface_augment and c.surface_radius == 0.0
+        assert not c.data.off_surface_augment and c.surface_radius == 0.0 and not c.data.colour_augment
     for name, c in configs.items():
         assert (c.optim.lr, c.data.pixels_per_view, c.voxel_size, c.loss.lovasz_weight) == (
             full.optim.lr, full.data.pixels_per_view, full.voxel_size, full.loss.lovasz_weight)
@@ -288,7 +289,13 @@ def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs_and_recipe(tm
     assert calls == [6, 6, 8]
     # the recipe changed in the code since the run finished: refused, naming what changed, not reused silently
     with pytest.raises(ValueError, match=r"runs/zoo: finished with another recipe .*data\.colour_augment"):
-        S.train_run(SuiteConfig(out=tmp_path, epochs=4), replace(recipe, colour_augment=True), tmp_path / "d")
+        S.train_run(SuiteConfig(out=tmp_path, epochs=4), replace(recipe, colour_augment=not recipe.colour_augment),
+                    tmp_path / "d")
+    # its training data rebuilt since it finished: refused too
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "manifest.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"another recipe or data .*\(its training data\)"):
+        S.train_run(SuiteConfig(out=tmp_path, epochs=4), recipe, tmp_path / "d")
     assert calls == [6, 6, 8]
 
 
