@@ -4,6 +4,8 @@ they are the build, train and bench code tested elsewhere; the zoo runs end to e
 
 from pathlib import Path
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -141,10 +143,14 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     assert recipe.data.renditions == (Path("/tmp/profile/zoo/scan"), Path("/tmp/o"))
     assert recipe.data.dataset == Path("/tmp/d") and recipe.data.off_surface_augment and recipe.surface_radius == 0.15
     assert recipe.data.colour_augment
-    for name, r in (("matched-default-fit", "default-fit"), ("matched-scan", "scan"), ("matched-split", "split")):
+    for name, r in (("matched-default-fit", "zoo/default-fit"), ("matched-scan", "zoo/scan"), ("matched-split", "zoo/split"),
+                    ("matched-splats", "d"), ("matched-oracle", "o")):
         c = configs[name]
-        assert c.data.dataset == Path(f"/tmp/profile/zoo/{r}") and not c.data.renditions
-        assert not c.data.off_surface_augment and c.surface_radius == 0.0 and not c.data.colour_augment
+        assert c.data.dataset == (Path(f"/tmp/{r}") if len(r) == 1 else Path(f"/tmp/profile/{r}")) and not c.data.renditions
+        assert not c.data.off_surface_augment and c.surface_radius == 0.0 and c.epochs == full.epochs
+        # recoloured as the recipe is: the ratio measures the renditions, not the colour augment
+        assert c.data.colour_augment and c == replace(
+            full, out=c.out, data=replace(full.data, dataset=c.data.dataset, colour_augment=True))
     for name, c in configs.items():
         assert (c.optim.lr, c.data.pixels_per_view, c.voxel_size, c.loss.lovasz_weight) == (
             full.optim.lr, full.data.pixels_per_view, full.voxel_size, full.loss.lovasz_weight)
@@ -205,12 +211,13 @@ def test_the_profile_queues_the_zoo_after_what_each_task_needs(tmp_path, monkeyp
     zoo = tmp_path / "p" / "zoo"
     assert trained["zoo"] == (splats, (zoo / "scan", oracle))
     assert trained["matched-default-fit"] == (zoo / "default-fit", ())
-    assert trained["full-oracle"] == (oracle, ())
+    assert trained["matched-oracle"] == (oracle, ()) and trained["matched-splats"] == (splats, ())
     assert after["zoo: build default-fit"] == ("zoo: fit default-fit 1/2", "zoo: fit default-fit 2/2")
     assert after["train: matched-default-fit"] == ("zoo: build default-fit",)
     assert after["train: zoo"] == ("zoo: build scan",) and after["train: full"] == ()
     assert after["bench: zoo split recipe"] == ("train: zoo", "zoo: build split")
-    assert after["bench: zoo oracle matched"] == ("train: full-oracle",)
+    assert after["bench: zoo oracle matched"] == ("train: matched-oracle",)
+    assert after["bench: zoo splats matched"] == ("train: matched-splats",)
     assert after["bench: zoo scan nearest-colour"] == ("zoo: build scan",)
     assert sum(name.startswith("bench: zoo") for name in after) == len(ZOO_RENDITIONS) * len(Z.ZOO_SCORERS)
     zoo_checks = {k: v for k, v in report.checks.items() if k.startswith("zoo:")}
