@@ -355,3 +355,58 @@ def test_the_ensemble_switch_is_not_a_setting_of_the_folder(tmp_path):
     config = SuiteConfig(out=tmp_path, progress=False, ensemble=False)
     S.check_settings(config)
     S.check_settings(replace(config, ensemble=True))  # adds runs and rows, changes none that exist
+
+
+def test_the_profiles_worker_processes_end_when_the_suite_is_killed(tmp_path):
+    """A suite killed (SIGKILL: no handler runs) while its two worker processes are busy leaves neither running:
+    each watches the process that started it and exits once it is gone."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = (
+        "import time\n"
+        "from ovgaussian.suite.profile import Task, run_tasks\n"
+        "run_tasks([Task('a', time.sleep, (120,)), Task('b', time.sleep, (120,))], 2, print)\n"
+    )
+    suite = subprocess.Popen([sys.executable, "-c", script], cwd=tmp_path)
+
+    def children(pid):
+        out = []
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    fields = open(f"/proc/{entry}/stat").read().rsplit(")", 1)[1].split()
+                except OSError:
+                    continue
+                if int(fields[1]) == pid and fields[0] != "Z":
+                    out.append(int(entry))
+        return out
+
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(children(suite.pid)) < 3 and time.monotonic() < deadline:  # two workers + the resource tracker
+            time.sleep(0.2)
+        workers = children(suite.pid)
+        assert len(workers) >= 3, workers
+        time.sleep(1.0)  # the workers have picked up their tasks
+        suite.send_signal(signal.SIGKILL)
+        suite.wait(timeout=10)
+        deadline = time.monotonic() + 20
+        while any(os.path.exists(f"/proc/{w}") and "Z" not in open(f"/proc/{w}/stat").read().rsplit(")", 1)[1][:3]
+                  for w in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        alive = [w for w in workers if os.path.exists(f"/proc/{w}")
+                 and "Z" not in open(f"/proc/{w}/stat").read().rsplit(")", 1)[1][:3]]
+        assert not alive, f"still running after their suite was killed: {alive}"
+    finally:
+        if suite.poll() is None:
+            suite.kill()
+        for w in set(workers) | set(children(suite.pid)):
+            try:
+                os.kill(w, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
