@@ -24,7 +24,6 @@ import json
 import multiprocessing
 import os
 import resource
-import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import replace
@@ -45,6 +44,7 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConf
 from seggaussian import shards
 from seggaussian.util.atomic import write_json_atomic, write_text_atomic
 from seggaussian.util.threads import cap_threads
+from seggaussian.util.workers import pool_options
 from seggaussian.pipeline.dataset import build_dataset
 from seggaussian.pipeline.config import BuildConfig
 from seggaussian.labels.config import OracleConfig
@@ -113,22 +113,6 @@ def _timed(task: Task, threads: int | None) -> tuple[object, float, float]:
     return value, time.perf_counter() - t0, own.ru_utime + own.ru_stime - c0
 
 
-#: How often (s) a worker process of the profile checks that the process that started it is still there.
-PARENT_POLL_SECONDS = 1.0
-
-
-def exit_with_parent(parent: int) -> None:
-    """Initializer of the profile's worker processes: a daemon thread that ends this process once ``parent`` (the
-    suite, which started it) is gone, so a suite killed or stopped leaves no fit or training running on."""
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(PARENT_POLL_SECONDS)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
-
-
 def first_ready(tasks: Sequence[Task], waiting: Sequence[int], done: set[str]) -> int | None:
     """The first of the ``waiting`` task indices (in list order) whose ``after`` tasks are all ``done``; None when
     none is ready."""
@@ -156,8 +140,7 @@ def run_tasks(tasks: list[Task], jobs: int, say: Callable[[str], None]) -> tuple
     else:
         threads = max(1, (os.cpu_count() or 1) // jobs)
         # spawn: numba's threading layer and torch's threads do not survive fork
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=exit_with_parent, initargs=(os.getpid(),)) as pool:
+        with ProcessPoolExecutor(max_workers=jobs, **pool_options(multiprocessing.get_context("spawn"))) as pool:
             waiting, running, done = list(range(len(tasks))), {}, set()
             while waiting or running:
                 while len(running) < jobs and (i := first_ready(tasks, waiting, done)) is not None:

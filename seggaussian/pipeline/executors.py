@@ -13,6 +13,7 @@ from seggaussian.pipeline.ray_tasks import run_ray
 from seggaussian.pipeline.scene import build_scene
 from seggaussian.pipeline.records import SceneOutcome, SceneTask, crashed_outcome
 from seggaussian.util.threads import cap_threads
+from seggaussian.util.workers import pool_options
 
 
 def _worker(task: SceneTask, config: BuildConfig, cache_root: Path, threads: int) -> SceneOutcome:
@@ -39,7 +40,7 @@ def run_tasks(tasks: list[SceneTask], config: BuildConfig, cache_root: Path,
             on_done(outcome)
         return outcomes, []
     # spawn: numba's OpenMP layer and torch threads do not survive fork
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, **pool_options(multiprocessing.get_context("spawn"))) as pool:
         futures = {pool.submit(_worker, t, config, cache_root, threads): t for t in tasks}
         for future in as_completed(futures):
             try:

@@ -3,4 +3,4 @@ field docs, the source closure of a module (build cache keys), numba's kernel ca
 worker.
 """
 
-__all__ = ["allocator", "atomic", "field_docs", "jsonsafe", "module_closure", "numba_cache", "seeds", "threads"]
+__all__ = ["allocator", "atomic", "field_docs", "jsonsafe", "module_closure", "numba_cache", "seeds", "threads", "workers"]

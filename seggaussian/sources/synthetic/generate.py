@@ -29,6 +29,7 @@ from seggaussian.sources.replica import nice_slam_intrinsics
 from seggaussian.sources.synthetic.replica import replica_size
 from seggaussian.sources.synthetic.mesh import RoomConfig, RoomMesh
 from seggaussian.sources.synthetic.room import build_room
+from seggaussian.util.workers import pool_options
 
 LAYOUTS = ("scannetpp", "replica")
 
@@ -113,7 +114,7 @@ def synthesize(
                 progress(index, ids[index])
     else:
         # spawn: open3d's and numba's threads do not survive fork
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(max_workers=jobs, **pool_options(multiprocessing.get_context("spawn"))) as pool:
             futures = {pool.submit(write_scene, scene_parent, seed, index, layout, config): index
                        for index in range(num_scenes)}
             for future in as_completed(futures):
