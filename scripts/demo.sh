@@ -55,7 +55,7 @@ fi
 $BIN/ovgaussian train --data "$OUT/dataset" --out "$OUT/run" --epochs "$EPOCHS" --classes "$CLASSES" \
     --model-preset slim --pixels-per-view 4096 --voxel-size "$VOXEL" --use-coordinates \
     --class-balance "$BALANCE" --lr "$LR" --rendition-data "$OUT/rendition-scan" --rendition-data "$OUT/rendition-oracle" \
-    --off-surface-augment --surface-radius "$SURFACE" --no-progress | tail -n 1
+    --off-surface-augment --colour-augment --surface-radius "$SURFACE" --no-progress | tail -n 1
 
 step "bench: two baselines and the trained run (K = $CLASSES)"
 for P in majority nearest-colour; do
