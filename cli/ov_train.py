@@ -87,8 +87,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
             use_coordinates, input_encoding, pool_weighting, devoxelize, grid_anchor, surface_radius, voxel_geometry,
             class_balance, lovasz_weight,
             opacity_power, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
-            splat_augment, rendition_augment, off_surface_augment, colour_augment, renditions, verify, keep_checkpoints, threads,
-            loader_workers, progress, as_json):
+            splat_augment, rendition_augment, off_surface_augment, colour_augment, renditions, verify, keep_checkpoints,
+            threads, loader_workers, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
     Several processes: torchrun --nproc-per-node=P -m cli.ovgaussian_cli train ... (global batch unchanged).

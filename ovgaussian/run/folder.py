@@ -38,9 +38,9 @@ def run_config_payload(config: TrainConfig, model_config, teacher_width, vocabul
 
 
 def changed_settings(saved: dict, config: TrainConfig, free: tuple[str, ...] = RESUMABLE_FIELDS) -> list[str]:
-    """The TrainConfig fields (sorted, nested ones by dotted name: ``data.renditions``) on which ``config`` differs from a run folder's
-    config.json ``saved``, less ``free``. Through the config type: a field added since the run was saved compares
-    at its default."""
+    """The TrainConfig fields (sorted, nested ones by dotted name: ``data.renditions``) on which ``config`` differs
+    from a run folder's config.json ``saved``, less ``free``. Through the config type: a field added since the run
+    was saved compares at its default."""
     old = _dotted(config_to_dict(config_from_dict(TrainConfig, saved["train"])), free)
     new = _dotted(config_to_dict(config), free)
     return sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))

@@ -143,10 +143,12 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     assert recipe.data.renditions == (Path("/tmp/profile/zoo/scan"), Path("/tmp/o"))
     assert recipe.data.dataset == Path("/tmp/d") and recipe.data.off_surface_augment and recipe.surface_radius == 0.15
     assert recipe.data.colour_augment
-    for name, r in (("matched-default-fit", "zoo/default-fit"), ("matched-scan", "zoo/scan"), ("matched-split", "zoo/split"),
-                    ("matched-splats", "d"), ("matched-oracle", "o")):
+    zoo = "/tmp/profile/zoo"
+    for name, dataset in (("matched-default-fit", f"{zoo}/default-fit"), ("matched-scan", f"{zoo}/scan"),
+                          ("matched-split", f"{zoo}/split"), ("matched-splats", "/tmp/d"),
+                          ("matched-oracle", "/tmp/o")):
         c = configs[name]
-        assert c.data.dataset == (Path(f"/tmp/{r}") if len(r) == 1 else Path(f"/tmp/profile/{r}")) and not c.data.renditions
+        assert c.data.dataset == Path(dataset) and not c.data.renditions
         assert not c.data.off_surface_augment and c.surface_radius == 0.0 and c.epochs == full.epochs
         # recoloured as the recipe is: the ratio measures the renditions, not the colour augment
         assert c.data.colour_augment and c == replace(
