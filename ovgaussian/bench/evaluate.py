@@ -40,7 +40,7 @@ from ovgaussian.bench.config import (
 from ovgaussian.bench.bootstrap import DEFAULT_DRAWS, Interval, bootstrap_miou
 from ovgaussian.openvocab.calibration import Calibration, StackedPredictor, calibrate
 from ovgaussian.openvocab.class_offsets import OffsetPredictor, fit_offsets
-from ovgaussian.run.checkpoint import CONFIG_NAME, read_json, weights_sha256
+from ovgaussian.run.checkpoint import CONFIG_NAME, latest_checkpoint, read_json, weights_sha256
 from ovgaussian.run.devices import resolve_device
 from ovgaussian.openvocab.feature_synthesis import fit_generative_predictor
 from ovgaussian.metrics import ConfusionMatrix, SegmentationScores
@@ -421,7 +421,9 @@ def make_predictor(config: BenchConfig) -> tuple[Predictor, dict]:
         if config.stacking_run is not None:
             calibration = calibrate_stacking(config, templates)
             predictor = StackedPredictor(predictor, calibration.gamma)
-            description["stacking"] = {"run": str(config.stacking_run), "split": "train",
+            description["stacking"] = {"run": str(config.stacking_run),
+                                       "checkpoint_sha256": weights_sha256(latest_checkpoint(config.stacking_run)),
+                                       "split": "train",
                                        "protocol": "seen classes held out as pseudo-unseen in the stacking run; "
                                                    "gamma maximizes the harmonic mean of their mIoU and the other "
                                                    "seen classes' mIoU on the train split; unseen labels unread",

@@ -265,14 +265,18 @@ def bench_config(config: SuiteConfig, dataset: Path, row: Table1Row | None = Non
 
 
 def scored_weights(bench: BenchConfig) -> list[str | None]:
-    """sha256 of the weights a model row scores now: its run's latest checkpoint, then each ensemble member's."""
-    return [weights_sha256(latest_checkpoint(run)) for run in (bench.run, *bench.ensemble_runs)]
+    """sha256 of the weights a model row scores now: its run's latest checkpoint, each ensemble member's, then its
+    stacking calibration run's (when it has one)."""
+    runs = (bench.run, *bench.ensemble_runs, *([bench.stacking_run] if bench.stacking_run is not None else []))
+    return [weights_sha256(latest_checkpoint(run)) for run in runs]
 
 
 def recorded_weights(payload: dict) -> list[str | None]:
     """sha256 of the weights a bench report scored, in :func:`scored_weights`' order."""
     predictor = payload.get("predictor", {})
-    return [predictor.get("checkpoint_sha256")] + [m.get("checkpoint_sha256") for m in predictor.get("ensemble", [])]
+    stacking = [predictor["stacking"].get("checkpoint_sha256")] if "stacking" in predictor else []
+    return ([predictor.get("checkpoint_sha256")] + [m.get("checkpoint_sha256") for m in predictor.get("ensemble", [])]
+            + stacking)
 
 
 def bench_row(config: SuiteConfig, bench: BenchConfig, report_path: Path) -> dict:

@@ -309,6 +309,8 @@ def test_bench_scores_each_method_and_records_the_calibration(tmp_path):
     stacking = predictor["stacking"]
     assert stacking["pseudo_unseen"] == ["table"] and stacking["gamma"] in stacking["candidates"]
     assert stacking["split"] == "train" and not set(stacking["classes"]) & set(UNSEEN_CLASSES)
+    from ovgaussian.run.checkpoint import latest_checkpoint, weights_sha256
+    assert stacking["checkpoint_sha256"] == weights_sha256(latest_checkpoint(tmp_path / "calrun")) is not None
     assert set(predictor["generative"]["synthesized_classes"]) == set(UNSEEN_CLASSES) & set(benchmark_vocabulary(20).names)
     assert predictor["prompt_templates"] == []  # the prompt ensemble is tested above (each template: one encoder run)
     assert report.payload["row"]["2d_NVA"] is not None

@@ -311,27 +311,38 @@ def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs_and_recipe(tm
 def test_a_bench_report_is_reused_only_for_the_weights_it_scored(tmp_path, monkeypatch):
     from ovgaussian.bench.config import BenchConfig
 
-    run = tmp_path / "run"
-    folder = run / "checkpoints" / "epoch-0001"
-    folder.mkdir(parents=True)
-    (folder / "model.safetensors").write_bytes(b"weights one")
-    monkeypatch.setattr(S, "latest_checkpoint", lambda r: folder)
+    folders = {}
+    for name in ("run", "calibration"):  # a run and a stacking calibration run, one checkpoint each
+        folders[tmp_path / name] = tmp_path / name / "checkpoints" / "epoch-0001"
+        folders[tmp_path / name].mkdir(parents=True)
+        (folders[tmp_path / name] / "model.safetensors").write_bytes(b"weights one")
+    monkeypatch.setattr(S, "latest_checkpoint", lambda r: folders[r])
     scored = []
 
-    def fake_bench(bench):
-        scored.append(bench.predictor)
-        payload = {"predictor": {"checkpoint_sha256": S.weights_sha256(folder)},
-                   "dataset": S.dataset_fingerprint(bench.dataset)}
+    def fake_bench(bench):  # records the weights it scored as run_bench's payload does
+        scored.append(bench.predictor if bench.stacking_run is None else "stacked")
+        predictor = {"checkpoint_sha256": S.weights_sha256(folders[bench.run])} if bench.run else {}
+        if bench.stacking_run is not None:
+            predictor["stacking"] = {"checkpoint_sha256": S.weights_sha256(folders[bench.stacking_run])}
+        payload = {"predictor": predictor, "dataset": S.dataset_fingerprint(bench.dataset)}
         return type("Report", (), {"payload": payload})()
 
     monkeypatch.setattr(S, "run_bench", fake_bench)
-    bench = BenchConfig(dataset=tmp_path, run=run)
+    bench = BenchConfig(dataset=tmp_path, run=tmp_path / "run")
     path = tmp_path / "row.json"
     first = S.bench_row(SuiteConfig(out=tmp_path), bench, path)
     assert S.bench_row(SuiteConfig(out=tmp_path), bench, path) == first and len(scored) == 1  # same weights: reused
-    (folder / "model.safetensors").write_bytes(b"weights two")  # the run retrained
+    (folders[tmp_path / "run"] / "model.safetensors").write_bytes(b"weights two")  # the run retrained
     again = S.bench_row(SuiteConfig(out=tmp_path), bench, path)
     assert len(scored) == 2 and again != first
+    # a stacking row: its calibration run's weights count too
+    stacked, stacked_path = replace(bench, stacking_run=tmp_path / "calibration"), tmp_path / "stacked.json"
+    S.bench_row(SuiteConfig(out=tmp_path), stacked, stacked_path)
+    S.bench_row(SuiteConfig(out=tmp_path), stacked, stacked_path)  # reused
+    (folders[tmp_path / "calibration"] / "model.safetensors").write_bytes(b"weights two")  # calibration retrained
+    S.bench_row(SuiteConfig(out=tmp_path), stacked, stacked_path)
+    assert scored == ["model", "model", "stacked", "stacked"]
+    del scored[2:]
     baseline, baseline_path = BenchConfig(dataset=tmp_path, predictor="majority"), tmp_path / "baseline.json"
     S.bench_row(SuiteConfig(out=tmp_path), baseline, baseline_path)
     S.bench_row(SuiteConfig(out=tmp_path), baseline, baseline_path)  # a baseline on the same data: reused
