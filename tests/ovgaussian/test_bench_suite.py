@@ -373,17 +373,20 @@ def test_the_profiles_worker_processes_end_when_the_suite_is_killed(tmp_path):
     )
     suite = subprocess.Popen([sys.executable, "-c", script], cwd=tmp_path)
 
+    def state_and_parent(pid):  # (state letter, parent pid) from /proc, or None once the process is gone
+        try:
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            return None
+        return fields[0], int(fields[1])
+
+    def running(pid):
+        found = state_and_parent(pid)
+        return found is not None and found[0] != "Z"
+
     def children(pid):
-        out = []
-        for entry in os.listdir("/proc"):
-            if entry.isdigit():
-                try:
-                    fields = open(f"/proc/{entry}/stat").read().rsplit(")", 1)[1].split()
-                except OSError:
-                    continue
-                if int(fields[1]) == pid and fields[0] != "Z":
-                    out.append(int(entry))
-        return out
+        found = {int(e): state_and_parent(int(e)) for e in os.listdir("/proc") if e.isdigit()}
+        return [child for child, f in found.items() if f is not None and f[0] != "Z" and f[1] == pid]
 
     workers: list[int] = []
     try:
@@ -396,11 +399,9 @@ def test_the_profiles_worker_processes_end_when_the_suite_is_killed(tmp_path):
         suite.send_signal(signal.SIGKILL)
         suite.wait(timeout=10)
         deadline = time.monotonic() + 20
-        while any(os.path.exists(f"/proc/{w}") and "Z" not in open(f"/proc/{w}/stat").read().rsplit(")", 1)[1][:3]
-                  for w in workers) and time.monotonic() < deadline:
+        while any(running(w) for w in workers) and time.monotonic() < deadline:
             time.sleep(0.2)
-        alive = [w for w in workers if os.path.exists(f"/proc/{w}")
-                 and "Z" not in open(f"/proc/{w}/stat").read().rsplit(")", 1)[1][:3]]
+        alive = [w for w in workers if running(w)]
         assert not alive, f"still running after their suite was killed: {alive}"
     finally:
         if suite.poll() is None:
