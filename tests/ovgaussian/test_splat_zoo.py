@@ -144,15 +144,17 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     assert recipe.data.dataset == Path("/tmp/d") and recipe.data.off_surface_augment and recipe.surface_radius == 0.15
     assert recipe.data.colour_augment
     zoo = "/tmp/profile/zoo"
+    configs["full"], configs["full-oracle"] = full, S.train_config(config, RUNS[4], datasets["oracle"])
+    assert RUNS[4].name == "full-oracle"
     for name, dataset in (("matched-default-fit", f"{zoo}/default-fit"), ("matched-scan", f"{zoo}/scan"),
-                          ("matched-split", f"{zoo}/split"), ("matched-splats", "/tmp/d"),
-                          ("matched-oracle", "/tmp/o")):
+                          ("matched-split", f"{zoo}/split"), ("full", "/tmp/d"), ("full-oracle", "/tmp/o")):
         c = configs[name]
         assert c.data.dataset == Path(dataset) and not c.data.renditions
         assert not c.data.off_surface_augment and c.surface_radius == 0.0 and c.epochs == full.epochs
-        # recoloured as the recipe is: the ratio measures the renditions, not the colour augment
-        assert c.data.colour_augment and c == replace(
-            full, out=c.out, data=replace(full.data, dataset=c.data.dataset, colour_augment=True))
+        # recoloured as the recipe and every run of the profile are: the ratio measures the renditions, not the
+        # colour augment
+        assert c.data.colour_augment and c == replace(full, out=c.out, data=replace(full.data, dataset=c.data.dataset))
+    assert all(spec.colour_augment for spec in RUNS + ZOO_RUNS)
     for name, c in configs.items():
         assert (c.optim.lr, c.data.pixels_per_view, c.voxel_size, c.loss.lovasz_weight) == (
             full.optim.lr, full.data.pixels_per_view, full.voxel_size, full.loss.lovasz_weight)
@@ -213,13 +215,13 @@ def test_the_profile_queues_the_zoo_after_what_each_task_needs(tmp_path, monkeyp
     zoo = tmp_path / "p" / "zoo"
     assert trained["zoo"] == (splats, (zoo / "scan", oracle))
     assert trained["matched-default-fit"] == (zoo / "default-fit", ())
-    assert trained["matched-oracle"] == (oracle, ()) and trained["matched-splats"] == (splats, ())
+    assert trained["full-oracle"] == (oracle, ()) and trained["full"] == (splats, ())
     assert after["zoo: build default-fit"] == ("zoo: fit default-fit 1/2", "zoo: fit default-fit 2/2")
     assert after["train: matched-default-fit"] == ("zoo: build default-fit",)
     assert after["train: zoo"] == ("zoo: build scan",) and after["train: full"] == ()
     assert after["bench: zoo split recipe"] == ("train: zoo", "zoo: build split")
-    assert after["bench: zoo oracle matched"] == ("train: matched-oracle",)
-    assert after["bench: zoo splats matched"] == ("train: matched-splats",)
+    assert after["bench: zoo oracle matched"] == ("train: full-oracle",)
+    assert after["bench: zoo splats matched"] == ("train: full",)
     assert after["bench: zoo scan nearest-colour"] == ("zoo: build scan",)
     assert sum(name.startswith("bench: zoo") for name in after) == len(ZOO_RENDITIONS) * len(Z.ZOO_SCORERS)
     zoo_checks = {k: v for k, v in report.checks.items() if k.startswith("zoo:")}
