@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -52,13 +53,16 @@ def main() -> int:
     args = parser.parse_args()
 
     from seggaussian.sources.layout import layout_roots, reader
+    from seggaussian.util.workers import pool_options
 
     budgets = {k: float(v) for k, v in (item.split("=", 1) for item in args.time_budget)}
-    scenes = [s for domain, root in layout_roots("synthetic", args.raw) for s in sorted(reader(domain).list_scenes(root))]
+    scenes = [s for domain, root in layout_roots("synthetic", args.raw)
+              for s in sorted(reader(domain).list_scenes(root))]
     jobs = [(str(args.raw), s, p, budgets.get(p, 0.0)) for p in args.preset for s in scenes]
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+    with ProcessPoolExecutor(max_workers=args.jobs, **pool_options(multiprocessing.get_context("spawn"))) as pool:
         rows = list(pool.map(fit_one, *zip(*jobs)))
-    print("| preset | budget (s) | room | iterations | Gaussians | best (dB) | end (dB) | drop (dB) | resets | skipped |")
+    print("| preset | budget (s) | room | iterations | Gaussians | best (dB) | end (dB) | drop (dB) | resets "
+          "| skipped |")
     print("|---|---:|---|---:|---:|---:|---:|---:|---|---|")
     failed = 0
     for r in rows:

@@ -360,11 +360,10 @@ def test_the_ensemble_switch_is_not_a_setting_of_the_folder(tmp_path):
 def test_the_profiles_worker_processes_end_when_the_suite_is_killed(tmp_path):
     """A suite killed (SIGKILL: no handler runs) while its two worker processes are busy leaves neither running:
     each watches the process that started it and exits once it is gone."""
-    import os
-    import signal
-    import subprocess
     import sys
     import time
+
+    from processes import assert_workers_end_with_their_parent
 
     script = (
         "import time\n"
@@ -372,42 +371,12 @@ def test_the_profiles_worker_processes_end_when_the_suite_is_killed(tmp_path):
         "run_tasks([Task('a', time.sleep, (120,)), Task('b', time.sleep, (120,))], 2, print)\n"
     )
     suite = subprocess.Popen([sys.executable, "-c", script], cwd=tmp_path)
+    started: list[float] = []
 
-    def state_and_parent(pid):  # (state letter, parent pid) from /proc, or None once the process is gone
-        try:
-            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-        except OSError:
-            return None
-        return fields[0], int(fields[1])
+    def ready(workers):  # two workers + the resource tracker, then 1 s for the workers to pick up their tasks
+        if len(workers) < 3:
+            return False
+        started.append(time.monotonic())
+        return time.monotonic() - started[0] >= 1.0
 
-    def running(pid):
-        found = state_and_parent(pid)
-        return found is not None and found[0] != "Z"
-
-    def children(pid):
-        found = {int(e): state_and_parent(int(e)) for e in os.listdir("/proc") if e.isdigit()}
-        return [child for child, f in found.items() if f is not None and f[0] != "Z" and f[1] == pid]
-
-    workers: list[int] = []
-    try:
-        deadline = time.monotonic() + 60
-        while len(children(suite.pid)) < 3 and time.monotonic() < deadline:  # two workers + the resource tracker
-            time.sleep(0.2)
-        workers = children(suite.pid)
-        assert len(workers) >= 3, workers
-        time.sleep(1.0)  # the workers have picked up their tasks
-        suite.send_signal(signal.SIGKILL)
-        suite.wait(timeout=10)
-        deadline = time.monotonic() + 20
-        while any(running(w) for w in workers) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        alive = [w for w in workers if running(w)]
-        assert not alive, f"still running after their suite was killed: {alive}"
-    finally:
-        if suite.poll() is None:
-            suite.kill()
-        for w in set(workers) | set(children(suite.pid)):
-            try:
-                os.kill(w, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+    assert_workers_end_with_their_parent(suite, ready, start_timeout=60.0)

@@ -305,6 +305,28 @@ def test_process_pool_and_missing_ray(built, raw, tmp_path):
             build_mod.build_dataset(replace(_config(raw, out), executor="ray"))
 
 
+@pytest.mark.slow
+def test_killed_build_leaves_no_worker_fitting(raw, tmp_path):
+    """`seggaussian build --jobs 2` killed (SIGKILL: no handler runs) while its two spawned workers fit leaves
+    neither fitting: each watches the process that started it and exits once it is gone. The fits are given far
+    more iterations than the test waits, so a worker without that watch would still be running."""
+    import subprocess
+    import sys
+
+    from processes import assert_workers_end_with_their_parent, cpu_seconds
+
+    repo = Path(__file__).resolve().parents[2]
+    build = subprocess.Popen(
+        [sys.executable, "-m", "cli.seggaussian_cli", "build", "--source", "synthetic", "--root", str(raw),
+         "--out", str(tmp_path / "dataset"), "--jobs", "2", "--gaussians", "fit", "--fit-iterations", "1000000",
+         "--no-progress"], cwd=repo, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def busy(workers):  # two workers past their start-up (imports), working on a scene each
+        return sum(cpu_seconds(w) >= 5.0 for w in workers) >= 2
+
+    assert_workers_end_with_their_parent(build, busy)
+
+
 def test_split_rules():
     cfg = SplitConfig()
     scenes = {f"s{i:02d}": SceneSplitInfo("scannetpp", None) for i in range(12)}
