@@ -292,8 +292,8 @@ class SuiteConfig:
     """Also score the splat zoo (issue #54; ``ovgaussian.suite.zoo``): the val and cross-domain rooms in five
     renditions (the profile fit, a default-preset fit, oracle Gaussians, a scan, the fit split in two), the recipe
     trained across renditions against a model trained on each rendition alone and both baselines. Opt-in: a
-    default-preset fit of every room and six more trainings (what it costs: benchmarks/results/bench_suite.md,
-    "The splat zoo")."""
+    default-preset fit of every room and four more trainings, the profile fit's and the oracle's matched runs being
+    Table 1's ``full`` and ``full-oracle`` (what it costs: benchmarks/results/bench_suite.md, "The splat zoo")."""
     zoo_fit_iterations: int = 600
     """Iterations of each room's default-preset fit in the zoo (``FitConfig()`` with its schedule, stopped there
     with its last state: five densification rounds. At 500, one of 13 val and cross-domain rooms held 96,937

@@ -144,8 +144,8 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     assert recipe.data.dataset == Path("/tmp/d") and recipe.data.off_surface_augment and recipe.surface_radius == 0.15
     assert recipe.data.colour_augment
     zoo = "/tmp/profile/zoo"
-    configs["full"], configs["full-oracle"] = full, S.train_config(config, RUNS[4], datasets["oracle"])
-    assert RUNS[4].name == "full-oracle"
+    configs["full"] = full
+    configs["full-oracle"] = S.train_config(config, {s.name: s for s in RUNS}["full-oracle"], datasets["oracle"])
     for name, dataset in (("matched-default-fit", f"{zoo}/default-fit"), ("matched-scan", f"{zoo}/scan"),
                           ("matched-split", f"{zoo}/split"), ("full", "/tmp/d"), ("full-oracle", "/tmp/o")):
         c = configs[name]
