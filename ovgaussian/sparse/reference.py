@@ -89,16 +89,22 @@ def trilinear_gather_reference(
     each row is normalized to sum to 1. Written from positions, not from the offsets that
     :func:`ovgaussian.sparse.devoxelize.trilinear_gather` uses."""
     n, m = points.shape[0], voxel_coords.shape[0]
+    # Plain Python floats: the same arithmetic as on tensor scalars, without their per-element overhead.
+    point_rows, voxel_rows = points.double().tolist(), voxel_coords.tolist()
+    point_scenes, voxel_scenes = point_batch.tolist(), voxel_batch.tolist()
+    edges, corners = voxel_size.double().tolist(), origin.double().tolist()
     out = torch.zeros(n, m, dtype=torch.float64)
     for i in range(n):
-        b = int(point_batch[i])
-        edge = float(voxel_size[b])
+        b = point_scenes[i]
+        edge = edges[b]
+        weights = [0.0] * m
         for j in range(m):
-            if int(voxel_batch[j]) != b:
+            if voxel_scenes[j] != b:
                 continue
-            centre = origin[b].double() + (voxel_coords[j].double() + 0.5) * edge
-            gap = (points[i].double() - centre).abs() / edge
-            if bool((gap < 1.0).all()):
-                out[i, j] = float(torch.prod(1.0 - gap))
-        out[i] /= out[i].sum()
+            centre = [corners[b][a] + (voxel_rows[j][a] + 0.5) * edge for a in range(3)]
+            gap = [abs(point_rows[i][a] - centre[a]) / edge for a in range(3)]
+            if all(g < 1.0 for g in gap):
+                weights[j] = (1.0 - gap[0]) * (1.0 - gap[1]) * (1.0 - gap[2])
+        total = sum(weights)
+        out[i] = torch.tensor([w / total for w in weights], dtype=torch.float64)
     return out
