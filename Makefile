@@ -76,7 +76,7 @@ demo: $(STAMP) $(NODE_STAMP)
 	bash scripts/demo.sh
 
 test: $(STAMP) $(NODE_STAMP) $(CHROMIUM)
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 clean:
 	rm -rf out .pytest_cache

@@ -24,6 +24,15 @@ for _folder in sorted({path.parent for path in TESTS.rglob("*.py")} - {TESTS}, r
 sys.path.insert(0, str(TESTS.parent))
 
 
+def pytest_collection_modifyitems(config, items):
+    """Files holding a ``slow`` test run first, each file's tests in their own order: ``make test`` hands whole files
+    to two workers in collection order (``--dist loadfile --no-loadscope-reorder``), so the long files start at once
+    and the many short ones fill in behind them and both workers end together. (xdist's own reorder, by number of
+    tests, put the one-test files that take minutes last, and one worker ran them alone.)"""
+    slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.path not in slow_files)
+
+
 @pytest.fixture
 def one_torch_thread():
     """Tiny tensors: one torch thread is faster and immune to the shared machine's load (restored after)."""

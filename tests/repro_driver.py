@@ -1,11 +1,12 @@
-"""One short run printed as a hash, for the reproducibility tests (run in a fresh process per call).
+"""A short fit and a short training, each printed as a hash, for tests/test_reproducibility.py (a fresh process
+per call).
 
-    python tests/repro_driver.py train OUT [--epochs N]
-    python tests/repro_driver.py fit RAW SCENE OUT
+    python tests/repro_driver.py RAW SCENE OUT
 
-Prints one line: the sha256 of what the run wrote (train: every checkpoint tensor and the metrics lines;
-fit: the PLY bytes). The tests run it with an empty ``NUMBA_CACHE_DIR`` (every numba kernel compiled in
-that process) and again with the filled one (every kernel loaded from the cache).
+Prints ``fit=<sha256 of the PLY bytes>`` and ``train=<sha256 of every checkpoint tensor and the metrics lines>``
+(the fit of SCENE under RAW to OUT/fit.ply, a training of two in-memory scenes in OUT/run). The test runs it with an
+empty ``NUMBA_CACHE_DIR`` (every numba kernel compiled in that process) and again with the filled one (every kernel
+loaded from the cache).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ sys.path[:0] = [str(TESTS.parent), str(TESTS / "ovgaussian")]
 
 #: Fit length: enough steps for the rasterizer's backward kernel and one densification to run.
 FIT_ITERATIONS = 30
+#: Epochs of the training (every epoch's checkpoint enters the digest).
+TRAIN_EPOCHS = 2
 
 
 def train_digest(out: Path) -> str:
@@ -64,19 +67,13 @@ def run_fit(raw: Path, scene: str, out: Path) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    sub = parser.add_subparsers(dest="job", required=True)
-    t = sub.add_parser("train")
-    t.add_argument("out", type=Path)
-    t.add_argument("--epochs", type=int, default=2)
-    f = sub.add_parser("fit")
-    f.add_argument("raw", type=Path)
-    f.add_argument("scene")
-    f.add_argument("out", type=Path)
+    parser.add_argument("raw", type=Path)
+    parser.add_argument("scene")
+    parser.add_argument("out", type=Path)
     args = parser.parse_args()
-    if args.job == "train":
-        print(run_train(args.out, args.epochs))
-    else:
-        print(run_fit(args.raw, args.scene, args.out))
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"fit={run_fit(args.raw, args.scene, args.out / 'fit.ply')}")
+    print(f"train={run_train(args.out / 'run', TRAIN_EPOCHS)}")
 
 
 if __name__ == "__main__":

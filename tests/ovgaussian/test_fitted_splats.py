@@ -47,6 +47,7 @@ def val_csa(dataset, run=None, predictor="model") -> float:
     return float(report.payload["metrics"]["3d"]["CSA"]["miou"])
 
 
+@pytest.mark.slow
 def test_a_run_trained_on_fitted_splats_scores_a_room_alike_as_splat_and_as_oracle(datasets, tmp_path):
     from ovgaussian.train.loop import train
     from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConfig

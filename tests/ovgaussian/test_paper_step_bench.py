@@ -27,6 +27,7 @@ def _run(*budgets: str) -> subprocess.CompletedProcess:
                           timeout=600)
 
 
+@pytest.mark.slow
 def test_tiny_paper_step_reports_phases_and_the_unet_and_fails_a_missed_budget():
     res = _run("--max-step-s", "1000", "--max-peak-gb", "100", "--max-backward-ratio", "100", "--compare-workers", "1")
     assert res.returncode == 0, res.stderr[-2000:]

@@ -237,6 +237,7 @@ def test_the_profile_queues_the_zoo_after_what_each_task_needs(tmp_path, monkeyp
         S.run_suite(SuiteConfig(out=tmp_path / "r", zoo=True, splats="oracle"))
 
 
+@pytest.mark.slow
 def test_the_split_and_scan_renditions_are_datasets_of_the_same_rooms_split_and_labels(tmp_path):
     from seggaussian import shards
     from seggaussian.labels.config import OracleConfig

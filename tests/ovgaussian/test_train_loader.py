@@ -80,6 +80,7 @@ def test_worker_samples_equal_the_in_process_reference(scenes):
     assert not torch.equal(reference[0].samples[0].pixels, reference[1].samples[0].pixels)
 
 
+@pytest.mark.slow
 def test_weights_are_bitwise_equal_for_0_1_and_2_workers_and_across_a_resume(scenes, tmp_path):
     """Checkpoint tensors (weights, momentum, buffers) and metrics hash equal for 0, 1 and 2 loader workers, and for
     a run stopped after one epoch with 2 workers and resumed with 1."""

@@ -292,6 +292,7 @@ def test_click_in_the_browser_inspects_the_gaussian(browser_viewer):
         page.close()
 
 
+@pytest.mark.slow
 def test_exported_page_renders_offline(browser_viewer, tmp_path):
     """The exported file is one page that draws the coloured scene with every network request refused."""
     viewer, browser, room = browser_viewer

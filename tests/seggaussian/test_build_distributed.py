@@ -106,6 +106,7 @@ def _first_task_started(cluster, node: str) -> bool:
     return any(cmd.startswith("ray::_worker") for _, cmd in cluster.processes(node))
 
 
+@pytest.mark.slow
 def test_ray_multi_node_build_loses_a_node_and_equals_the_local_build(raw, one_process, tmp_path):
     pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'seggaussian[ray]')")
     from seggaussian.tools.ray_cluster import LoopbackRayCluster
