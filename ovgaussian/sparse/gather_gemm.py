@@ -139,14 +139,33 @@ def _apply_plan(
                 acc.addmm_(cols.t(), ops.gather_rows(out_rows_of, group.rows[s:e], rows_buf[: e - s]))
         if sums is not None:
             sums.index_add_(0, group.offsets, acc.view(p, c_in, c_sum))
-    for k, (in_rows, out_rows) in enumerate(zip(plan.residual_in, plan.residual_out)):
-        if in_rows.numel():
-            x = ops.gather_rows(features, in_rows, features.new_empty(in_rows.numel(), c_in))
-            ops.add_rows(out, out_rows, x @ weight[k])
-            if sums is not None:
-                y = ops.gather_rows(out_rows_of, out_rows, out_rows_of.new_empty(out_rows.numel(), c_sum))
-                sums[k].addmm_(x.t(), y)
+    residual = _residual_pairs(plan)
+    if residual is not None:
+        in_rows, out_rows, spans = residual
+        x = ops.gather_rows(features, in_rows, features.new_empty(in_rows.numel(), c_in))
+        y = features.new_empty(in_rows.numel(), c_out)
+        for k, s, e in spans:
+            torch.mm(x[s:e], weight[k], out=y[s:e])
+        ops.add_rows(out, out_rows, y)  # offset by offset, each in row order: the adds of a per-offset loop
+        if sums is not None:
+            rows = ops.gather_rows(out_rows_of, out_rows, out_rows_of.new_empty(out_rows.numel(), c_sum))
+            for k, s, e in spans:
+                sums[k].addmm_(x[s:e].t(), rows[s:e])
     return out, sums
+
+
+def _residual_pairs(plan: GatherPlan) -> tuple[Tensor, Tensor, list[tuple[int, int, int]]] | None:
+    """The residual's pairs of every offset in one ``[R]`` input-row and one output-row tensor (offset by offset,
+    each in its own order) and ``(k, start, end)`` of each non-empty offset's span; None without pairs. One gather,
+    one scatter-add and the offsets' GEMMs on slices replace a gather, a GEMM and a scatter-add per offset."""
+    spans, start = [], 0
+    for k, rows in enumerate(plan.residual_in):
+        if rows.numel():
+            spans.append((k, start, start + rows.numel()))
+            start += rows.numel()
+    if not spans:
+        return None
+    return torch.cat(plan.residual_in), torch.cat(plan.residual_out), spans
 
 
 def plan_weight_grad(features: Tensor, grad_out: Tensor, plan: GatherPlan, ops: _BlockOps) -> Tensor:
@@ -169,11 +188,13 @@ def plan_weight_grad(features: Tensor, grad_out: Tensor, plan: GatherPlan, ops: 
             cols = ops.gather_neighbours(features, group.neighbours[s:e], cols_buf[: e - s])
             acc.addmm_(cols.t(), ops.gather_rows(grad_out, group.rows[s:e], g_buf[: e - s]))
         grad_weight.index_add_(0, group.offsets, acc.view(p, c_in, c_out))
-    for k, (in_rows, out_rows) in enumerate(zip(plan.residual_in, plan.residual_out)):
-        if in_rows.numel():
-            x = ops.gather_rows(features, in_rows, features.new_empty(in_rows.numel(), c_in))
-            g = ops.gather_rows(grad_out, out_rows, grad_out.new_empty(out_rows.numel(), c_out))
-            grad_weight[k].addmm_(x.t(), g)
+    residual = _residual_pairs(plan)
+    if residual is not None:
+        in_rows, out_rows, spans = residual
+        x = ops.gather_rows(features, in_rows, features.new_empty(in_rows.numel(), c_in))
+        g = ops.gather_rows(grad_out, out_rows, grad_out.new_empty(out_rows.numel(), c_out))
+        for k, s, e in spans:
+            grad_weight[k].addmm_(x[s:e].t(), g[s:e])
     return grad_weight
 
 
