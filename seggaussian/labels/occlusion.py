@@ -31,6 +31,7 @@ import numba
 import numpy as np
 
 from seggaussian.core.cameras import Camera
+from seggaussian.labels.config import DEFAULT_ON_SURFACE_TOLERANCE
 from seggaussian.labels.transfer import HiddenSurfaceHits
 from seggaussian.sources.raycast import RAY_PARALLEL_EPS, MeshRaycaster
 
@@ -41,10 +42,6 @@ DEFAULT_OCCLUSION_TOLERANCE = 0.01
 NEAR_PLANE = 1e-3
 #: Metres added to a cube's bounding sphere in ``PointCells``' view test: room for rounding, never for a point.
 CELL_MARGIN = 1e-3
-#: Default of ``TransferConfig.on_surface_tolerance`` (metres): a Gaussian this near a surface lies on it. Below
-#: the 6 mm that a window Gaussian fitted 14 mm behind its glass keeps from the wall 2 cm behind (that Gaussian
-#: belongs to the window), and far above float32 positions' error at room scale (about 1e-6 m per metre).
-DEFAULT_ON_SURFACE_TOLERANCE = 0.003
 #: Triangles whose doubled area is below this (square metres) have no usable barycentric frame in the reference's
 #: closest-point search; only their corners and edges are measured there.
 DEGENERATE_TRIANGLE_AREA = 1e-18

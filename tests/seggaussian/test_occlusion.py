@@ -271,16 +271,16 @@ def test_gaussians_at_every_vertex_keep_their_vertex_label_with_few_views(tmp_pa
 
 def test_gaussians_on_hidden_surfaces_between_vertices_keep_their_label(tmp_path):
     """Two views: Gaussians on the hidden faces themselves (the wall behind the window, the floor under the box; not
-    at vertices), and up to 2 mm off them, keep their face's label; 6 mm off the hidden wall, in front of it, they
-    take the window's."""
+    at vertices) keep their face's label; 2 mm and 6 mm off the hidden wall, in front of it, they take the window's
+    (a fitted Gaussian near a hidden surface is no scan vertex: ``DEFAULT_ON_SURFACE_TOLERANCE``)."""
     vertices, faces, face_labels = _grid_wall_scene()
     views = (View("v0", CAMERAS[0], None, "train"), View("v2", CAMERAS[2], None, "train"))
     scene = _scene(vertices, faces, face_labels, views)
     rng = np.random.default_rng(2)
     n = 200
-    on_wall = np.column_stack([rng.uniform(-0.45, 0.45, n), rng.uniform(-0.002, 0.002, n), rng.uniform(1.05, 1.95, n)])
-    on_floor = np.column_stack([rng.uniform(0.82, 1.18, n), rng.uniform(-1.58, -1.22, n), rng.uniform(0, 0.002, n)])
-    off_wall = np.column_stack([rng.uniform(-0.45, 0.45, n), np.full(n, -0.006), rng.uniform(1.05, 1.95, n)])
+    on_wall = np.column_stack([rng.uniform(-0.45, 0.45, n), np.zeros(n), rng.uniform(1.05, 1.95, n)])
+    on_floor = np.column_stack([rng.uniform(0.82, 1.18, n), rng.uniform(-1.58, -1.22, n), np.zeros(n)])
+    off_wall = np.column_stack([rng.uniform(-0.45, 0.45, n), rng.choice([-0.002, -0.006], n), rng.uniform(1.05, 1.95, n)])
     means = np.concatenate([on_wall, on_floor, off_wall])
     labelled, facts = transfer_stage.run_transfer(scene, _small_gaussians(means), None, _stage_config(tmp_path))
     got = labelled.extras["semantic"]
