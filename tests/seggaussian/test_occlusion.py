@@ -280,7 +280,8 @@ def test_gaussians_on_hidden_surfaces_between_vertices_keep_their_label(tmp_path
     n = 200
     on_wall = np.column_stack([rng.uniform(-0.45, 0.45, n), np.zeros(n), rng.uniform(1.05, 1.95, n)])
     on_floor = np.column_stack([rng.uniform(0.82, 1.18, n), rng.uniform(-1.58, -1.22, n), np.zeros(n)])
-    off_wall = np.column_stack([rng.uniform(-0.45, 0.45, n), rng.choice([-0.002, -0.006], n), rng.uniform(1.05, 1.95, n)])
+    in_front = rng.choice([-0.002, -0.006], n)  # 2 and 6 mm in front of the hidden wall
+    off_wall = np.column_stack([rng.uniform(-0.45, 0.45, n), in_front, rng.uniform(1.05, 1.95, n)])
     means = np.concatenate([on_wall, on_floor, off_wall])
     labelled, facts = transfer_stage.run_transfer(scene, _small_gaussians(means), None, _stage_config(tmp_path))
     got = labelled.extras["semantic"]
