@@ -119,6 +119,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
     from ovgaussian.train.loop import phase_line, train
 
     result = train(config)
+    if result.rank != 0:  # under torchrun the summary is rank 0's: the others have no checkpoint to name
+        return
     m = result.last_epoch_metrics
     skipped = sum(result.skipped.values())
     summary = (f"trained {result.epochs} epochs ({result.steps} steps) on {result.num_scenes} scenes"

@@ -92,6 +92,8 @@ class TrainResult(NamedTuple):
         phases: this call's step timings (``PhaseTimes.summary``): seconds waiting for samples, drawing them,
             copying them to the device, computing, whole steps, and ``device_busy`` (compute / step); and the
             ``loader_workers`` this process used.
+        rank: this process's torchrun rank (0 without torchrun); only rank 0 writes checkpoints, so ``checkpoint``
+            is None on the others.
     """
 
     run_dir: Path
@@ -103,6 +105,7 @@ class TrainResult(NamedTuple):
     checkpoint: Path | None
     notes: tuple[str, ...]
     phases: dict = {}
+    rank: int = 0
 
 
 # --- settings checked before any work --------------------------------------------------------------
@@ -495,4 +498,4 @@ def train_in_process_group(
             LOG.warning(notes[-1])
     return TrainResult(run_dir, max(end_epoch, start_epoch), global_step, last_epoch_metrics, dict(scan.skipped),
                        len(scan.usable), last_checkpoint, tuple(notes),
-                       {**times.summary(), "loader_workers": workers})
+                       {**times.summary(), "loader_workers": workers}, group.rank)

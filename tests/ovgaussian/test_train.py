@@ -411,10 +411,11 @@ def test_torchrun_two_processes_match_one(shard_dataset, tmp_path):
         "from ovgaussian.run.config import DataConfig\n"
         "out, dataset = Path(sys.argv[1]), Path(sys.argv[2])\n"
         "cfg = tiny_config(out, 2, data=DataConfig(dataset=dataset, blend_top_k=8, pixels_per_view=256))\n"
-        "train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())\n"
+        "r = train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())\n"
+        "print(f'rank={r.rank} checkpoint={r.checkpoint}')\n"
     )
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    runs = {}
+    runs, reported = {}, {}
     for procs in (1, 2):
         out = tmp_path / f"run{procs}"
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={procs}",
@@ -422,11 +423,34 @@ def test_torchrun_two_processes_match_one(shard_dataset, tmp_path):
         done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr[-3000:]
         runs[procs] = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+        reported[procs] = sorted(line for line in done.stdout.splitlines() if line.startswith("rank="))
+    # the checkpoint is rank 0's (the CLI prints rank 0's summary only)
+    assert reported[1] == [f"rank=0 checkpoint={tmp_path / 'run1' / 'checkpoints' / 'epoch-0002'}"]
+    assert reported[2] == [f"rank=0 checkpoint={tmp_path / 'run2' / 'checkpoints' / 'epoch-0002'}",
+                           "rank=1 checkpoint=None"]
     assert len(runs[1]) == len(runs[2]) == 6  # 2 epochs x (2 steps + 1 epoch line)
     for a, b in zip(runs[1], runs[2]):
         assert a.get("scenes") == b.get("scenes")
         for key in ("loss", "text_3d", "text_2d"):
             assert a[key] == pytest.approx(b[key], rel=1e-4, abs=1e-5), (key, a, b)
+
+
+def test_cli_prints_the_summary_of_rank_0_only(monkeypatch, tmp_path):
+    """Under torchrun every rank returns from ``train``; only rank 0 (which holds the checkpoint) prints the
+    summary, so a P-process run ends with one summary line, not P with P - 1 naming no checkpoint."""
+    from click.testing import CliRunner
+
+    import ovgaussian.train.loop as loop
+    from cli.ovgaussian_cli import main
+    from ovgaussian.train.loop import TrainResult
+
+    for rank, printed in ((0, True), (1, False)):
+        result = TrainResult(tmp_path / "run", 1, 2, {"loss": 1.5}, {}, 4,
+                             tmp_path / "run" / "checkpoints" / "epoch-0001" if rank == 0 else None, (), {}, rank)
+        monkeypatch.setattr(loop, "train", lambda config, result=result: result)
+        out = CliRunner().invoke(main, ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--json"])
+        assert out.exit_code == 0, out.output
+        assert ('"checkpoint"' in out.output) == printed and ("trained 1 epochs" in out.output) == printed, out.output
 
 
 @pytest.mark.slow
