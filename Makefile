@@ -32,6 +32,9 @@ NODE_STAMP := $(NODE_DIR)/.installed-$(SPLAT_TRANSFORM_VERSION)-spz$(NIANTIC_SPZ
 # The headless browser of the web viewer test: Debian's chromium (driven by the `playwright` Python package of the
 # test extra through executable_path; `playwright install` is never run).
 CHROMIUM := /usr/bin/chromium
+# The two apt-get installs (libusb, chromium) take this lock in turn, so that `make -j3 setup` (.ci/run) can run
+# them beside pip and npm.
+APT_LOCK := /tmp/seggaussian-setup-apt.lock
 
 .PHONY: setup demo test clean
 
@@ -42,7 +45,7 @@ $(STAMP): pyproject.toml
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 	  echo "installing libusb-1.0-0 (needed by open3d)"; \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
-	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; \
+	  $$SUDO flock $(APT_LOCK) sh -c 'apt-get update -qq && apt-get install -y -qq libusb-1.0-0'; \
 	fi
 	@[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
@@ -68,7 +71,7 @@ $(NODE_STAMP):
 $(CHROMIUM):
 	@echo "installing chromium (headless browser of the web viewer test)"; \
 	if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
-	$$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
+	$$SUDO flock $(APT_LOCK) sh -c 'apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium' \
 	  || echo "chromium install failed: the web viewer test will be skipped"
 
 # The main job, end to end on the embedded synthetic data.
