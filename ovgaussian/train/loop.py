@@ -92,8 +92,7 @@ class TrainResult(NamedTuple):
         phases: this call's step timings (``PhaseTimes.summary``): seconds waiting for samples, drawing them,
             copying them to the device, computing, whole steps, and ``device_busy`` (compute / step); and the
             ``loader_workers`` this process used.
-        rank: this process's torchrun rank (0 without torchrun); only rank 0 writes checkpoints, so ``checkpoint``
-            is None on the others.
+        rank: this process's torchrun rank (0 alone); only rank 0 saves, the others' ``checkpoint`` is None.
     """
 
     run_dir: Path
