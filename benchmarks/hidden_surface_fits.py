@@ -79,7 +79,7 @@ def main() -> int:
     from seggaussian.pipeline.config import BuildConfig
     from seggaussian.pipeline.stages.transfer import run_transfer
 
-    tolerances = [float(t) for t in args.tolerances.split(",")]
+    tolerances = sorted({0.0, *(float(t) for t in args.tolerances.split(","))})  # 0: the rule off, the baseline
     totals = {t: np.zeros(4, np.int64) for t in tolerances}
     print("| room | tolerance | Gaussians seen | moved by the rule | of those, seen as the rule's label | seen as the "
           "label without the rule |\n|---|---:|---:|---:|---:|---:|")
@@ -95,9 +95,9 @@ def main() -> int:
                                  transfer=replace(TransferConfig(), on_surface_tolerance=tolerance))
             labelled, _ = run_transfer(scene, gaussians, None, config)
             labels[tolerance] = labelled.extras["semantic"]
-        off = labels[0.0] if 0.0 in labels else None
+        off = labels[0.0]
         for tolerance in tolerances:
-            if off is None or tolerance == 0.0:
+            if tolerance == 0.0:
                 continue
             moved = shown & (labels[tolerance] != off)
             row = np.array([shown.sum(), moved.sum(), (moved & (seen == labels[tolerance])).sum(),

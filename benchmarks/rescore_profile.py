@@ -3,8 +3,8 @@ retraining (what a change of the label transfer alone does to Table 1 and to the
 
 The profile's datasets are rebuilt in place by its own ``build_data`` (fits, oracle samples and whatever else is
 unchanged come from the build cache; a changed stage and the stages after it run again), then each named run is
-scored by the profile's ``bench_config`` on the dataset it is scored on in Table 1 (``full-oracle``: the oracle
-Gaussians; the others: the fitted splats), and ``full`` against ``full-oracle`` by ``paired_csa_ratio``. Work on a
+scored by the profile's ``bench_config`` on the dataset it was trained on (its ``RunSpec.trained_on``: the
+fitted splats or the oracle Gaussians), and ``full`` against ``full-oracle`` by ``paired_csa_ratio``. Work on a
 copy of the profile folder (``cp -a OUT COPY``) to keep the original labels.
 
     .venv/bin/python benchmarks/rescore_profile.py --out COPY [--runs full full-oracle] [--json FILE]
@@ -31,16 +31,20 @@ def main() -> int:
 
     from ovgaussian.bench.evaluate import run_bench
     from ovgaussian.suite import profile
-    from ovgaussian.suite.config import SuiteConfig
+    from ovgaussian.suite.config import RUNS, SuiteConfig
     from ovgaussian.suite.report import paired_csa_ratio
 
+    trained_on = {spec.name: spec.trained_on for spec in RUNS if spec.trained_on in ("splats", "oracle")}
+    unknown = [name for name in args.runs if name not in trained_on]
+    if unknown or not (args.out / "runs").is_dir():
+        parser.error(f"{args.out}: not a finished profile folder, or runs not of the profile: {unknown}")
     config = SuiteConfig(out=args.out)
     start = time.perf_counter()
     data = profile.build_data(config)
     print(f"datasets rebuilt in {time.perf_counter() - start:.0f} s", flush=True)
     payloads = {}
     for name in args.runs:
-        dataset = data.oracle if name.startswith("full-oracle") else data.splats
+        dataset = data.oracle if trained_on[name] == "oracle" else data.splats
         payloads[name] = run_bench(profile.bench_config(config, dataset, run=profile.run_dir(config, name))).payload
         metrics = payloads[name]["metrics"]
         row = " / ".join(f"{dim} {metric} {100 * value['miou']:.1f}" for dim in metrics
