@@ -48,6 +48,7 @@ from seggaussian.fit.config import PRESETS, FitConfig
               help="Let label points that the train views look at but never see give labels too (the wall behind a "
                    "window); by default they give none.")
 @config_option(OracleConfig, "num_gaussians", "--oracle-gaussians", type=int, default=None)
+@config_option(BuildConfig, "scan_max_gaussians", "--scan-max-gaussians", type=click.IntRange(min=1), default=None)
 @click.option("--fit-preset", type=click.Choice(PRESETS), default="default", show_default=True, help=PRESET_HELP)
 @config_option(FitConfig, "iterations", "--fit-iterations", type=int, default=None)
 @config_option(FitConfig, "max_gaussians", "--fit-max-gaussians", type=click.IntRange(min=1), default=None)
@@ -60,7 +61,8 @@ from seggaussian.fit.config import PRESETS, FitConfig
 @guarded
 def command(source, root, out, scenes, jobs, executor, address, ray_cpus, ray_memory_gb, ray_retries, ray_timeout,
             ray_scene_timeout, num_shards, shard_index, fit_mode, gaussians_mode, ply_dir, seed, gate,
-            occlusion_tolerance, keep_occluded, oracle_gaussians, fit_preset, fit_iterations, fit_max_gaussians, max_image_side, view_stride, keep_going, progress, as_json) -> None:
+            occlusion_tolerance, keep_occluded, oracle_gaussians, scan_max_gaussians, fit_preset, fit_iterations,
+            fit_max_gaussians, max_image_side, view_stride, keep_going, progress, as_json) -> None:
     """Build or update a labelled 3DGS dataset: Gaussians, label transfer, per-view label maps, shards, split."""
     from seggaussian.pipeline.dataset import build_dataset, summary_table
 
@@ -68,7 +70,8 @@ def command(source, root, out, scenes, jobs, executor, address, ray_cpus, ray_me
                          ray_cpus=ray_cpus, ray_memory_gb=ray_memory_gb, ray_retries=ray_retries,
                          ray_timeout=ray_timeout, ray_scene_timeout=ray_scene_timeout, num_shards=num_shards,
                          shard_index=shard_index,
-                         fit=fit_mode, gaussians=gaussians_mode, ply_dir=ply_dir, seed=seed,
+                         fit=fit_mode, gaussians=gaussians_mode, scan_max_gaussians=scan_max_gaussians,
+                         ply_dir=ply_dir, seed=seed,
                          progress=progress and not as_json,
                          scenes=tuple(s for item in scenes for s in item.split(",") if s) or None)
     if gate is not None:

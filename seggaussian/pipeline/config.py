@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Optional
 
 from seggaussian.fit.config import FitConfig
 from seggaussian.labels.config import OracleConfig, TransferConfig
@@ -87,6 +87,9 @@ class BuildConfig:
     #: ``fit`` = optimized Gaussians (or imported PLY); ``oracle`` = sampled from the labelled mesh; ``scan`` = one
     #: isotropic Gaussian per mesh vertex with its colour (a scan turned into splats, no fit).
     gaussians: Literal["fit", "oracle", "scan"] = "fit"
+    #: ``scan`` only: at most this many Gaussians per scene, a uniform draw of the vertices seeded by ``seed`` with
+    #: scales from the kept ones' spacing (a sparser scanner; a cheaper rendition to train on). None: every vertex.
+    scan_max_gaussians: Optional[int] = None
     #: Fitting settings for ``--gaussians fit`` when a scene needs fitting.
     fit_config: FitConfig = field(default_factory=FitConfig)
     #: Folder of trained PLYs for ``--source ply`` (``<scene>.ply`` or ``<scene>/point_cloud/iteration_*/point_cloud.ply``).

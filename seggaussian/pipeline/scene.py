@@ -46,8 +46,9 @@ def gaussians_stage_config(config: BuildConfig, task: SceneTask) -> dict:
     """What the gaussians stage depends on: its mode, the fitting/oracle settings, the trained PLY's stat."""
     if config.gaussians == "oracle":
         return {"mode": "oracle", "oracle": asdict(config.oracle), "seed": config.seed}
-    if config.gaussians == "scan":
-        return {"mode": "scan"}
+    if config.gaussians == "scan":  # every vertex: the key of builds before the cap existed
+        cap = config.scan_max_gaussians
+        return {"mode": "scan"} if cap is None else {"mode": "scan", "max_gaussians": cap, "seed": config.seed}
     if config.source == "ply" and task.trained_ply is None:
         raise FileNotFoundError(f"--source ply: no trained PLY for scene {task.scene_id} in {config.ply_dir}")
     if needs_fit(config.fit, task.trained_ply):

@@ -56,3 +56,45 @@ def test_every_vertex_becomes_a_solid_isotropic_gaussian_with_its_colour_and_lab
     shared = counts[first.reshape(-1)] > 1
     assert shared[wrong].all(), wrong[~shared[wrong]][:10]
     assert wrong.size <= 0.001 * len(points)
+
+
+def test_a_capped_scan_is_a_seeded_draw_of_vertices_scaled_by_their_own_spacing(scan_build, tmp_path):
+    """``--scan-max-gaussians``: a sparser scanner. Every Gaussian is a distinct vertex with its colour and label,
+    its scale the mean distance to the nearest other *kept* vertices, and the draw follows the seed."""
+    raw, full = scan_build
+    (scene_id,) = scannetpp.list_scenes(raw / "scannetpp")
+    scene = scannetpp.read_scene(raw / "scannetpp", scene_id)
+    points = np.asarray(scene.points, np.float64)
+    cap = len(points) // 4
+
+    def capped(out: Path, seed: int):
+        report = build_mod.build_dataset(BuildConfig(source="synthetic", root=raw, out=out, gaussians="scan",
+                                                     scan_max_gaussians=cap, seed=seed, progress=False))
+        assert [o.status for o in report.outcomes] == ["built"], [o.reason for o in report.outcomes]
+        split = shards.read_manifest(out)["scenes"][scene_id]["split"]
+        return shards.read_scene(out, split, scene_id, views=False).gaussians
+
+    g = capped(tmp_path / "a", 0)
+    assert len(g) == cap
+    # every Gaussian sits on a vertex, no position more often than the mesh has it (vertices may share a position)
+    positions, first, counts = np.unique(points, axis=0, return_index=True, return_counts=True)
+    drawn, drawn_counts = np.unique(g.means.astype(np.float64), axis=0, return_counts=True)
+    at = np.searchsorted(positions.view([("", positions.dtype)] * 3).ravel(),
+                         drawn.view([("", drawn.dtype)] * 3).ravel())
+    np.testing.assert_array_equal(positions[at], drawn)
+    assert (drawn_counts <= counts[at]).all()
+    index = {tuple(p): i for p, i, c in zip(positions, first, counts) if c == 1}  # vertices alone at their place
+    alone = np.array([tuple(m) in index for m in g.means.astype(np.float64)])
+    assert alone.mean() > 0.5
+    rows = np.array([index[tuple(m)] for m in g.means[alone].astype(np.float64)])
+    np.testing.assert_allclose(g.sh[alone, 0] * SH_C0 + 0.5, np.asarray(scene.colors)[rows] / 255.0, atol=1e-5)
+    np.testing.assert_array_equal(g.extras["semantic"][alone], np.asarray(scene.semantic)[rows])
+    kept = g.means.astype(np.float64)
+    for i in np.random.default_rng(1).choice(cap, 30, replace=False):
+        d = np.sort(np.linalg.norm(kept - kept[i], axis=1))[1:SCAN_NEIGHBOURS + 1]
+        assert float(np.exp(g.log_scales[i, 0])) == pytest.approx(max(d.mean(), 1e-7), rel=1e-4)
+    full_scale = np.median(shards.read_scene(full, shards.read_manifest(full)["scenes"][scene_id]["split"],
+                                             scene_id, views=False).gaussians.log_scales[:, 0])
+    assert np.median(g.log_scales[:, 0]) > full_scale + np.log(1.2)  # sparser vertices, larger Gaussians
+    np.testing.assert_array_equal(capped(tmp_path / "b", 0).means, g.means)  # seeded
+    assert not np.array_equal(capped(tmp_path / "c", 1).means, g.means)
