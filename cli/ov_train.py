@@ -73,6 +73,8 @@ from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TeacherCo
 @config_option(DataConfig, "renditions", "--rendition-data", "renditions", multiple=True,
                type=click.Path(path_type=Path, file_okay=False, exists=True), metavar="DATASET")
 @config_option(DataConfig, "verify", "--verify", is_flag=True)
+@config_option(DataConfig, "scene_cache_size", "--scene-cache-size", type=click.IntRange(min=1),
+               default=DataConfig.scene_cache_size, show_default=True, metavar="N")
 @config_option(TrainConfig, "keep_checkpoints", "--keep-checkpoints", type=click.IntRange(min=0),
                default=TrainConfig.keep_checkpoints, show_default=True)
 @config_option(TrainConfig, "threads", "--threads", type=click.IntRange(min=1), default=None)
@@ -87,7 +89,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
             use_coordinates, input_encoding, pool_weighting, devoxelize, grid_anchor, surface_radius, voxel_geometry,
             class_balance, lovasz_weight,
             opacity_power, unlabelled_as_unseen, unlabelled_weight, temperature, holdout_classes,
-            splat_augment, rendition_augment, off_surface_augment, colour_augment, renditions, verify, keep_checkpoints,
+            splat_augment, rendition_augment, off_surface_augment, colour_augment, renditions, verify, scene_cache_size,
+            keep_checkpoints,
             threads, loader_workers, progress, as_json):
     """Train the OVGaussian network (GSR + CCL) on the train split of DATASET into the run folder OUT.
 
@@ -107,7 +110,8 @@ def command(dataset, out, epochs, device, batch_scenes, lr, schedule, seed, resu
                         holdout_classes=tuple(n.strip() for n in holdout_classes.split(",") if n.strip()),
                         splat_augment=splat_augment, rendition_augment=rendition_augment,
                         off_surface_augment=off_surface_augment, colour_augment=colour_augment,
-                        renditions=tuple(renditions), verify=verify),
+                        renditions=tuple(renditions), verify=verify,
+                        scene_cache_size=scene_cache_size),
         text=TextConfig(encoder=text_encoder, clip_model=clip_model),
         teacher=TeacherConfig(clip_model=clip_model),
         loss=LossConfig(temperature=temperature, no_3dt_align=no_3dt_align, no_vs_align=no_vs_align,

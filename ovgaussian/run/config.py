@@ -29,7 +29,9 @@ class DataConfig:
     pixels_per_view: Optional[int] = None
     """Pixels sampled per view for the 2D losses (uniformly, seeded); None uses every pixel."""
     scene_cache_size: int = 4
-    """Preprocessed scenes kept in memory (LRU), per rendition (``renditions``); older ones are re-read from the shards."""
+    """Prepared scenes kept in memory (LRU), per rendition (``renditions``): Gaussians, train views, surface normals.
+    A scene not held is read from the shards and prepared again each time it is drawn; holding the whole train split
+    prepares each scene once per run (the same weights either way)."""
     view_cache_size: int = 16
     """Views (label map, teacher patch features) kept in memory (LRU) on top of the teacher's disk cache, per rendition."""
     augment: bool = True

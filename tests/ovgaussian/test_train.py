@@ -453,6 +453,28 @@ def test_cli_prints_the_summary_of_rank_0_only(monkeypatch, tmp_path):
         assert ('"checkpoint"' in out.output) == printed and ("trained 1 epochs" in out.output) == printed, out.output
 
 
+def test_cli_scene_cache_size_reaches_the_config(monkeypatch, tmp_path):
+    """``--scene-cache-size N`` sets ``DataConfig.scene_cache_size`` (the default without it), so a small dataset's
+    scenes can all stay in memory."""
+    from click.testing import CliRunner
+
+    import ovgaussian.train.loop as loop
+    from cli.ovgaussian_cli import main
+    from ovgaussian.run.config import DataConfig
+    from ovgaussian.train.loop import TrainResult
+
+    seen = []
+    result = TrainResult(tmp_path / "run", 1, 2, {"loss": 1.5}, {}, 4, None, (), {}, 0)
+    monkeypatch.setattr(loop, "train", lambda config: seen.append(config.data.scene_cache_size) or result)
+    for extra, want in (([], DataConfig.scene_cache_size), (["--scene-cache-size", "9"], 9)):
+        out = CliRunner().invoke(main, ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), *extra])
+        assert out.exit_code == 0, out.output
+        assert seen[-1] == want
+    refused = CliRunner().invoke(main, ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
+                                        "--scene-cache-size", "0"])
+    assert refused.exit_code != 0 and "scene-cache-size" in refused.output
+
+
 @pytest.mark.slow
 def test_cli_trains_on_shards_and_reports_json(shard_dataset, tmp_path):
     from click.testing import CliRunner
