@@ -4,9 +4,11 @@
 # Everything scores on fitted splats, as users bring scenes. Training draws each sample's splat among the fits and two
 # renditions of the same rooms that need no fit (a scan turned into splats, oracle Gaussians sampled on the mesh),
 # moves a share of its Gaussians off their surfaces as a fit without depth leaves them, and the run places a splat's
-# Gaussians on its own surface before labelling it: one model for splats made other ways (benchmarks/results/renditions.md).
-# About 11 minutes on a quiet 2-core Intel Xeon (family 6 model 207) (BENCHMARKS.md, "Build and main job");
-# every knob can be overridden from the environment.
+# Gaussians on its own surface before labelling it: one model for splats made other ways
+# (benchmarks/results/renditions.md). The network sees every Gaussian of a sample; its per-Gaussian head and 3D loss
+# run on at most FIT_GAUSSIANS of them and the sampled pixels' contributors, so a dense scan's step costs about a fit's.
+# About 11 minutes on a quiet 2-core AMD EPYC of family 23, the slowest type measured (BENCHMARKS.md, "Build and main
+# job"); every knob can be overridden from the environment.
 # Prints the Table-1 row of the trained run next to two non-learned baselines scored by the same code.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,7 +20,7 @@ WIDTH=${WIDTH:-160}               # image width of the synthetic views
 VIEWS=${VIEWS:-32}                # views per room (32: +1.1 dB per fit over 16 at the same CPU, benchmarks/results/fit.md)
 FIT_PRESET=${FIT_PRESET:-profile} # FitConfig.profile(): SH 3, depth from the mesh, no opacity reset, 320 iterations
 FIT_GAUSSIANS=${FIT_GAUSSIANS:-15000}  # cap on each fit's Gaussians: the training cost grows with it (the profile fits 30k)
-EPOCHS=${EPOCHS:-120}
+EPOCHS=${EPOCHS:-90}               # 180 steps of 3 rooms (benchmarks/results/renditions.md: 90 with the loss subset, not 120)
 CLASSES=${CLASSES:-20}
 VOXEL=${VOXEL:-0.1}               # network voxel edge (m): 10 cm reaches twice as far as 5 cm at a third of the voxels
 BALANCE=${BALANCE:-0.5}           # class-balance exponent of the text losses (small objects vs walls)
@@ -55,7 +57,8 @@ fi
 $BIN/ovgaussian train --data "$OUT/dataset" --out "$OUT/run" --epochs "$EPOCHS" --classes "$CLASSES" \
     --model-preset slim --pixels-per-view 4096 --voxel-size "$VOXEL" --use-coordinates \
     --class-balance "$BALANCE" --lr "$LR" --rendition-data "$OUT/rendition-scan" --rendition-data "$OUT/rendition-oracle" \
-    --off-surface-augment --colour-augment --surface-radius "$SURFACE" --no-progress | tail -n 1
+    --off-surface-augment --colour-augment --surface-radius "$SURFACE" --loss-gaussians "$FIT_GAUSSIANS" \
+    --scene-cache-size "$SCENES" --no-progress | tail -n 1
 
 step "bench: two baselines and the trained run (K = $CLASSES)"
 for P in majority nearest-colour; do
