@@ -7,7 +7,9 @@ for gets the slowest known budget and is reported, never failed, on wall time. B
 do not depend on the type and stay as they are.
 
 The type is read from ``/proc/cpuinfo`` (vendor, family, model and model name of the first CPU): AMD family 25
-(0x19) is Zen 3 for models 0x00-0x0f and 0x20-0x5f, Zen 4 for 0x10-0x1f, 0x60-0x7f and 0xa0-0xaf.
+(0x19) is Zen 3 for models 0x00-0x0f and 0x20-0x5f, Zen 4 for 0x10-0x1f, 0x60-0x7f and 0xa0-0xaf; AMD family 23
+(0x17) is Zen or Zen+ for models 0x00-0x2f and Zen 2 from 0x30 (BENCHMARKS.md's "EPYC family 23" type, model 1,
+is Zen: slower than Zen 3, and no budget here is its own, so its wall times are reported, not enforced).
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+ZEN1 = "zen1"  # Zen and Zen+ (AMD family 23 before model 0x30)
+ZEN2 = "zen2"
 ZEN3 = "zen3"
 ZEN4 = "zen4"
 UNKNOWN = "unknown"
@@ -23,7 +27,8 @@ UNKNOWN = "unknown"
 
 @dataclass(frozen=True)
 class MachineType:
-    """A CPU type: ``kind`` is ``zen3``, ``zen4`` or ``unknown``; ``label`` names the CPU and its cores."""
+    """A CPU type: ``kind`` is ``zen1``, ``zen2``, ``zen3``, ``zen4`` or ``unknown``; ``label`` names the CPU and its
+    cores."""
 
     kind: str
     model_name: str
@@ -38,7 +43,9 @@ class MachineType:
 
     @property
     def label(self) -> str:
-        name = {ZEN3: "AMD EPYC Zen 3", ZEN4: "AMD EPYC Zen 4"}.get(self.kind, self.model_name or "unknown CPU")
+        names = {ZEN1: "AMD EPYC Zen (family 23)", ZEN2: "AMD EPYC Zen 2", ZEN3: "AMD EPYC Zen 3",
+                 ZEN4: "AMD EPYC Zen 4"}
+        name = names.get(self.kind, self.model_name or "unknown CPU")
         return f"{name}, {self.cores} cores"
 
 
@@ -68,6 +75,8 @@ def classify(vendor: str, family: int | None, model: int | None) -> str:
             return ZEN3
         if 0x10 <= model <= 0x1F or 0x60 <= model <= 0x7F or 0xA0 <= model <= 0xAF:
             return ZEN4
+    if vendor == "AuthenticAMD" and family == 23 and model is not None:
+        return ZEN1 if model < 0x30 else ZEN2
     return UNKNOWN
 
 

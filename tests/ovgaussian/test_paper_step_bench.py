@@ -73,7 +73,8 @@ def _cpuinfo(vendor: str, family: int, model: int, name: str, cpus: int = 2) -> 
     ("AuthenticAMD", 25, 17, "zen4"),    # EPYC 9004 (Genoa)
     ("AuthenticAMD", 25, 0x61, "zen4"),  # Ryzen 7000 (Raphael)
     ("AuthenticAMD", 25, 0xA0, "zen4"),  # EPYC 97x4 (Bergamo)
-    ("AuthenticAMD", 23, 49, "unknown"),  # Zen 2
+    ("AuthenticAMD", 23, 49, "zen2"),     # EPYC 7xx2 (Rome)
+    ("AuthenticAMD", 23, 1, "zen1"),      # EPYC 7xx1 (Naples): BENCHMARKS.md's "EPYC family 23" type
     ("AuthenticAMD", 26, 2, "unknown"),   # Zen 5
     ("GenuineIntel", 6, 207, "unknown"),  # Xeon
 ])
@@ -98,5 +99,7 @@ def test_the_step_budget_follows_the_cpu_type_and_an_unknown_type_is_never_faile
     zen3_budget, enforced = bench.step_budget(None, "cpu", zen3)
     assert enforced and zen3_budget >= 25.7 and zen3_budget > bench.step_budget(None, "cpu", zen4)[0]
     assert bench.step_budget(None, "cpu", xeon) == (zen3_budget, False)
+    zen1 = machine_type.parse_cpuinfo(_cpuinfo("AuthenticAMD", 23, 1, "AMD EPYC"))
+    assert zen1.known and bench.step_budget(None, "cpu", zen1) == (zen3_budget, False)  # no budget of its own
     assert bench.step_budget(None, "cuda", xeon) == (20.0, True)
     assert bench.step_budget(5.0, "cpu", xeon) == (5.0, True)
