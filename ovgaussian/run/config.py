@@ -67,7 +67,8 @@ class DataConfig:
     """Gaussians per scene in a step's 3D-to-text loss, drawn uniformly without replacement (seeded; those without
     a label drop out as usual); None uses every Gaussian. With a number, the adapter and the decoder run only on
     those Gaussians and the contributors of the sampled pixels, while the sparse U-Net still sees the whole scene:
-    for scenes of about a million Gaussians (benchmarks/results/train.md, "Paper-scale step")."""
+    for scenes of about a million Gaussians (benchmarks/results/train.md, "Paper-scale step"), or a fit's count when
+    training across denser renditions (``make demo``: benchmarks/results/renditions.md)."""
 
 
 @dataclass(frozen=True)
