@@ -1,4 +1,4 @@
-"""Benchmark: score a finished benchmark profile's runs again on its rooms as today's build labels them, without
+"""Benchmark: score a finished benchmark profile's runs again on its rooms as the current build labels them, without
 retraining (what a change of the label transfer alone does to Table 1 and to the 90 % check).
 
 The profile's datasets are rebuilt in place by its own ``build_data`` (fits, oracle samples and whatever else is

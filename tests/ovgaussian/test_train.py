@@ -435,6 +435,13 @@ def test_torchrun_two_processes_match_one(shard_dataset, tmp_path):
             assert a[key] == pytest.approx(b[key], rel=1e-4, abs=1e-5), (key, a, b)
 
 
+def _train_result(run_dir: Path, rank: int = 0, checkpoint: Path | None = None):
+    """A ``TrainResult`` of one epoch (two steps, four scenes) for CLI tests that stand in for ``train``."""
+    from ovgaussian.train.loop import TrainResult
+
+    return TrainResult(run_dir, 1, 2, {"loss": 1.5}, {}, 4, checkpoint, (), {}, rank)
+
+
 def test_cli_prints_the_summary_of_rank_0_only(monkeypatch, tmp_path):
     """Under torchrun every rank returns from ``train``; only rank 0 (which holds the checkpoint) prints the
     summary, so a P-process run ends with one summary line, not P with P - 1 naming no checkpoint."""
@@ -442,11 +449,10 @@ def test_cli_prints_the_summary_of_rank_0_only(monkeypatch, tmp_path):
 
     import ovgaussian.train.loop as loop
     from cli.ovgaussian_cli import main
-    from ovgaussian.train.loop import TrainResult
 
     for rank, printed in ((0, True), (1, False)):
-        result = TrainResult(tmp_path / "run", 1, 2, {"loss": 1.5}, {}, 4,
-                             tmp_path / "run" / "checkpoints" / "epoch-0001" if rank == 0 else None, (), {}, rank)
+        result = _train_result(tmp_path / "run", rank,
+                               tmp_path / "run" / "checkpoints" / "epoch-0001" if rank == 0 else None)
         monkeypatch.setattr(loop, "train", lambda config, result=result: result)
         out = CliRunner().invoke(main, ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--json"])
         assert out.exit_code == 0, out.output
@@ -461,10 +467,9 @@ def test_cli_scene_cache_size_reaches_the_config(monkeypatch, tmp_path):
     import ovgaussian.train.loop as loop
     from cli.ovgaussian_cli import main
     from ovgaussian.run.config import DataConfig
-    from ovgaussian.train.loop import TrainResult
 
     seen = []
-    result = TrainResult(tmp_path / "run", 1, 2, {"loss": 1.5}, {}, 4, None, (), {}, 0)
+    result = _train_result(tmp_path / "run")
     monkeypatch.setattr(loop, "train", lambda config: seen.append(config.data.scene_cache_size) or result)
     for extra, want in (([], DataConfig.scene_cache_size), (["--scene-cache-size", "9"], 9)):
         out = CliRunner().invoke(main, ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), *extra])

@@ -29,12 +29,17 @@ def scan_build(tmp_path_factory) -> tuple[Path, Path]:
     return raw, out
 
 
+def _gaussians(dataset: Path, scene_id: str):
+    """The built Gaussians of ``scene_id`` (whichever split holds it)."""
+    split = shards.read_manifest(dataset)["scenes"][scene_id]["split"]
+    return shards.read_scene(dataset, split, scene_id, views=False).gaussians
+
+
 def test_every_vertex_becomes_a_solid_isotropic_gaussian_with_its_colour_and_label(scan_build):
     raw, out = scan_build
     (scene_id,) = scannetpp.list_scenes(raw / "scannetpp")
     scene = scannetpp.read_scene(raw / "scannetpp", scene_id)
-    split = shards.read_manifest(out)["scenes"][scene_id]["split"]
-    g = shards.read_scene(out, split, scene_id, views=False).gaussians
+    g = _gaussians(out, scene_id)
     points = np.asarray(scene.points, np.float64)
     assert len(g) == len(points)
     np.testing.assert_allclose(g.means, points, atol=1e-6)  # one per vertex, in vertex order
@@ -71,8 +76,7 @@ def test_a_capped_scan_is_a_seeded_draw_of_vertices_scaled_by_their_own_spacing(
         report = build_mod.build_dataset(BuildConfig(source="synthetic", root=raw, out=out, gaussians="scan",
                                                      scan_max_gaussians=cap, seed=seed, progress=False))
         assert [o.status for o in report.outcomes] == ["built"], [o.reason for o in report.outcomes]
-        split = shards.read_manifest(out)["scenes"][scene_id]["split"]
-        return shards.read_scene(out, split, scene_id, views=False).gaussians
+        return _gaussians(out, scene_id)
 
     g = capped(tmp_path / "a", 0)
     assert len(g) == cap
@@ -93,8 +97,7 @@ def test_a_capped_scan_is_a_seeded_draw_of_vertices_scaled_by_their_own_spacing(
     for i in np.random.default_rng(1).choice(cap, 30, replace=False):
         d = np.sort(np.linalg.norm(kept - kept[i], axis=1))[1:SCAN_NEIGHBOURS + 1]
         assert float(np.exp(g.log_scales[i, 0])) == pytest.approx(max(d.mean(), 1e-7), rel=1e-4)
-    full_scale = np.median(shards.read_scene(full, shards.read_manifest(full)["scenes"][scene_id]["split"],
-                                             scene_id, views=False).gaussians.log_scales[:, 0])
+    full_scale = np.median(_gaussians(full, scene_id).log_scales[:, 0])
     assert np.median(g.log_scales[:, 0]) > full_scale + np.log(1.2)  # sparser vertices, larger Gaussians
     np.testing.assert_array_equal(capped(tmp_path / "b", 0).means, g.means)  # seeded
     assert not np.array_equal(capped(tmp_path / "c", 1).means, g.means)

@@ -31,8 +31,8 @@ SCAN_NEIGHBOURS = 3
 
 def scan_settings(vertices: int, max_gaussians: int | None = None) -> FitConfig:
     """The point-initialization settings of a scan: no voxel averaging, DC colour only, every vertex kept (or a
-    uniform draw of ``max_gaussians`` of them when there are more)."""
-    cap = vertices if max_gaussians is None else min(vertices, max_gaussians)
+    uniform draw of ``max_gaussians`` of them when there are more: ``initialize_gaussians`` draws only then)."""
+    cap = vertices if max_gaussians is None else max_gaussians
     return replace(FitConfig(), init_voxel_size=0.0, max_gaussians=max(1, cap), init_opacity=SCAN_OPACITY,
                    init_knn=SCAN_NEIGHBOURS, sh_degree=0)
 
