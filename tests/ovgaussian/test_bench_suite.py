@@ -135,7 +135,7 @@ def test_bench_suite_cli_maps_its_options_loss_gaussians_0_to_every_gaussian_lov
         raise ValueError("stop here: only the config is checked")
 
     monkeypatch.setattr(S, "run_suite", record)
-    for args, expected in (([], None), (["--loss-gaussians", "0"], None),
+    for args, expected in (([], 15000), (["--loss-gaussians", "0"], None),
                            (["--loss-gaussians", "512"], 512)):
         CliRunner().invoke(command, ["--out", str(tmp_path), *args])
         assert seen.pop().loss_gaussians == expected
