@@ -414,7 +414,8 @@ def test_torchrun_two_processes_match_one(shard_dataset, tmp_path):
         "r = train(cfg, model_config=tiny_model_config(12), text_embeddings=text_stub())\n"
         "print(f'rank={r.rank} checkpoint={r.checkpoint}')\n"
     )
-    env = dict(os.environ, OMP_NUM_THREADS="1")
+    # torchrun's launcher makes a torchelastic_* log folder in the temporary directory and leaves it: here, in tmp_path
+    env = dict(os.environ, OMP_NUM_THREADS="1", TMPDIR=str(tmp_path))
     runs, reported = {}, {}
     for procs in (1, 2):
         out = tmp_path / f"run{procs}"
@@ -424,6 +425,7 @@ def test_torchrun_two_processes_match_one(shard_dataset, tmp_path):
         assert done.returncode == 0, done.stderr[-3000:]
         runs[procs] = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
         reported[procs] = sorted(line for line in done.stdout.splitlines() if line.startswith("rank="))
+    assert len(list(tmp_path.glob("torchelastic_*"))) == 2  # one per launch, none left in the machine's /tmp
     # the checkpoint is rank 0's (the CLI prints rank 0's summary only)
     assert reported[1] == [f"rank=0 checkpoint={tmp_path / 'run1' / 'checkpoints' / 'epoch-0002'}"]
     assert reported[2] == [f"rank=0 checkpoint={tmp_path / 'run2' / 'checkpoints' / 'epoch-0002'}",
@@ -837,7 +839,8 @@ def test_torchrun_nccl_two_gpus_match_one(shard_dataset, tmp_path):
         out = tmp_path / f"run{procs}"
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={procs}",
                str(script), str(out), str(shard_dataset)]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        done = subprocess.run(cmd, env=dict(os.environ, TMPDIR=str(tmp_path)), capture_output=True, text=True,
+                              timeout=300)
         assert done.returncode == 0, done.stderr[-3000:]
         runs[procs] = _metrics(out)
     assert len(runs[1]) == len(runs[2]) == 6

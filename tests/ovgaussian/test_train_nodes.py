@@ -70,9 +70,12 @@ class Launches:
         self.procs: list[subprocess.Popen] = []
 
     def start(self, args: list[str], log: Path) -> subprocess.Popen:
+        """Start ``torchrun ARGS``, its output to ``log``; its torchelastic_* log folder goes beside ``log`` (the
+        launcher leaves it in the temporary directory)."""
         with open(log, "w") as out:
             proc = subprocess.Popen([sys.executable, "-m", "torch.distributed.run", *args], cwd=REPO,
-                                    env=loopback_env(), stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+                                    env=dict(loopback_env(), TMPDIR=str(log.parent)), stdout=out,
+                                    stderr=subprocess.STDOUT, start_new_session=True)
         self.procs.append(proc)
         return proc
 
