@@ -246,10 +246,10 @@ class SuiteConfig:
     loss_gaussians: Optional[int] = 15000
     """Gaussians drawn per room for each step's 3D-to-text loss (``DataConfig.loss_gaussians``; None, or 0 on the
     command line: every Gaussian). The network still voxelizes every Gaussian; the adapter, head and 3D loss run on
-    the drawn ones and the sampled pixels' contributors. 15,000 cut a step of the fitted rooms (about 30,000
-    Gaussians) by about a fifth and of the oracle rooms (40,000) by about a third; 10,000 cut no more, and 2,048
-    learned less (benchmarks/results/bench_suite.md, "What moved the fitted score" and "The profile from
-    nothing")."""
+    the drawn ones and the sampled pixels' contributors. With 15,000 the profile's trainings took 16-19 % less CPU on
+    the fitted rooms (about 30,000 Gaussians) and 26 % less on the oracle rooms (40,000), and the profile from
+    nothing fits its 75 minutes; 2,048 learned less (benchmarks/results/bench_suite.md, "The profile from nothing"
+    and "What moved the fitted score")."""
     scene_cache_size: int = 64
     """Prepared rooms each training keeps in memory (``DataConfig.scene_cache_size``): at least the train split,
     so a room is read and decoded from the shards once per run, not once per epoch (0.07 s CPU a room, three rooms a

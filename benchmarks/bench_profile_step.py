@@ -1,0 +1,89 @@
+"""Training step of the benchmark profile's ``full`` run on a built profile dataset, per 3D-loss subset size.
+
+Each setting trains the profile's ``full`` TrainConfig (``ovgaussian.suite.profile.train_config``) for ``--epochs``
+epochs in a fresh subprocess, one torch and numba thread (as ``bench-suite`` trains), into a temporary folder,
+and reports the median and mean wall time of ``train_step`` over the steps after the first epoch (the first reads
+and prepares the rooms). Every setting draws the same batches (same seed).
+
+    .venv/bin/python benchmarks/bench_profile_step.py --dataset OUT/dataset --loss-gaussians 0 15000
+    .venv/bin/python benchmarks/bench_profile_step.py --dataset OUT/dataset-oracle --loss-gaussians 0 15000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def one(dataset: Path, loss_gaussians: int, epochs: int) -> dict:
+    """Train the profile's ``full`` run with this subset (0: every Gaussian); step times after epoch 1."""
+    import torch
+
+    import ovgaussian.train.loop as loop
+    from ovgaussian.suite import profile
+    from ovgaussian.suite.config import RUNS, SuiteConfig
+
+    torch.set_num_threads(1)
+    times: list[float] = []
+    step = loop.train_step
+
+    def timed(*args, **kwargs):
+        start = time.perf_counter()
+        result = step(*args, **kwargs)
+        times.append(time.perf_counter() - start)
+        return result
+
+    loop.train_step = timed
+    with tempfile.TemporaryDirectory(prefix="bench-profile-step-") as folder:
+        suite = SuiteConfig(out=Path(folder), epochs=epochs, loss_gaussians=loss_gaussians or None)
+        spec = next(r for r in RUNS if r.name == "full")
+        run = profile.train_config(suite, spec, dataset)
+        loop.train(run)
+    per_epoch = len(times) // epochs
+    late = times[per_epoch:]
+    return {"loss_gaussians": loss_gaussians, "steps": len(late), "median_s": statistics.median(late),
+            "mean_s": statistics.fmean(late)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", type=Path, required=True, help="a profile dataset (OUT/dataset or "
+                        "OUT/dataset-oracle of `ovgaussian bench-suite`)")
+    parser.add_argument("--loss-gaussians", type=int, nargs="+", default=[0, 15000],
+                        help="subset sizes to time (0: every Gaussian)")
+    parser.add_argument("--epochs", type=int, default=2, help="epochs per setting (the first is not timed)")
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: one setting, JSON out
+    args = parser.parse_args()
+    if args.epochs < 2:
+        parser.error("--epochs must be at least 2 (the first epoch is not timed)")
+    if not args.dataset.is_dir():
+        parser.error(f"--dataset {args.dataset}: no such folder")
+    if args.one is not None:
+        print(json.dumps(one(args.dataset, args.one, args.epochs)))
+        return
+    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
+    rows = []
+    for size in args.loss_gaussians:
+        done = subprocess.run([sys.executable, __file__, "--dataset", str(args.dataset), "--epochs", str(args.epochs),
+                               "--one", str(size)], env=env, capture_output=True, text=True)
+        if done.returncode != 0:
+            sys.exit(f"bench_profile_step: --loss-gaussians {size} failed: {done.stderr.strip().splitlines()[-1]}")
+        rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    print("| 3D-loss subset | steps timed | median step s | mean step s |\n|---|---:|---:|---:|")
+    for r in rows:
+        label = "every Gaussian" if r["loss_gaussians"] == 0 else f"{r['loss_gaussians']:,}"
+        print(f"| {label} | {r['steps']} | {r['median_s']:.2f} | {r['mean_s']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
