@@ -2,8 +2,9 @@
 
 Each setting trains the profile's ``full`` TrainConfig (``ovgaussian.suite.profile.train_config``) for ``--epochs``
 epochs in a fresh subprocess, one torch and numba thread (as ``bench-suite`` trains), into a temporary folder,
-and reports the median and mean wall time of ``train_step`` over the steps after the first epoch (the first reads
-and prepares the rooms). Every setting draws the same batches (same seed).
+and reports the median and mean wall time and the median CPU time of ``train_step`` over the steps after the
+first epoch (the first reads and prepares the rooms), timed by ``bench_train_threads.time_training``. Every
+setting draws the same batches (same seed).
 
     .venv/bin/python benchmarks/bench_profile_step.py --dataset OUT/dataset --loss-gaussians 0 15000
     .venv/bin/python benchmarks/bench_profile_step.py --dataset OUT/dataset-oracle --loss-gaussians 0 15000
@@ -14,11 +15,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
+from dataclasses import replace
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -26,33 +26,19 @@ sys.path.insert(0, str(REPO))
 
 
 def one(dataset: Path, loss_gaussians: int, epochs: int) -> dict:
-    """Train the profile's ``full`` run with this subset (0: every Gaussian); step times after epoch 1."""
-    import torch
+    """Train the profile's ``full`` run with this subset (0: every Gaussian), one thread: step times after epoch 1
+    (``bench_train_threads.time_training``)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from bench_train_threads import time_training
 
-    import ovgaussian.train.loop as loop
     from ovgaussian.suite import profile
     from ovgaussian.suite.config import RUNS, SuiteConfig
 
-    torch.set_num_threads(1)
-    times: list[float] = []
-    step = loop.train_step
-
-    def timed(*args, **kwargs):
-        start = time.perf_counter()
-        result = step(*args, **kwargs)
-        times.append(time.perf_counter() - start)
-        return result
-
-    loop.train_step = timed
     with tempfile.TemporaryDirectory(prefix="bench-profile-step-") as folder:
         suite = SuiteConfig(out=Path(folder), epochs=epochs, loss_gaussians=loss_gaussians or None)
         spec = next(r for r in RUNS if r.name == "full")
-        run = profile.train_config(suite, spec, dataset)
-        loop.train(run)
-    per_epoch = len(times) // epochs
-    late = times[per_epoch:]
-    return {"loss_gaussians": loss_gaussians, "steps": len(late), "median_s": statistics.median(late),
-            "mean_s": statistics.fmean(late)}
+        run = replace(profile.train_config(suite, spec, dataset), threads=1)
+        return {"loss_gaussians": loss_gaussians, **time_training(run, warmup_steps=None)}
 
 
 def main() -> None:
@@ -79,10 +65,12 @@ def main() -> None:
         if done.returncode != 0:
             sys.exit(f"bench_profile_step: --loss-gaussians {size} failed: {done.stderr.strip().splitlines()[-1]}")
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    print("| 3D-loss subset | steps timed | median step s | mean step s |\n|---|---:|---:|---:|")
+    print("| 3D-loss subset | steps timed | median step s | mean step s | median step CPU s |")
+    print("|---|---:|---:|---:|---:|")
     for r in rows:
         label = "every Gaussian" if r["loss_gaussians"] == 0 else f"{r['loss_gaussians']:,}"
-        print(f"| {label} | {r['steps']} | {r['median_s']:.2f} | {r['mean_s']:.2f} |")
+        print(f"| {label} | {r['steps']} | {r['step_wall_s']:.2f} | {r['step_wall_mean_s']:.2f} "
+              f"| {r['step_cpu_s']:.2f} |")
 
 
 if __name__ == "__main__":

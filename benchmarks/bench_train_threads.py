@@ -28,8 +28,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def one_run(data: str, threads: int, epochs: int) -> dict:
-    """Train in this process (called in a child): median step wall/CPU and mean phase seconds per step."""
+def time_training(config, warmup_steps: int | None = 2) -> dict:
+    """Train ``config`` in this process with every step timed (wall and process CPU) and split by phase as in
+    ``bench_paper_step.py``: median step wall/CPU, mean step wall, and mean phase seconds per step over the steps
+    after ``warmup_steps`` (None: after the first epoch, whose steps read and prepare the scenes)."""
     sys.path.insert(0, str(REPO))
     sys.path.insert(0, str(REPO / "benchmarks"))
     import seggaussian  # noqa: F401  (first: its OpenMP defaults must be set before torch starts its threads)
@@ -37,15 +39,15 @@ def one_run(data: str, threads: int, epochs: int) -> dict:
 
     import bench_paper_step as paper
     import ovgaussian.train.loop as loop
-    from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConfig
 
     timer = paper.PhaseTimer()
     steps: list[tuple[float, float]] = []
     original_step = loop.train_step
-    instrumented = []
+    warmup = []
 
     def timed_step(run, *args):
-        if not instrumented:
+        if not warmup:
+            warmup.append(run.steps_per_epoch if warmup_steps is None else warmup_steps)
             paper.instrument(timer, run.data, run.net)
             backward = torch.Tensor.backward
 
@@ -54,27 +56,38 @@ def one_run(data: str, threads: int, epochs: int) -> dict:
                     return backward(self, *a, **k)
 
             torch.Tensor.backward = timed_backward
-            instrumented.append(True)
         t0, c0 = time.perf_counter(), time.process_time()
         result = original_step(run, *args)
         steps.append((time.perf_counter() - t0, time.process_time() - c0))
-        if len(steps) == 2:
-            timer.seconds.clear()  # the first two steps are warm-up
+        if len(steps) == warmup[0]:
+            timer.seconds.clear()  # the warm-up steps are not timed
         return result
 
     loop.train_step = timed_step
+    try:
+        loop.train(config)
+    finally:
+        loop.train_step = original_step
+    timed = steps[warmup[0]:] if warmup else []
+    if not timed:
+        raise SystemExit("too few steps: raise --epochs")
+    return {"steps": len(timed), "step_wall_s": statistics.median(w for w, _ in timed),
+            "step_wall_mean_s": statistics.fmean(w for w, _ in timed),
+            "step_cpu_s": statistics.median(c for _, c in timed), "voxels_last_step": getattr(timer, "voxels", None),
+            "phases_s_per_step": {p: s / len(timed) for p, s in sorted(timer.seconds.items())}}
+
+
+def one_run(data: str, threads: int, epochs: int) -> dict:
+    """Train in this process (called in a child) with the demo's options: :func:`time_training` after 2 steps."""
+    sys.path.insert(0, str(REPO))
+    from ovgaussian.run.config import DataConfig, LossConfig, OptimConfig, TrainConfig
+
     with tempfile.TemporaryDirectory() as out:
         config = TrainConfig(out=Path(out) / "run", epochs=epochs, model_preset="slim", voxel_size=0.1,
                              use_coordinates=True, progress=False, threads=threads,
                              data=DataConfig(dataset=Path(data), num_classes=20, pixels_per_view=4096),
                              loss=LossConfig(class_balance=0.5), optim=OptimConfig(lr=0.05))
-        loop.train(config)
-    timed = steps[2:]
-    if not timed:
-        raise SystemExit("too few steps: raise --epochs")
-    return {"threads": threads, "steps": len(timed), "step_wall_s": statistics.median(w for w, _ in timed),
-            "step_cpu_s": statistics.median(c for _, c in timed), "voxels_last_step": getattr(timer, "voxels", None),
-            "phases_s_per_step": {p: s / len(timed) for p, s in sorted(timer.seconds.items())}}
+        return {"threads": threads, **time_training(config, warmup_steps=2)}
 
 
 def main() -> int:
