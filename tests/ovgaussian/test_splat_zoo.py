@@ -127,7 +127,7 @@ def test_the_zoo_table_names_every_rendition_scorer_and_matched_run():
     for r in ZOO_RENDITIONS:
         assert r.label in table and r.matched_run in table
     for label in ("recipe (zoo)", "trained on the rendition alone", "majority (baseline)", "nearest-colour (baseline)",
-                  "recipe / matched [paired 95 %]", "| recipe trains on it | yes | no | yes | yes | no |",
+                  "recipe / matched [paired 95 %]", "| recipe trains on it | yes | yes | yes | yes | no |",
                   "120,000 / 125,000 / 130,000"):
         assert label in table
     assert "3D CSA (val rooms)" in table and "3D CDA (xval rooms)" in table
@@ -140,7 +140,7 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     configs = {spec.name: S.train_config(config, spec, datasets[spec.trained_on],
                                          tuple(datasets[r] for r in spec.also_trains_on)) for spec in ZOO_RUNS}
     recipe = configs["zoo"]
-    assert recipe.data.renditions == (Path("/tmp/profile/zoo/scan"), Path("/tmp/o"))
+    assert recipe.data.renditions == (Path("/tmp/profile/zoo/default-fit"), Path("/tmp/profile/zoo/scan"), Path("/tmp/o"))
     assert recipe.data.dataset == Path("/tmp/d") and recipe.data.off_surface_augment and recipe.surface_radius == 0.15
     assert recipe.data.colour_augment
     zoo = "/tmp/profile/zoo"
@@ -161,7 +161,7 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
         assert c.epochs == (2 if name == "zoo" else 1) * full.epochs == (2 if name == "zoo" else 1) * config.epochs
     names = {spec.name for spec in RUNS + ZOO_RUNS}
     assert {r.matched_run for r in ZOO_RENDITIONS} <= names and len(names) == len(RUNS) + len(ZOO_RUNS)
-    assert [r.name for r in ZOO_RENDITIONS if not r.recipe_trains] == ["default-fit", "split"]
+    assert [r.name for r in ZOO_RENDITIONS if not r.recipe_trains] == ["split"]
     assert set(ZOO_RUNS[0].also_trains_on) | {"splats"} == {r.name for r in ZOO_RENDITIONS if r.recipe_trains}
     assert Z.default_fit_config(config).iterations == config.zoo_fit_iterations
     assert Z.default_fit_config(config).densify_every == 100  # the default preset's schedule, not rescaled
@@ -213,12 +213,12 @@ def test_the_profile_queues_the_zoo_after_what_each_task_needs(tmp_path, monkeyp
     report = S.run_suite(config)
     after = dict(queue)
     zoo = tmp_path / "p" / "zoo"
-    assert trained["zoo"] == (splats, (zoo / "scan", oracle))
+    assert trained["zoo"] == (splats, (zoo / "default-fit", zoo / "scan", oracle))
     assert trained["matched-default-fit"] == (zoo / "default-fit", ())
     assert trained["full-oracle"] == (oracle, ()) and trained["full"] == (splats, ())
     assert after["zoo: build default-fit"] == ("zoo: fit default-fit 1/2", "zoo: fit default-fit 2/2")
     assert after["train: matched-default-fit"] == ("zoo: build default-fit",)
-    assert after["train: zoo"] == ("zoo: build scan",) and after["train: full"] == ()
+    assert after["train: zoo"] == ("zoo: build default-fit", "zoo: build scan") and after["train: full"] == ()
     assert after["bench: zoo split recipe"] == ("train: zoo", "zoo: build split")
     assert after["bench: zoo oracle matched"] == ("train: full-oracle",)
     assert after["bench: zoo splats matched"] == ("train: full",)
