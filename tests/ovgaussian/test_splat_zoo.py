@@ -158,7 +158,7 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     for name, c in configs.items():
         assert (c.optim.lr, c.data.pixels_per_view, c.voxel_size, c.loss.lovasz_weight) == (
             full.optim.lr, full.data.pixels_per_view, full.voxel_size, full.loss.lovasz_weight)
-        assert c.epochs == (2 if name == "zoo" else 1) * full.epochs == (2 if name == "zoo" else 1) * config.epochs
+        assert c.epochs == (3 if name == "zoo" else 1) * full.epochs == (3 if name == "zoo" else 1) * config.epochs
     names = {spec.name for spec in RUNS + ZOO_RUNS}
     assert {r.matched_run for r in ZOO_RENDITIONS} <= names and len(names) == len(RUNS) + len(ZOO_RUNS)
     assert [r.name for r in ZOO_RENDITIONS if not r.recipe_trains] == ["split"]
@@ -294,11 +294,11 @@ def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs_and_recipe(tm
     config = SuiteConfig(out=tmp_path, epochs=3)
     recipe = ZOO_RUNS[0]
     S.train_run(config, recipe, tmp_path / "d")
-    S.train_run(config, recipe, tmp_path / "d")  # finished at 2 x 3 epochs: reused
-    assert calls == [6]
+    S.train_run(config, recipe, tmp_path / "d")  # finished at 3 x 3 epochs: reused
+    assert calls == [9]
     S.train_run(SuiteConfig(out=tmp_path, epochs=6), ZOO_RUNS[1], tmp_path / "d")  # another run: trains
-    S.train_run(SuiteConfig(out=tmp_path, epochs=4), recipe, tmp_path / "d")  # 8 epochs now: trains again
-    assert calls == [6, 6, 8]
+    S.train_run(SuiteConfig(out=tmp_path, epochs=4), recipe, tmp_path / "d")  # 12 epochs now: trains again
+    assert calls == [9, 6, 12]
     # the recipe changed in the code since the run finished: refused, naming what changed, not reused silently
     with pytest.raises(ValueError, match=r"runs/zoo: finished with another recipe .*data\.colour_augment"):
         S.train_run(SuiteConfig(out=tmp_path, epochs=4), replace(recipe, colour_augment=not recipe.colour_augment),
@@ -308,7 +308,7 @@ def test_a_finished_run_is_reused_only_at_its_own_number_of_epochs_and_recipe(tm
     (tmp_path / "d" / "manifest.json").write_text("{}")
     with pytest.raises(ValueError, match=r"another recipe or data .*\(its training data\)"):
         S.train_run(SuiteConfig(out=tmp_path, epochs=4), recipe, tmp_path / "d")
-    assert calls == [6, 6, 8]
+    assert calls == [9, 6, 12]
 
 
 def test_a_bench_report_is_reused_only_for_the_weights_it_scored(tmp_path, monkeypatch):
