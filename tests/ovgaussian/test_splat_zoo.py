@@ -140,10 +140,10 @@ def test_the_zoo_runs_are_the_recipe_and_one_model_per_rendition_on_the_profile_
     configs = {spec.name: S.train_config(config, spec, datasets[spec.trained_on],
                                          tuple(datasets[r] for r in spec.also_trains_on)) for spec in ZOO_RUNS}
     recipe = configs["zoo"]
-    assert recipe.data.renditions == (Path("/tmp/profile/zoo/default-fit"), Path("/tmp/profile/zoo/scan"), Path("/tmp/o"))
+    zoo = "/tmp/profile/zoo"
+    assert recipe.data.renditions == (Path(f"{zoo}/default-fit"), Path(f"{zoo}/scan"), Path("/tmp/o"))
     assert recipe.data.dataset == Path("/tmp/d") and recipe.data.off_surface_augment and recipe.surface_radius == 0.15
     assert recipe.data.colour_augment
-    zoo = "/tmp/profile/zoo"
     configs["full"] = full
     configs["full-oracle"] = S.train_config(config, {s.name: s for s in RUNS}["full-oracle"], datasets["oracle"])
     for name, dataset in (("matched-default-fit", f"{zoo}/default-fit"), ("matched-scan", f"{zoo}/scan"),
